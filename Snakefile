@@ -1,0 +1,30 @@
+# latentsim: full-space simulation -> autoencoder -> latent integrator -> rollout -> evaluation.
+# Table of contents only: the rules live in workflow/rules/, the code in src/latentsim/.
+from snakemake.utils import min_version
+
+min_version("8.0")
+
+
+# The default config holds every paper scene; --configfile replaces it (it is not merged into it).
+if not config:
+
+    configfile: "config/config.yaml"
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/mesh.smk"
+include: "workflow/rules/simulate.smk"
+include: "workflow/rules/autoencoder.smk"
+include: "workflow/rules/integrator.smk"
+include: "workflow/rules/rollout.smk"
+include: "workflow/rules/evaluate.smk"
+
+
+report: "workflow/report/workflow.rst"
+
+
+# Default target: every stage of every configured scene, and the summary tables.
+rule all:
+    default_target: True
+    input:
+        all_targets(),

@@ -1,0 +1,79 @@
+"""Config validation against the JSON schema (draft 2020-12), with defaults.
+
+``validate_config`` fills every default the schema declares and raises
+``ConfigError`` at the first problem with a message that names the key (as a
+dotted path), the offending value and what is allowed.  The Snakefile calls it
+on load, so a malformed config stops the run before any job starts.
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import jsonschema
+import yaml
+
+SCHEMA = Path(__file__).resolve().parents[2] / "workflow" / "schemas" / "config.schema.yaml"
+
+
+class ConfigError(ValueError):
+    """The config breaks the schema; the message names the key."""
+
+
+def _with_defaults(cls):
+    validate_properties = cls.VALIDATORS["properties"]
+
+    def set_defaults(validator, properties, instance, schema):
+        if isinstance(instance, dict):
+            for key, sub in properties.items():
+                if "default" in sub and key not in instance:
+                    instance[key] = copy.deepcopy(sub["default"])
+        yield from validate_properties(validator, properties, instance, schema)
+
+    return jsonschema.validators.extend(cls, {"properties": set_defaults})
+
+
+_Validator = _with_defaults(jsonschema.Draft202012Validator)
+
+
+def _describe(error: jsonschema.ValidationError) -> str:
+    path = ".".join(str(p) for p in error.absolute_path) or "<top level>"
+    v, s = error.validator, error.schema
+    if v == "additionalProperties":
+        allowed = sorted(s.get("properties", {}))
+        extra = sorted(set(error.instance) - set(allowed))
+        return f"config key '{path}': unknown key(s) {extra}; allowed: {allowed}"
+    if v == "enum":
+        return f"config key '{path}': {error.instance!r} is not allowed; allowed values: {s['enum']}"
+    if v == "type":
+        return f"config key '{path}': {error.instance!r} is a {type(error.instance).__name__}, expected {s['type']}"
+    if v in ("minimum", "exclusiveMinimum", "maximum", "exclusiveMaximum"):
+        bounds = {k: s[k] for k in ("minimum", "exclusiveMinimum", "maximum", "exclusiveMaximum") if k in s}
+        return f"config key '{path}': {error.instance!r} is out of range; allowed: {bounds}"
+    if v == "required":
+        return f"config key '{path}': {error.message}"
+    return f"config key '{path}': {error.message}"
+
+
+def validate_config(config: dict, schema_path=SCHEMA) -> dict:
+    """Validate ``config`` in place (filling defaults) and return it."""
+    with open(schema_path) as fh:
+        schema = yaml.safe_load(fh)
+    validator = _Validator(schema)
+    errors = sorted(validator.iter_errors(config), key=lambda e: (len(list(e.absolute_path)), list(map(str, e.absolute_path))))
+    if errors:
+        # the deepest error of the first failing branch is the most specific
+        error = max(errors, key=lambda e: len(list(e.absolute_path)))
+        raise ConfigError(_describe(error))
+    return config
+
+
+def load_config(path, schema_path=SCHEMA) -> dict:
+    """Read a YAML config and validate it."""
+    with open(path) as fh:
+        config = yaml.safe_load(fh) or {}
+    try:
+        return validate_config(config, schema_path)
+    except ConfigError as e:
+        raise ConfigError(f"{path}: {e}") from None

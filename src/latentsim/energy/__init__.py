@@ -1,0 +1,1 @@
+"""Energies, written once: every solver, loss and metric calls these."""

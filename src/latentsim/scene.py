@@ -1,0 +1,144 @@
+"""Scenes as data: the boundary-condition program and the physical model.
+
+A scene is a mesh (``results/mesh/{scene}/mesh.h5``), a model (``rods``,
+``shell`` or ``tets``), a material, a time step, gravity, a Dirichlet vertex
+set and a list of sequences, each driving the Dirichlet set by a rigid-motion
+program.  Nothing about a particular scene is code.
+
+Boundary-condition program
+--------------------------
+The Dirichlet vertices move rigidly: at frame t their positions are
+
+    x*_D(t) = R(t) (X_D - c_0) + c(t),
+    c(t) = c(t-1) + v_t dt,       R(t) = exp(dt [w_t]_x) R(t-1),
+
+starting from rest (c(0) = c_0, the centroid of X_D; R(0) = I).  The linear
+velocity v_t [m/s] and angular velocity w_t [rad/s] are piecewise constant:
+``segments`` is a list of ``{start, velocity, angular_velocity}`` and each
+segment holds from its ``start`` frame on; ``reverse_every`` = N flips the sign
+of both every N frames.  The boundary-condition parameters stored per frame,
+and fed to the latent integrator, are p_t = [v_t, w_t] (k = 6).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .energy.dynamics import IncrementalPotential
+
+BC_DIM = 6
+
+
+def _rotation(w: np.ndarray, dt: float) -> np.ndarray:
+    """exp(dt [w]_x) by Rodrigues' formula."""
+    theta = float(np.linalg.norm(w)) * dt
+    if theta < 1e-15:
+        return np.eye(3)
+    k = np.asarray(w, dtype=float) / np.linalg.norm(w)
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * K @ K
+
+
+def bc_parameters(sequence: dict, frames: int) -> np.ndarray:
+    """Per-frame p_t = [v_t, w_t], (frames, 6); p_0 = 0 (the scene starts at rest)."""
+    segments = sorted(sequence.get("segments", []), key=lambda s: s.get("start", 0))
+    reverse = int(sequence.get("reverse_every", 0) or 0)
+    p = np.zeros((frames, BC_DIM))
+    for t in range(1, frames):
+        active = None
+        for seg in segments:
+            if seg.get("start", 0) <= t:
+                active = seg
+        if active is None:
+            continue
+        v = np.asarray(active.get("velocity", [0, 0, 0]), dtype=float)
+        w = np.asarray(active.get("angular_velocity", [0, 0, 0]), dtype=float)
+        sign = -1.0 if reverse and ((t - 1) // reverse) % 2 == 1 else 1.0
+        p[t, :3] = sign * v
+        p[t, 3:] = sign * w
+    return p
+
+
+def dirichlet_trajectory(rest_D: np.ndarray, p: np.ndarray, dt: float) -> np.ndarray:
+    """Prescribed positions (T, m, 3) of the Dirichlet vertices from p (T, 6)."""
+    rest_D = np.asarray(rest_D, dtype=float)
+    c0 = rest_D.mean(axis=0)
+    local = rest_D - c0
+    c = c0.copy()
+    R = np.eye(3)
+    out = np.empty((len(p),) + rest_D.shape)
+    out[0] = rest_D
+    for t in range(1, len(p)):
+        c = c + p[t, :3] * dt
+        R = _rotation(p[t, 3:], dt) @ R
+        out[t] = local @ R.T + c
+    return out
+
+
+def sequence_frames(sequence: dict) -> int:
+    return int(sequence["frames"])
+
+
+# --- the physical model -------------------------------------------------------
+
+
+def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity, w_bc: float = 1e5):
+    """IncrementalPotential of a scene from its mesh arrays and material.
+
+    Parameters
+    ----------
+    model : 'rods' | 'shell' | 'tets'
+    arrays : dict with 'rest_positions' (n,3), 'dirichlet' (m,), and the
+        element arrays of the model: 'edges' (rods), 'triangles' (shell), 'tets'.
+    material : youngs_modulus [Pa], poisson_ratio, density [kg/m^3], and
+        radius [m] (rods) or thickness [m] (shell).
+    """
+    X = torch.as_tensor(np.asarray(arrays["rest_positions"], dtype=np.float64))
+    Y = float(material["youngs_modulus"])
+    rho = float(material["density"])
+    if model == "rods":
+        from .energy import rods
+
+        edges = torch.as_tensor(np.asarray(arrays["edges"], dtype=np.int64))
+        triples = torch.as_tensor(np.asarray(arrays["triples"], dtype=np.int64))
+        r = float(material["radius"])
+        ks, kb = rods.rod_stiffness(Y, r)
+        terms = [rods.RodStretch(X, edges, ks), rods.RodBend(X, triples, kb)]
+        masses = rods.lumped_masses_rods(X, edges, rho, r)
+    elif model == "shell":
+        from .energy import shells
+
+        tris = torch.as_tensor(np.asarray(arrays["triangles"], dtype=np.int64))
+        h = float(material["thickness"])
+        nu = float(material["poisson_ratio"])
+        hinges = shells.hinges_from_triangles(tris)
+        terms = [shells.ShellMembraneStVK(X, tris, Y, nu, h), shells.ShellHinge(X, hinges, Y, nu, h)]
+        masses = shells.lumped_masses_shell(X, tris, rho, h)
+    elif model == "tets":
+        from .energy import tets
+
+        T = torch.as_tensor(np.asarray(arrays["tets"], dtype=np.int64))
+        terms = [tets.StVKTets(X, T, Y, float(material["poisson_ratio"]))]
+        masses = tets.lumped_masses(X, T, rho)
+    else:
+        raise ValueError(f"model '{model}': use one of rods, shell, tets")
+    return IncrementalPotential(
+        terms=terms,
+        masses=torch.as_tensor(masses, dtype=torch.float64),
+        dt=float(dt),
+        g=torch.as_tensor(np.asarray(gravity, dtype=np.float64)),
+        dirichlet=torch.as_tensor(np.asarray(arrays["dirichlet"], dtype=np.int64)),
+        w_bc=float(w_bc),
+    )
+
+
+MATERIAL_KEYS = ("youngs_modulus", "poisson_ratio", "density", "thickness", "radius")
+ELEMENT_KEYS = ("edges", "triples", "triangles", "tets", "root_of")
+
+
+def potential_from_artefact(f, w_bc: float = 1e5) -> IncrementalPotential:
+    """Rebuild the IncrementalPotential from a trajectories.h5 (open h5py.File)."""
+    arrays = {k: f[k][()] for k in ("rest_positions", "dirichlet") + ELEMENT_KEYS if k in f}
+    material = {k: float(f.attrs[k]) for k in MATERIAL_KEYS if k in f.attrs}
+    return build_potential(str(f.attrs["model"]), arrays, material, float(f.attrs["dt"]), f.attrs["gravity"], w_bc)

@@ -1,0 +1,237 @@
+"""Full-space implicit Euler: Newton's method on the incremental potential.
+
+Each time step solves (Martin et al. 2011; Li et al. 2025, Eq. 1)
+
+    x_t = argmin_x  E_total(x; x_{t-1}, x_{t-2})   s.t.  x_D = x*_D(t)
+
+with Newton's method: per-stencil Hessians projected to positive semi-definite
+(Teran et al. 2005) and assembled over the free DoFs only (Dirichlet DoFs are
+removed from the system and set to their prescribed values), a sparse SPD
+solve, and a backtracking (Armijo) line search on E_total.  A step has
+converged when the 2-norm of the free-DoF gradient is at most
+``tolerance * f_ref``, with ``f_ref`` the weight of the free vertices
+(||m|| max(|g|, 1 m/s^2)), so the tolerance is a relative force residual.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from .energy.dynamics import IncrementalPotential
+from .sparse import HessianPattern, LinearSolver, scatter_gradient
+
+
+class NewtonFailed(RuntimeError):
+    """A time step did not converge; carries the residual and iteration count."""
+
+    def __init__(self, message, residual=float("nan"), iterations=0):
+        super().__init__(message)
+        self.residual = residual
+        self.iterations = iterations
+
+
+@dataclass
+class NewtonSettings:
+    """Settings of the per-step Newton solve (config key ``newton``)."""
+
+    tolerance: float = 1e-6
+    max_iterations: int = 50
+    linear_solver: str = "auto"
+    armijo: float = 1e-4
+    min_step: float = 1e-10
+
+
+@dataclass
+class StepInfo:
+    """What one time step cost and how it ended."""
+
+    iterations: int = 0
+    gradient_norm: float = float("nan")
+    timings: dict = field(default_factory=lambda: dict(energy=0.0, local=0.0, assembly=0.0, solve=0.0))
+
+
+class ImplicitEuler:
+    """Newton solver for one scene's incremental potential.
+
+    Parameters
+    ----------
+    potential : IncrementalPotential (terms, masses, dt, g, dirichlet)
+    settings : NewtonSettings
+    """
+
+    def __init__(self, potential: IncrementalPotential, settings: NewtonSettings | None = None):
+        self.potential = potential
+        self.settings = settings or NewtonSettings()
+        n = potential.n_vertices
+        self.n = n
+        self.masses = potential.masses.detach().cpu().numpy().astype(np.float64)
+        self.g = potential.g.detach().cpu().numpy().astype(np.float64)
+        self.dirichlet = potential.dirichlet.detach().cpu().numpy().astype(np.int64)
+        free_v = np.ones(n, dtype=bool)
+        free_v[self.dirichlet] = False
+        self.free_mask = np.repeat(free_v, 3)
+        self.free_dofs = np.flatnonzero(self.free_mask)
+        self.stencils = [t.stencils.cpu().numpy() for t in potential.terms]
+        self.pattern = HessianPattern(n, self.stencils, self.free_dofs)
+        self.linear = LinearSolver(self.pattern, self.settings.linear_solver)
+        m_free = self.masses[free_v]
+        self.f_ref = float(np.linalg.norm(m_free) * max(np.linalg.norm(self.g), 1.0))
+        self.m3 = np.repeat(self.masses, 3)
+
+    # -- pieces of one Newton iteration --------------------------------------
+    def energy(self, x, x_prev, x_prev2) -> float:
+        """E_total at x (n,3) numpy; Dirichlet handled by elimination, no penalty."""
+        with torch.no_grad():
+            e = self.potential(torch.from_numpy(x), torch.from_numpy(x_prev), torch.from_numpy(x_prev2), penalty=False)
+        return float(e)
+
+    def gradient_hessian(self, x, x_prev, x_prev2, timings=None):
+        """Full gradient (3n,) and the projected free-DoF Hessian (upper CSR)."""
+        t0 = time.perf_counter()
+        xt = torch.from_numpy(x)
+        grads, blocks = [], []
+        for term in self.potential.terms:
+            g, H = term.local_gradient_hessian(term.gather(xt))
+            grads.append(g.numpy())
+            blocks.append(H.numpy())
+        t1 = time.perf_counter()
+        h2 = self.potential.dt**2
+        g_dyn = (self.masses[:, None] / h2 * (x - 2 * x_prev + x_prev2) - self.masses[:, None] * self.g).reshape(-1)
+        grad = g_dyn + scatter_gradient(self.n, self.stencils, grads)
+        U = self.pattern.assemble(blocks, self.m3 / h2)
+        t2 = time.perf_counter()
+        if timings is not None:
+            timings["local"] += t1 - t0
+            timings["assembly"] += t2 - t1
+        return grad, U
+
+    # -- one time step --------------------------------------------------------
+    def step(self, x_prev, x_prev2, dirichlet_targets):
+        """Advance one step.
+
+        Parameters
+        ----------
+        x_prev, x_prev2 : (n,3) positions at t-1 and t-2
+        dirichlet_targets : (m,3) prescribed positions x*_D(t)
+
+        Returns
+        -------
+        x : (n,3), info : StepInfo
+        Raises NewtonFailed when the gradient test is not met in max_iterations.
+        """
+        s = self.settings
+        info = StepInfo()
+        tm = info.timings
+        D = self.dirichlet
+        # initial guess: the better of the constant-velocity predictor and x_{t-1}
+        candidates = [2 * x_prev - x_prev2, x_prev.copy()]
+        best, e_best = None, np.inf
+        t0 = time.perf_counter()
+        for c in candidates:
+            c[D] = dirichlet_targets
+            e = self.energy(c, x_prev, x_prev2)
+            if e < e_best:
+                best, e_best = c, e
+        tm["energy"] += time.perf_counter() - t0
+        x, e = best, e_best
+        tol = s.tolerance * self.f_ref
+        for it in range(s.max_iterations + 1):
+            grad, U = self.gradient_hessian(x, x_prev, x_prev2, tm)
+            gf = grad[self.free_dofs]
+            gnorm = float(np.linalg.norm(gf))
+            info.gradient_norm = gnorm
+            if not np.isfinite(gnorm):
+                raise NewtonFailed(f"non-finite gradient at iteration {it}", gnorm, it)
+            if gnorm <= tol:
+                info.iterations = it
+                return x, info
+            if it == s.max_iterations:
+                break
+            t0 = time.perf_counter()
+            dx_f = -self.linear.solve(U, gf)
+            tm["solve"] += time.perf_counter() - t0
+            slope = float(gf @ dx_f)
+            if not slope < 0:  # not a descent direction: fall back to steepest descent
+                dx_f = -gf / max(U.diagonal().max(), 1e-300)
+                slope = float(gf @ dx_f)
+            dx = np.zeros(3 * self.n)
+            dx[self.free_dofs] = dx_f
+            dx = dx.reshape(-1, 3)
+            alpha = 1.0
+            t0 = time.perf_counter()
+            while True:
+                x_try = x + alpha * dx
+                e_try = self.energy(x_try, x_prev, x_prev2)
+                if np.isfinite(e_try) and e_try <= e + s.armijo * alpha * slope:
+                    break
+                alpha *= 0.5
+                if alpha < s.min_step:
+                    tm["energy"] += time.perf_counter() - t0
+                    raise NewtonFailed(
+                        f"line search failed at iteration {it} (gradient norm {gnorm:.3e}, tolerance {tol:.3e})",
+                        gnorm,
+                        it,
+                    )
+            tm["energy"] += time.perf_counter() - t0
+            x, e = x_try, e_try
+        info.iterations = s.max_iterations
+        raise NewtonFailed(
+            f"no convergence in {s.max_iterations} iterations (gradient norm {info.gradient_norm:.3e}, tolerance {tol:.3e})",
+            info.gradient_norm,
+            s.max_iterations,
+        )
+
+
+def stiffness_matrix(potential: IncrementalPotential, x, free_dofs=None):
+    """Elastic Hessian K (full symmetric CSR over ``free_dofs``) at state x (n,3).
+
+    Uses each term's projected per-stencil Hessian; at the rest state the
+    elastic Hessian is positive semi-definite, so the projection leaves it
+    unchanged there (the use this serves: linear modes and frequencies).
+    """
+    from .sparse import symmetric_from_upper
+
+    n = potential.n_vertices
+    if free_dofs is None:
+        free = np.ones(n, dtype=bool)
+        free[potential.dirichlet.cpu().numpy()] = False
+        free_dofs = np.flatnonzero(np.repeat(free, 3))
+    stencils = [t.stencils.cpu().numpy() for t in potential.terms]
+    pattern = HessianPattern(n, stencils, free_dofs)
+    xt = torch.as_tensor(np.asarray(x, dtype=np.float64))
+    blocks = [t.local_gradient_hessian(t.gather(xt))[1].numpy() for t in potential.terms]
+    return symmetric_from_upper(pattern.assemble(blocks, np.zeros(3 * n))).tocsr(), free_dofs
+
+
+def lowest_modes(potential: IncrementalPotential, k: int, x=None):
+    """The k lowest (omega^2, mode) of K v = omega^2 M v on the free DoFs.
+
+    Sparse shift-invert Lanczos (``eigsh`` with sigma = 0) on the rest-state
+    elastic Hessian and the lumped mass; no dense matrix is formed.
+
+    Returns
+    -------
+    omega2 : (k,) ascending, modes : (f, k) M-orthonormal, free_dofs : (f,)
+    """
+    import scipy.sparse
+    import scipy.sparse.linalg
+
+    X = potential_rest(potential) if x is None else x
+    K, free = stiffness_matrix(potential, X)
+    m = np.repeat(potential.masses.cpu().numpy(), 3)[free]
+    M = scipy.sparse.diags(m)
+    w, V = scipy.sparse.linalg.eigsh(K, k=k, M=M, sigma=-1e-8 * abs(K.diagonal()).max() / m.max(), which="LM")
+    order = np.argsort(w)
+    return w[order], V[:, order], free
+
+
+def potential_rest(potential: IncrementalPotential):
+    """Rest positions of the first term that stores them."""
+    for t in potential.terms:
+        if hasattr(t, "rest_positions"):
+            return t.rest_positions.cpu().numpy()
+    raise AttributeError("no energy term stores rest_positions; pass x explicitly")

@@ -1,0 +1,172 @@
+"""Sparse assembly of per-stencil Hessians and the linear solvers Newton uses.
+
+Assembly: the sparsity pattern of the free-DoF Hessian is computed once per
+scene from the terms' stencils; each Newton iteration then scatters the
+per-stencil blocks into the CSR data array with a single ``np.bincount`` over
+precomputed slot indices (no COO->CSR conversion in the hot path).
+
+Linear solvers (all for symmetric positive definite systems, which the
+PSD-projected Hessian plus M/h^2 is):
+
+- ``banded``  : ``scipy.linalg.solveh_banded`` (Cholesky of a banded matrix).
+  Rods stored rod by rod give a bandwidth of 8 DoFs; milliseconds for 10k DoF.
+- ``pardiso`` : MKL PARDISO through ``pypardiso`` (symbolic analysis reused
+  across iterations by pypardiso when the pattern is unchanged).
+- ``splu``    : SciPy SuperLU, always available, slowest.
+- ``auto``    : banded when the bandwidth is small, else pardiso if it imports,
+  else splu.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse
+import scipy.sparse.linalg
+
+
+class HessianPattern:
+    """CSR pattern of the upper triangle of the Hessian restricted to free DoFs.
+
+    Parameters
+    ----------
+    n_vertices : int
+    stencil_sets : list of (E_i, k_i) int arrays, one per energy term
+    free_dofs : (f,) int array of free DoF indices (3*vertex + axis), sorted
+
+    After construction, ``assemble(blocks, diagonal)`` builds the matrix from
+    per-stencil blocks (E_i, 3k_i, 3k_i) and a per-DoF diagonal (3n,).
+    """
+
+    def __init__(self, n_vertices, stencil_sets, free_dofs):
+        self.n_dofs = 3 * n_vertices
+        self.free_dofs = np.asarray(free_dofs, dtype=np.int64)
+        local = -np.ones(self.n_dofs, dtype=np.int64)
+        local[self.free_dofs] = np.arange(len(self.free_dofs))
+        self.local = local
+        f = len(self.free_dofs)
+        rows, cols, self._keep = [], [], []
+        for st in stencil_sets:
+            st = np.asarray(st, dtype=np.int64)
+            dofs = (3 * st[:, :, None] + np.arange(3)).reshape(len(st), -1)  # (E, 3k)
+            ld = local[dofs]
+            r = np.broadcast_to(ld[:, :, None], ld.shape + (ld.shape[1],)).reshape(-1)
+            c = np.broadcast_to(ld[:, None, :], ld.shape[:1] + (ld.shape[1],) * 2).reshape(-1)
+            keep = (r >= 0) & (c >= r)  # free DoFs, upper triangle only
+            self._keep.append(keep)
+            rows.append(r[keep])
+            cols.append(c[keep])
+        diag = np.arange(f)
+        rows.append(diag)
+        cols.append(diag)
+        rows = np.concatenate(rows)
+        cols = np.concatenate(cols)
+        key = rows * f + cols
+        uniq, slot = np.unique(key, return_inverse=True)
+        self.nnz = len(uniq)
+        self.indices = (uniq % f).astype(np.int32)
+        row_of = uniq // f
+        self.indptr = np.zeros(f + 1, dtype=np.int32)
+        np.cumsum(np.bincount(row_of, minlength=f), out=self.indptr[1:])
+        # split slot back into per-term pieces and the diagonal
+        self._slots = []
+        start = 0
+        for keep in self._keep:
+            n = int(keep.sum())
+            self._slots.append(slot[start : start + n])
+            start += n
+        self._diag_slot = slot[start:]
+        self.all_slots = slot
+        self.shape = (f, f)
+        self.bandwidth = int(np.max(np.abs(row_of - self.indices))) if self.nnz else 0
+
+    def assemble(self, blocks, diagonal):
+        """Upper-triangular CSR matrix from per-term blocks (E_i, 3k_i, 3k_i) and a (3n,) diagonal."""
+        weights = [np.asarray(b).reshape(-1)[keep] for b, keep in zip(blocks, self._keep)]
+        weights.append(np.asarray(diagonal)[self.free_dofs])
+        data = np.bincount(self.all_slots, weights=np.concatenate(weights), minlength=self.nnz)
+        return scipy.sparse.csr_matrix((data, self.indices, self.indptr), shape=self.shape)
+
+
+def scatter_gradient(n_vertices, stencil_sets, grads):
+    """Sum per-stencil gradients (E_i, 3k_i) into a (3n,) vector."""
+    out = np.zeros(3 * n_vertices)
+    for st, g in zip(stencil_sets, grads):
+        st = np.asarray(st, dtype=np.int64)
+        dofs = (3 * st[:, :, None] + np.arange(3)).reshape(-1)
+        out += np.bincount(dofs, weights=np.asarray(g).reshape(-1), minlength=3 * n_vertices)
+    return out
+
+
+def _to_banded_upper(U: scipy.sparse.csr_matrix, bw: int) -> np.ndarray:
+    """Upper banded storage ab[bw + i - j, j] = U[i, j] of an upper-triangular CSR."""
+    n = U.shape[0]
+    rows = np.repeat(np.arange(n), np.diff(U.indptr))
+    ab = np.zeros((bw + 1, n))
+    ab[bw + rows - U.indices, U.indices] = U.data
+    return ab
+
+
+def symmetric_from_upper(U):
+    """Full symmetric matrix from its upper triangle."""
+    return U + scipy.sparse.triu(U, k=1).T
+
+
+class LinearSolver:
+    """Solve A x = b for the SPD Newton systems of one scene.
+
+    ``method`` is one of 'auto', 'banded', 'pardiso', 'splu'.  'auto' resolves
+    once, from the pattern's bandwidth, to the fastest method available.
+    """
+
+    BANDED_MAX = 64
+
+    def __init__(self, pattern: HessianPattern, method: str = "auto"):
+        if method not in ("auto", "banded", "pardiso", "splu"):
+            raise ValueError(f"linear solver '{method}': use one of auto, banded, pardiso, splu")
+        if method == "auto":
+            if pattern.bandwidth <= self.BANDED_MAX:
+                method = "banded"
+            else:
+                method = "pardiso" if _pardiso_available() else "splu"
+        self.method = method
+        self.bandwidth = pattern.bandwidth
+        self._pardiso = None
+        self._analysed = False
+
+    def solve(self, U, b):
+        """Solve with the upper-triangular CSR ``U`` of an SPD matrix."""
+        if self.method == "banded":
+            ab = _to_banded_upper(U, self.bandwidth)
+            return scipy.linalg.solveh_banded(ab, b, lower=False, check_finite=False)
+        if self.method == "pardiso":
+            return self._solve_pardiso(U, b)
+        return scipy.sparse.linalg.splu(symmetric_from_upper(U).tocsc()).solve(b)
+
+    def _solve_pardiso(self, U, b):
+        # PARDISO on the upper triangle, mtype 2 (real SPD).  The pattern never
+        # changes within a scene, so the symbolic analysis (phase 11, fill-in
+        # reducing ordering) runs once; each Newton iteration only refactors
+        # numerically and solves (phase 23).
+        if self._pardiso is None:
+            import pypardiso
+
+            self._pardiso = pypardiso.PyPardisoSolver(mtype=2)
+            self._pardiso.msglvl = 0
+        p = self._pardiso
+        b = np.asfortranarray(b, dtype=np.float64)
+        if not self._analysed:
+            p._check_A(U)
+            p.set_phase(11)
+            p._call_pardiso(U, b)
+            self._analysed = True
+        p.set_phase(23)
+        return p._call_pardiso(U, b)
+
+
+def _pardiso_available() -> bool:
+    try:
+        import pypardiso  # noqa: F401
+    except Exception:  # pragma: no cover - depends on the install
+        return False
+    return True

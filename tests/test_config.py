@@ -1,0 +1,57 @@
+"""Config validation: defaults filled, malformed configs stopped with the key named."""
+
+import copy
+from pathlib import Path
+
+import pytest
+import yaml
+
+from latentsim.config import ConfigError, load_config, validate_config
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def tiny():
+    return yaml.safe_load((ROOT / "config" / "tiny.yaml").read_text())
+
+
+@pytest.mark.parametrize("name", ["config.yaml", "tiny.yaml"])
+def test_shipped_configs_validate(name):
+    cfg = load_config(ROOT / "config" / name)
+    for scene in cfg["scenes"].values():
+        # defaults filled at every level
+        assert scene["newton"]["max_iterations"] >= 1
+        assert "noise_scale" in scene["integrator"]
+        for seq in scene["sequences"]:
+            assert seq["split"] in ("train", "test")
+
+
+def test_unknown_scene_key_is_named(tiny):
+    tiny["scenes"]["tiny_rods"]["materail"] = {}
+    with pytest.raises(ConfigError, match=r"scenes\.tiny_rods.*materail"):
+        validate_config(tiny)
+
+
+def test_negative_youngs_modulus_is_named(tiny):
+    tiny["scenes"]["tiny_rods"]["material"]["youngs_modulus"] = -1.0
+    with pytest.raises(ConfigError, match=r"scenes\.tiny_rods\.material\.youngs_modulus.*-1\.0.*exclusiveMinimum"):
+        validate_config(tiny)
+
+
+def test_string_where_a_number_goes_is_named(tiny):
+    tiny["scenes"]["tiny_cloth"]["dt"] = "fast"
+    with pytest.raises(ConfigError, match=r"scenes\.tiny_cloth\.dt.*'fast'.*number"):
+        validate_config(tiny)
+
+
+def test_enum_lists_allowed_values(tiny):
+    tiny["scenes"]["tiny_rods"]["model"] = "fem"
+    with pytest.raises(ConfigError, match=r"scenes\.tiny_rods\.model.*allowed values: \['rods', 'shell', 'tets'\]"):
+        validate_config(tiny)
+
+
+def test_defaults_do_not_leak_between_scenes(tiny):
+    cfg = validate_config(copy.deepcopy(tiny))
+    cfg["scenes"]["tiny_rods"]["newton"]["tolerance"] = 1.0
+    assert cfg["scenes"]["tiny_cloth"]["newton"]["tolerance"] != 1.0

@@ -1,0 +1,17 @@
+# Mesh preparation: generate or fetch, tetrahedralise, select Dirichlet vertices, check quality.
+rule prepare_mesh:
+    output:
+        mesh="results/mesh/{scene}/mesh.h5",
+        vtu="results/mesh/{scene}/mesh.vtu",
+    log:
+        "logs/mesh/{scene}.log",
+    conda:
+        "../../envs/latentsim.yaml"
+    resources:
+        mem_mb=2000,
+        runtime=10,
+    params:
+        scene=scene_cfg("model", "mesh", "dirichlet"),
+        sources=mesh_sources(),
+    script:
+        "../scripts/prepare_mesh.py"

@@ -1,0 +1,10 @@
+"""Stage: latent rollout of the test sequences (see latentsim.train.rollout_scene)."""
+from latentsim.train import rollout_scene
+from latentsim.utils import run_stage
+
+
+def main(smk):
+    rollout_scene(smk.input.trajectories, smk.input.autoencoder, smk.input.integrator, smk.params.rollout["rollout"], smk.output.rollout)
+
+
+run_stage(snakemake, main)  # noqa: F821 (injected by Snakemake)

@@ -1,0 +1,17 @@
+"""Stage: full-space simulation (see latentsim.simulate)."""
+from latentsim.simulate import simulate_scene
+from latentsim.utils import progress_enabled, run_stage
+
+
+def main(smk):
+    simulate_scene(
+        smk.wildcards.scene,
+        smk.input.mesh,
+        smk.params.sim,
+        smk.output.trajectories,
+        paraview_dir=smk.output.paraview,
+        progress=progress_enabled(smk.params.progress),
+    )
+
+
+run_stage(snakemake, main)  # noqa: F821 (injected by Snakemake)

@@ -1,0 +1,13 @@
+"""Stage: autoencoder training (see latentsim.train.train_autoencoder)."""
+from latentsim.train import train_autoencoder
+from latentsim.utils import progress_enabled, run_stage
+
+
+def main(smk):
+    p = smk.params.train
+    train_autoencoder(
+        smk.input.trajectories, p["settings"], p["seed"], p["device"], smk.output.model, smk.output.latents, progress=progress_enabled(smk.params.progress)
+    )
+
+
+run_stage(snakemake, main)  # noqa: F821 (injected by Snakemake)
