@@ -909,9 +909,15 @@ def check_closed_surface(triangles: np.ndarray, name: str = "surface") -> None:
 def _run_tetgen(vertices: np.ndarray, triangles: np.ndarray, switches: str):
     import tetgen
 
+    import tempfile
+
+    from .utils import working_directory
+
     tg = tetgen.TetGen(vertices, triangles.astype(np.int32))
     try:
-        out = tg.tetrahedralize(switches=switches)
+        # TetGen writes tetgen-tmpfile_* debris into the cwd when it fails
+        with tempfile.TemporaryDirectory() as scratch, working_directory(scratch):
+            out = tg.tetrahedralize(switches=switches)
     except RuntimeError as exc:
         raise MeshError(f"TetGen failed with switches {switches!r}: {exc}") from exc
     nodes = np.asarray(out[0], dtype=np.float64)

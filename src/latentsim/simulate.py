@@ -24,7 +24,7 @@ from .io import atomic_h5, atomic_path, write_dataset
 from .prepare import cells_for
 from .scene import bc_parameters, build_potential, dirichlet_trajectory
 from .solver import ImplicitEuler, NewtonFailed, NewtonSettings
-from .utils import progress_bar
+from .utils import progress_bar, working_directory
 
 log = logging.getLogger(__name__)
 
@@ -132,10 +132,12 @@ def write_paraview(folder, model, arrays, sequences: dict, dt: float):
     folder = Path(folder)
     with atomic_path(folder) as tmp:
         tmp.mkdir(parents=True)
-        for name, pos in sequences.items():
-            with meshio.xdmf.TimeSeriesWriter(str(tmp / f"{name}.xdmf")) as w:
-                w.write_points_cells(pos[0], cells_for(model, arrays))
-                for t in range(len(pos)):
-                    w.write_data(t * dt, point_data={"displacement": pos[t] - pos[0]})
+        # meshio's TimeSeriesWriter puts its .h5 in the current directory
+        with working_directory(tmp):
+            for name, pos in sequences.items():
+                with meshio.xdmf.TimeSeriesWriter(f"{name}.xdmf") as w:
+                    w.write_points_cells(pos[0], cells_for(model, arrays))
+                    for t in range(len(pos)):
+                        w.write_data(t * dt, point_data={"displacement": pos[t] - pos[0]})
         if folder.exists():
             shutil.rmtree(folder)

@@ -207,11 +207,12 @@ def stiffness_matrix(potential: IncrementalPotential, x, free_dofs=None):
     return symmetric_from_upper(pattern.assemble(blocks, np.zeros(3 * n))).tocsr(), free_dofs
 
 
-def lowest_modes(potential: IncrementalPotential, k: int, x=None):
+def lowest_modes(potential: IncrementalPotential, k: int, x):
     """The k lowest (omega^2, mode) of K v = omega^2 M v on the free DoFs.
 
     Sparse shift-invert Lanczos (``eigsh`` with sigma = 0) on the rest-state
-    elastic Hessian and the lumped mass; no dense matrix is formed.
+    elastic Hessian at ``x`` (n,3) (normally the rest state) and the lumped
+    mass; no dense matrix is formed.
 
     Returns
     -------
@@ -220,18 +221,9 @@ def lowest_modes(potential: IncrementalPotential, k: int, x=None):
     import scipy.sparse
     import scipy.sparse.linalg
 
-    X = potential_rest(potential) if x is None else x
-    K, free = stiffness_matrix(potential, X)
+    K, free = stiffness_matrix(potential, x)
     m = np.repeat(potential.masses.cpu().numpy(), 3)[free]
     M = scipy.sparse.diags(m)
     w, V = scipy.sparse.linalg.eigsh(K, k=k, M=M, sigma=-1e-8 * abs(K.diagonal()).max() / m.max(), which="LM")
     order = np.argsort(w)
     return w[order], V[:, order], free
-
-
-def potential_rest(potential: IncrementalPotential):
-    """Rest positions of the first term that stores them."""
-    for t in potential.terms:
-        if hasattr(t, "rest_positions"):
-            return t.rest_positions.cpu().numpy()
-    raise AttributeError("no energy term stores rest_positions; pass x explicitly")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import sys
@@ -59,3 +60,14 @@ def run_stage(snakemake, main):
     except Exception:
         logging.getLogger("latentsim").exception("stage failed")
         raise
+
+
+@contextlib.contextmanager
+def working_directory(path):
+    """Run a block in another working directory (for libraries that write to the cwd)."""
+    old = os.getcwd()
+    os.chdir(path)
+    try:
+        yield
+    finally:
+        os.chdir(old)
