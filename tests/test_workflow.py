@@ -1,0 +1,209 @@
+"""The Snakemake workflow as users run it: lint, dry runs, the tiny config end to end.
+
+The tiny config runs in temporary working directories (``snakemake -d``), so
+the repository's own results/ is never touched.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ROOT / "config" / "tiny.yaml"
+SCENES_TINY = ["tiny_cloth", "tiny_rods"]
+STAGES = ["prepare_mesh", "simulate", "train_autoencoder", "train_integrator", "rollout", "evaluate"]
+# values that measure wall time, the only things allowed to differ between two identical runs
+TIMING_DATASETS = {"frame_ms"}
+TIMING_ATTRS = {"train_seconds", "rollout_seconds", "step_ms", "integrate_ms", "decode_ms"}
+
+
+def snakemake(*args, cwd=ROOT, check=True, timeout=600):
+    cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(ROOT / "Snakefile"), *args]
+    env = dict(os.environ, CI="1")
+    proc = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, timeout=timeout, env=env)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"{' '.join(cmd)} failed:\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}")
+    return proc
+
+
+def planned_jobs(output: str) -> list[tuple[str, str | None]]:
+    """(rule, scene) of every job a dry run lists."""
+    jobs = []
+    for block in re.split(r"\n(?=(?:local)?rule \w+:)", output):
+        m = re.match(r"(?:local)?rule (\w+):", block.strip())
+        if not m:
+            continue
+        w = re.search(r"wildcards: scene=(\w+)", block)
+        jobs.append((m.group(1), w.group(1) if w else None))
+    return jobs
+
+
+def test_lint_is_clean():
+    proc = snakemake("--lint", check=False)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "Lints for" not in proc.stdout + proc.stderr
+
+
+def test_dry_run_of_default_config_lists_every_stage_for_every_scene():
+    scenes = sorted(yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["scenes"])
+    jobs = planned_jobs(snakemake("-n", "all", "--cores", "2", "--directory", str(ROOT)).stdout)
+    for stage in STAGES:
+        assert sorted(s for r, s in jobs if r == stage) == scenes, stage
+    assert ("summary", None) in jobs
+
+
+def test_slurm_profile_dry_run(tmp_path):
+    out = snakemake("-n", "all", "--workflow-profile", str(ROOT / "profiles" / "slurm"), "--configfile", str(TINY), "--directory", str(tmp_path)).stdout
+    jobs = planned_jobs(out)
+    assert ("train_integrator", "tiny_rods") in jobs
+
+
+@pytest.mark.parametrize(
+    "edit, key",
+    [
+        (lambda c: c["scenes"]["tiny_rods"].update(bogus=1), "scenes.tiny_rods"),
+        (lambda c: c["scenes"]["tiny_rods"]["material"].update(youngs_modulus=-5.0), "scenes.tiny_rods.material.youngs_modulus"),
+        (lambda c: c["scenes"]["tiny_cloth"]["material"].update(density="heavy"), "scenes.tiny_cloth.material.density"),
+    ],
+)
+def test_malformed_config_stops_before_any_job(tmp_path, edit, key):
+    cfg = yaml.safe_load(TINY.read_text())
+    edit(cfg)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump(cfg))
+    proc = snakemake("all", "--cores", "1", "--configfile", str(bad), "--directory", str(tmp_path), check=False)
+    assert proc.returncode != 0
+    assert f"config key '{key}'" in proc.stdout + proc.stderr
+    assert not (tmp_path / "results").exists()
+
+
+# --- the tiny config end to end -----------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """One complete run of the tiny config in a fresh directory."""
+    work = tmp_path_factory.mktemp("tiny_a")
+    t0 = time.perf_counter()
+    snakemake("all", "--cores", "2", "--configfile", str(TINY), "--directory", str(work))
+    return work, time.perf_counter() - t0
+
+
+def test_tiny_run_writes_tables_and_figures(tiny_run):
+    work, seconds = tiny_run
+    assert seconds < 180, f"tiny run took {seconds:.0f} s"
+    import pandas as pd
+
+    table = pd.read_csv(work / "results/evaluation/summary.csv")
+    assert sorted(table["scene"].unique()) == SCENES_TINY
+    assert np.isfinite(table[["mean_error", "full_ms", "latent_ms"]].to_numpy()).all()
+    for scene in SCENES_TINY:
+        assert (work / f"results/evaluation/{scene}/errors.png").stat().st_size > 1000
+        assert (work / f"results/sim/{scene}/paraview").is_dir()
+        assert (work / f"logs/sim/{scene}.log").read_text()
+        assert (work / f"results/benchmarks/sim/{scene}.tsv").exists()
+    assert (work / "results/evaluation/speed_accuracy.png").stat().st_size > 1000
+
+
+def test_report_holds_tables_and_figures(tiny_run, tmp_path):
+    work, _ = tiny_run
+    report = tmp_path / "report.zip"
+    snakemake("--report", str(report), "--configfile", str(TINY), "--directory", str(work))
+    import zipfile
+
+    names = zipfile.ZipFile(report).namelist()
+    assert any(n.endswith("summary.csv") for n in names)
+    assert any(n.endswith("speed_accuracy.png") for n in names)
+    assert any(n.endswith("errors.png") for n in names)
+
+
+def test_artefacts_record_config_version_and_seed(tiny_run):
+    work, _ = tiny_run
+    with h5py.File(work / "results/sim/tiny_rods/trajectories.h5") as f:
+        assert '"youngs_modulus"' in f.attrs["config"] and f.attrs["latentsim_version"]
+        assert f["sequences/test_mid"].attrs["split"] == "test"
+    with h5py.File(work / "results/autoencoder/tiny_rods/latents.h5") as f:
+        assert f.attrs["seed"] == 0 and '"latent_dim"' in f.attrs["config"]
+
+
+def test_editing_one_scenes_integrator_reruns_only_its_downstream_jobs(tiny_run, tmp_path):
+    work, _ = tiny_run
+    cfg = yaml.safe_load(TINY.read_text())
+    cfg["scenes"]["tiny_rods"]["integrator"]["epochs"] += 1
+    edited = tmp_path / "edited.yaml"
+    edited.write_text(yaml.safe_dump(cfg))
+    unchanged = planned_jobs(snakemake("-n", "all", "--configfile", str(TINY), "--directory", str(work)).stdout)
+    assert unchanged == [], unchanged
+    jobs = planned_jobs(snakemake("-n", "all", "--configfile", str(edited), "--directory", str(work)).stdout)
+    assert sorted(jobs, key=str) == sorted(
+        [("train_integrator", "tiny_rods"), ("rollout", "tiny_rods"), ("evaluate", "tiny_rods"), ("summary", None), ("all", None)], key=str
+    )
+
+
+def _h5_contents(path):
+    out = {}
+
+    def visit(name, obj):
+        for k, v in obj.attrs.items():
+            if k not in TIMING_ATTRS:
+                out[f"{name}@{k}"] = v
+        if isinstance(obj, h5py.Dataset) and name.split("/")[-1] not in TIMING_DATASETS:
+            out[name] = obj[()]
+
+    with h5py.File(path) as f:
+        visit("/", f)
+        f.visititems(visit)
+    return out
+
+
+def test_same_seed_gives_identical_artefacts(tiny_run, tmp_path):
+    work_a, _ = tiny_run
+    work_b = tmp_path / "tiny_b"
+    snakemake("all", "--cores", "2", "--configfile", str(TINY), "--directory", str(work_b))
+    files = sorted(p.relative_to(work_a) for p in (work_a / "results").rglob("*") if p.suffix in (".h5", ".pt"))
+    assert len(files) >= 5 * len(SCENES_TINY)
+    for rel in files:
+        a, b = work_a / rel, work_b / rel
+        if rel.suffix == ".pt":
+            sa = torch.load(a, weights_only=True)["state_dict"]
+            sb = torch.load(b, weights_only=True)["state_dict"]
+            assert sa.keys() == sb.keys()
+            assert all(torch.equal(sa[k], sb[k]) for k in sa), rel
+            continue
+        ca, cb = _h5_contents(a), _h5_contents(b)
+        assert ca.keys() == cb.keys(), rel
+        for k in ca:
+            assert np.array_equal(np.asarray(ca[k]), np.asarray(cb[k]), equal_nan=np.asarray(ca[k]).dtype.kind == "f"), f"{rel}:{k}"
+
+
+def test_sigkill_mid_job_leaves_no_complete_looking_output(tmp_path):
+    """Kill the whole Snakemake process group while the simulation runs."""
+    cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(ROOT / "Snakefile"), "results/sim/tiny_rods/trajectories.h5",
+           "--cores", "1", "--configfile", str(TINY), "--directory", str(tmp_path)]  # fmt: skip
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True, env=dict(os.environ, CI="1"))
+    log = tmp_path / "logs/sim/tiny_rods.log"
+    try:
+        deadline = time.time() + 120
+        while time.time() < deadline and not (log.exists() and "linear solver" in log.read_text()):
+            time.sleep(0.05)
+        assert log.exists(), "the simulation never started"
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert not (tmp_path / "results/sim/tiny_rods/trajectories.h5").exists()
+    jobs = planned_jobs(snakemake("-n", "results/sim/tiny_rods/trajectories.h5", "--configfile", str(TINY), "--directory", str(tmp_path)).stdout)
+    assert ("simulate", "tiny_rods") in jobs
