@@ -177,8 +177,9 @@ def test_same_seed_gives_identical_artefacts(tiny_run, tmp_path):
     for rel in files:
         a, b = work_a / rel, work_b / rel
         if rel.suffix == ".pt":
-            sa = torch.load(a, weights_only=True)["state_dict"]
-            sb = torch.load(b, weights_only=True)["state_dict"]
+            ba, bb = torch.load(a, weights_only=True), torch.load(b, weights_only=True)
+            key = "state_dict" if "state_dict" in ba else "model"  # modules, or training checkpoints
+            sa, sb = ba[key], bb[key]
             assert sa.keys() == sb.keys()
             assert all(torch.equal(sa[k], sb[k]) for k in sa), rel
             continue

@@ -39,9 +39,10 @@ class NewtonSettings:
     """Settings of the per-step Newton solve (config key ``newton``)."""
 
     tolerance: float = 1e-6
-    max_iterations: int = 50
+    max_iterations: int = 100
     linear_solver: str = "auto"
     armijo: float = 1e-4
+    energy_resolution: float = 1e-12
     min_step: float = 1e-10
 
 
@@ -163,7 +164,10 @@ class ImplicitEuler:
             dx = dx.reshape(-1, 3)
             alpha = 1.0
             t0 = time.perf_counter()
-            while True:
+            # Near convergence the predicted decrease drops below what E_total can resolve in
+            # float64; Armijo then compares round-off.  Take the full Newton step there.
+            resolvable = -slope > s.energy_resolution * max(abs(e), 1e-300)
+            while resolvable:
                 x_try = x + alpha * dx
                 e_try = self.energy(x_try, x_prev, x_prev2)
                 if np.isfinite(e_try) and e_try <= e + s.armijo * alpha * slope:
@@ -176,6 +180,9 @@ class ImplicitEuler:
                         gnorm,
                         it,
                     )
+            if not resolvable:
+                x_try = x + dx
+                e_try = self.energy(x_try, x_prev, x_prev2)
             tm["energy"] += time.perf_counter() - t0
             x, e = x_try, e_try
         info.iterations = s.max_iterations

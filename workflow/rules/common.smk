@@ -17,18 +17,23 @@ wildcard_constraints:
     scene="|".join(SCENES) if SCENES else "NO_SCENE",
 
 
+def canonical(obj):
+    """Plain dicts with sorted keys: reordering a YAML mapping must not trigger a rerun."""
+    return json.loads(json.dumps(obj, sort_keys=True))
+
+
 def scene_cfg(*keys):
     """Input function: the named keys of the scene's config, as one plain dict."""
 
     def get(wildcards):
         sc = config["scenes"][wildcards.scene]
-        return json.loads(json.dumps({k: sc[k] for k in keys}))
+        return canonical({k: sc[k] for k in keys})
 
     return get
 
 
 def mesh_sources():
-    return dict(config["meshes"])
+    return canonical(config["meshes"])
 
 
 def training_params(key):
@@ -36,11 +41,9 @@ def training_params(key):
 
     def get(wildcards):
         sc = config["scenes"][wildcards.scene]
-        return {
-            "settings": dict(sc[key]),
-            "seed": config["seed"],
-            "device": config["device"],
-        }
+        return canonical(
+            {"settings": sc[key], "seed": config["seed"], "device": config["device"]}
+        )
 
     return get
 
