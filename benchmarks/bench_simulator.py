@@ -38,12 +38,12 @@ PAPER_MS = {"hair_rotation": 268.0, "hair_translation": 208.0, "cloth": 18.83, "
 TARGET_MS = {"armadillo": 300.0, "hair_rotation": 100.0}
 
 
-def bench_scene(name, sc, meshes, frames, warmup=2):
+def bench_scene(name, sc, meshes, frames, warmup, hessian):
     with tempfile.TemporaryDirectory() as tmp:
         prepare_mesh(name, sc["model"], sc["mesh"], sc["dirichlet"], meshes, Path(tmp) / "mesh.h5")
         arrays = read_mesh_arrays(Path(tmp) / "mesh.h5")
     pot = build_potential(sc["model"], arrays, sc["material"], sc["dt"], sc["gravity"])
-    solver = ImplicitEuler(pot, NewtonSettings(**sc["newton"]))
+    solver = ImplicitEuler(pot, NewtonSettings(**dict(sc["newton"], hessian=hessian)))
     seq = sc["sequences"][0]
     T = min(int(seq["frames"]), frames + warmup + 1)
     p = bc_parameters(seq, T)
@@ -74,6 +74,7 @@ def bench_scene(name, sc, meshes, frames, warmup=2):
     per_it = {k: 1e3 * v / n_it for k, v in tm.items()}
     return dict(
         scene=name,
+        hessian=hessian,
         dof=int(rest.size),
         solver=solver.linear.method,
         ms_frame=float(np.mean(frame_ms)),
@@ -87,7 +88,9 @@ def bench_scene(name, sc, meshes, frames, warmup=2):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--config", default=str(ROOT / "config" / "config.yaml"))
-    ap.add_argument("--frames", type=int, default=20)
+    ap.add_argument("--frames", type=int, default=30, help="frames timed, after --warmup frames")
+    ap.add_argument("--warmup", type=int, default=5, help="frames from rest not timed (the initial drop)")
+    ap.add_argument("--hessian", nargs="+", default=["projected", "exact_first"])
     ap.add_argument("--scenes", nargs="*")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--markdown", help="also write the table to this file")
@@ -97,14 +100,15 @@ def main(argv=None):
     names = args.scenes or [n for n, s in cfg["scenes"].items() if s["paper"] == "li2025"]
     rows = []
     for name in names:
-        rows.append(bench_scene(name, cfg["scenes"][name], cfg["meshes"], args.frames))
-        print(f"  {name}: done", file=sys.stderr, flush=True)
-    head = ["scene", "DoF", "solver", "ms/frame", "paper ms/frame", "target", "Newton it/frame", "ms/iteration",
+        for hessian in args.hessian:
+            rows.append(bench_scene(name, cfg["scenes"][name], cfg["meshes"], args.frames, args.warmup, hessian))
+            print(f"  {name} ({hessian}): done", file=sys.stderr, flush=True)
+    head = ["scene", "DoF", "Hessian", "solver", "ms/frame", "paper ms/frame", "target", "Newton it/frame", "ms/iteration",
             "energy", "grad+Hess+proj", "assembly", "solve", "floor (factor+solve)", "iteration/floor"]  # fmt: skip
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         lines.append(
-            f"| {r['scene']} | {r['dof']:,} | {r['solver']} | {r['ms_frame']:.1f} | {PAPER_MS.get(r['scene'], float('nan')):.1f} | "
+            f"| {r['scene']} | {r['dof']:,} | {r['hessian']} | {r['solver']} | {r['ms_frame']:.1f} | {PAPER_MS.get(r['scene'], float('nan')):.1f} | "
             f"{TARGET_MS.get(r['scene'], '')} | {r['iterations']:.2f} | {r['ms_iteration']:.1f} | {r['energy_ms']:.1f} | "
             f"{r['local_ms']:.1f} | {r['assembly_ms']:.1f} | {r['solve_ms']:.1f} | {r['floor_ms']:.1f} | "
             f"{r['ms_iteration'] / max(r['floor_ms'], 1e-9):.2f} |"

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from .energy.dynamics import IncrementalPotential
-from .sparse import HessianPattern, LinearSolver, scatter_gradient
+from .sparse import HessianPattern, LinearSolver, NotPositiveDefinite, scatter_gradient
 
 
 class NewtonFailed(RuntimeError):
@@ -43,6 +43,11 @@ class NewtonSettings:
     linear_solver: str = "auto"
     armijo: float = 1e-4
     energy_resolution: float = 1e-12
+    hessian: str = "exact_first"
+
+    def __post_init__(self):
+        if self.hessian not in ("projected", "exact_first"):
+            raise ValueError(f"newton.hessian '{self.hessian}': use 'projected' or 'exact_first'")
     min_step: float = 1e-10
 
 
@@ -52,6 +57,7 @@ class StepInfo:
 
     iterations: int = 0
     gradient_norm: float = float("nan")
+    projected: int = 0  # iterations that fell back to the projected Hessian (exact_first)
     timings: dict = field(default_factory=lambda: dict(energy=0.0, local=0.0, assembly=0.0, solve=0.0))
 
 
@@ -90,13 +96,13 @@ class ImplicitEuler:
             e = self.potential(torch.from_numpy(x), torch.from_numpy(x_prev), torch.from_numpy(x_prev2), penalty=False)
         return float(e)
 
-    def gradient_hessian(self, x, x_prev, x_prev2, timings=None):
-        """Full gradient (3n,) and the projected free-DoF Hessian (upper CSR)."""
+    def gradient_hessian(self, x, x_prev, x_prev2, timings=None, project=True):
+        """Full gradient (3n,) and the free-DoF Hessian (upper CSR), per-stencil PSD-projected or exact."""
         t0 = time.perf_counter()
         xt = torch.from_numpy(x)
         grads, blocks = [], []
         for term in self.potential.terms:
-            g, H = term.local_gradient_hessian(term.gather(xt))
+            g, H = term.local_gradient_hessian(term.gather(xt), project=project)
             grads.append(g.numpy())
             blocks.append(H.numpy())
         t1 = time.perf_counter()
@@ -109,6 +115,26 @@ class ImplicitEuler:
             timings["local"] += t1 - t0
             timings["assembly"] += t2 - t1
         return grad, U
+
+    def _newton_direction(self, x, x_prev, x_prev2, U, gf, tm, info):
+        """Solve H dx = -g; with ``hessian='exact_first'`` U is exact and may be indefinite."""
+        t0 = time.perf_counter()
+        try:
+            dx = -self.linear.solve(U, gf)
+            if self.settings.hessian == "projected" or gf @ dx < 0:  # (splu cannot tell SPD from indefinite)
+                return dx
+        except NotPositiveDefinite:
+            if self.settings.hessian != "exact_first":
+                raise NewtonFailed("the projected Hessian is not positive definite", float(np.linalg.norm(gf)), info.iterations)
+        finally:
+            tm["solve"] += time.perf_counter() - t0
+        # the exact Hessian is indefinite here: fall back to per-stencil projection
+        info.projected += 1
+        _, U = self.gradient_hessian(x, x_prev, x_prev2, tm, project=True)
+        t0 = time.perf_counter()
+        dx = -self.linear.solve(U, gf)
+        tm["solve"] += time.perf_counter() - t0
+        return dx
 
     # -- one time step --------------------------------------------------------
     def step(self, x_prev, x_prev2, dirichlet_targets):
@@ -141,7 +167,7 @@ class ImplicitEuler:
         x, e = best, e_best
         tol = s.tolerance * self.f_ref
         for it in range(s.max_iterations + 1):
-            grad, U = self.gradient_hessian(x, x_prev, x_prev2, tm)
+            grad, U = self.gradient_hessian(x, x_prev, x_prev2, tm, project=s.hessian == "projected")
             gf = grad[self.free_dofs]
             gnorm = float(np.linalg.norm(gf))
             info.gradient_norm = gnorm
@@ -152,9 +178,7 @@ class ImplicitEuler:
                 return x, info
             if it == s.max_iterations:
                 break
-            t0 = time.perf_counter()
-            dx_f = -self.linear.solve(U, gf)
-            tm["solve"] += time.perf_counter() - t0
+            dx_f = self._newton_direction(x, x_prev, x_prev2, U, gf, tm, info)
             slope = float(gf @ dx_f)
             if not slope < 0:  # not a descent direction: fall back to steepest descent
                 dx_f = -gf / max(U.diagonal().max(), 1e-300)

@@ -98,6 +98,10 @@ def scatter_gradient(n_vertices, stencil_sets, grads):
     return out
 
 
+class NotPositiveDefinite(ArithmeticError):
+    """The factorisation met a non-positive pivot: the matrix is not SPD."""
+
+
 def _to_banded_upper(U: scipy.sparse.csr_matrix, bw: int) -> np.ndarray:
     """Upper banded storage ab[bw + i - j, j] = U[i, j] of an upper-triangular CSR."""
     n = U.shape[0]
@@ -138,7 +142,10 @@ class LinearSolver:
         """Solve with the upper-triangular CSR ``U`` of an SPD matrix."""
         if self.method == "banded":
             ab = _to_banded_upper(U, self.bandwidth)
-            return scipy.linalg.solveh_banded(ab, b, lower=False, check_finite=False)
+            try:
+                return scipy.linalg.solveh_banded(ab, b, lower=False, check_finite=False)
+            except np.linalg.LinAlgError as e:
+                raise NotPositiveDefinite(str(e)) from e
         if self.method == "pardiso":
             return self._solve_pardiso(U, b)
         return scipy.sparse.linalg.splu(symmetric_from_upper(U).tocsc()).solve(b)
@@ -153,6 +160,8 @@ class LinearSolver:
 
             self._pardiso = pypardiso.PyPardisoSolver(mtype=2)
             self._pardiso.msglvl = 0
+        import pypardiso
+
         p = self._pardiso
         b = np.asfortranarray(b, dtype=np.float64)
         if not self._analysed:
@@ -161,7 +170,12 @@ class LinearSolver:
             p._call_pardiso(U, b)
             self._analysed = True
         p.set_phase(23)
-        return p._call_pardiso(U, b)
+        try:
+            return p._call_pardiso(U, b)
+        except pypardiso.pardiso_wrapper.PyPardisoError as e:
+            if e.value == -4:  # zero pivot: not positive definite
+                raise NotPositiveDefinite(f"PARDISO: {e}") from e
+            raise
 
 
 def _pardiso_available() -> bool:
