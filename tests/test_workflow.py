@@ -117,6 +117,24 @@ def test_tiny_run_writes_tables_and_figures(tiny_run):
     assert (work / "results/evaluation/speed_accuracy.png").stat().st_size > 1000
 
 
+def test_paraview_series_reads_back(tiny_run):
+    """The XDMF time series holds every frame's displacement, equal to the stored positions."""
+    import meshio
+
+    work, _ = tiny_run
+    with h5py.File(work / "results/sim/tiny_rods/trajectories.h5") as f:
+        pos = f["sequences/test_mid/positions"][()]
+    from latentsim.utils import working_directory
+
+    with working_directory(work / "results/sim/tiny_rods/paraview"):
+        with meshio.xdmf.TimeSeriesReader("test_mid.xdmf") as r:
+            points, cells = r.read_points_cells()
+            assert r.num_steps == len(pos)
+            t, point_data, _ = r.read_data(len(pos) - 1)
+    assert np.allclose(points, pos[0])
+    assert np.allclose(points + point_data["displacement"], pos[-1])
+
+
 def test_report_holds_tables_and_figures(tiny_run, tmp_path):
     work, _ = tiny_run
     report = tmp_path / "report.zip"
