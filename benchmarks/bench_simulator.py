@@ -72,6 +72,7 @@ def bench_scene(name, sc, meshes, frames, warmup, hessian):
         solver.linear.solve(U, g)
         floor.append(time.perf_counter() - t0)
     per_it = {k: 1e3 * v / n_it for k, v in tm.items()}
+    solvers = compare_solvers(solver.pattern, U, g)
     return dict(
         scene=name,
         hessian=hessian,
@@ -82,7 +83,37 @@ def bench_scene(name, sc, meshes, frames, warmup, hessian):
         ms_iteration=sum(per_it.values()),
         **{f"{k}_ms": v for k, v in per_it.items()},
         floor_ms=1e3 * float(np.median(floor)),
+        solvers=solvers,
     )
+
+
+def compare_solvers(pattern, U, g, repeats=3):
+    """ms of factorisation + solve of the same SPD matrix by each available method."""
+    import scipy.sparse.linalg
+
+    from latentsim.sparse import LinearSolver, symmetric_from_upper
+
+    out = {}
+    methods = ["pardiso", "splu"] + (["banded"] if pattern.bandwidth <= LinearSolver.BANDED_MAX else [])
+    for m in methods:
+        ls = LinearSolver(pattern, m)
+        ls.solve(U, g)  # symbolic analysis, once per scene
+        ts = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            ls.solve(U, g)
+            ts.append(time.perf_counter() - t0)
+        out[m] = 1e3 * float(np.median(ts))
+    K = symmetric_from_upper(U).tocsr()
+    d = K.diagonal()
+    M = scipy.sparse.linalg.LinearOperator(K.shape, matvec=lambda v: v / d)
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        scipy.sparse.linalg.cg(K, g, rtol=1e-3, M=M)
+        ts.append(time.perf_counter() - t0)
+    out["cg_jacobi_1e-3"] = 1e3 * float(np.median(ts))
+    return out
 
 
 def main(argv=None):
@@ -113,6 +144,12 @@ def main(argv=None):
             f"{r['local_ms']:.1f} | {r['assembly_ms']:.1f} | {r['solve_ms']:.1f} | {r['floor_ms']:.1f} | "
             f"{r['ms_iteration'] / max(r['floor_ms'], 1e-9):.2f} |"
         )
+    names = sorted({k for r in rows for k in r["solvers"]})
+    lines += ["", "Linear solvers, factorisation + solve of the same matrix [ms]:", "",
+              "| scene | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]  # fmt: skip
+    for r in rows:
+        if r["hessian"] == args.hessian[0]:
+            lines.append(f"| {r['scene']} | " + " | ".join(f"{r['solvers'].get(k, float('nan')):.1f}" for k in names) + " |")
     table = "\n".join(lines)
     print(table)
     if args.markdown:

@@ -25,19 +25,7 @@ from latentsim.energy.rods import (
 )
 
 
-# float64 while this module is imported (module-level and parametrize tensors) and while its tests
-# run; restored at the end of the module and after each test so other modules see the default.
-_DEFAULT_DTYPE = torch.get_default_dtype()
-torch.set_default_dtype(torch.float64)
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _float64_default():
-    """These tests build tensors in float64; restore the default afterwards."""
-    old = torch.get_default_dtype()
-    torch.set_default_dtype(torch.float64)
-    yield
-    torch.set_default_dtype(old)
+FLOAT64 = True  # tests/conftest.py: float64 default dtype for this module
 
 Y, RADIUS, DENSITY = 2.0e9, 5.0e-5, 1300.0
 KS, KB = rod_stiffness(Y, RADIUS)
@@ -352,6 +340,3 @@ def test_rejects_zero_length_edges():
         RodStretch(X, torch.tensor([[0, 1], [1, 2]]), KS)
     with pytest.raises(ValueError, match="zero"):
         RodBend(X, torch.tensor([[0, 1, 2]]), KB)
-
-
-torch.set_default_dtype(_DEFAULT_DTYPE)

@@ -27,19 +27,7 @@ from latentsim.energy.shells import (
 )
 
 
-# float64 while this module is imported (module-level and parametrize tensors) and while its tests
-# run; restored at the end of the module and after each test so other modules see the default.
-_DEFAULT_DTYPE = torch.get_default_dtype()
-torch.set_default_dtype(torch.float64)
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _float64_default():
-    """These tests build tensors in float64; restore the default afterwards."""
-    old = torch.get_default_dtype()
-    torch.set_default_dtype(torch.float64)
-    yield
-    torch.set_default_dtype(old)
+FLOAT64 = True  # tests/conftest.py: float64 default dtype for this module
 
 Y, NU, H_THICK, RHO = 1.0e6, 0.3, 1.0e-3, 200.0
 D = Y * H_THICK**3 / (12 * (1 - NU**2))
@@ -430,6 +418,3 @@ def test_cylinder_bending_equilateral_and_diagonal():
     ratios.append(hinge.energy(to_cylinder(Vd, R)).item() / (D / 2 / R**2))
     for r in ratios:
         assert r == pytest.approx(6.0, rel=0.04)
-
-
-torch.set_default_dtype(_DEFAULT_DTYPE)

@@ -1,0 +1,20 @@
+"""Shared test fixtures."""
+
+import pytest
+import torch
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _module_default_dtype(request):
+    """Modules that set ``FLOAT64 = True`` run with float64 as torch's default dtype.
+
+    Module scope and autouse, so the default is set before the module's own
+    fixtures build tensors, and restored for the modules that follow.
+    """
+    if not getattr(request.module, "FLOAT64", False):
+        yield
+        return
+    old = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    yield
+    torch.set_default_dtype(old)
