@@ -61,6 +61,18 @@ class StepInfo:
     timings: dict = field(default_factory=lambda: dict(energy=0.0, local=0.0, assembly=0.0, solve=0.0))
 
 
+def rigidly_carried(x, D, targets):
+    """x (n,3) moved by the rigid motion best mapping x[D] onto targets (Kabsch; translation if m < 3)."""
+    src = x[D]
+    cs, ct = src.mean(axis=0), np.asarray(targets).mean(axis=0)
+    if len(D) < 3:
+        return x + (ct - cs)
+    U, _, Vt = np.linalg.svd((src - cs).T @ (targets - ct))
+    d = np.sign(np.linalg.det(U @ Vt))
+    R = (U @ np.diag([1.0, 1.0, d]) @ Vt).T
+    return (x - cs) @ R.T + ct
+
+
 class ImplicitEuler:
     """Newton solver for one scene's incremental potential.
 
@@ -154,8 +166,10 @@ class ImplicitEuler:
         info = StepInfo()
         tm = info.timings
         D = self.dirichlet
-        # initial guess: the better of the constant-velocity predictor and x_{t-1}
-        candidates = [2 * x_prev - x_prev2, x_prev.copy()]
+        # initial guess: the lowest-energy of the constant-velocity predictor, x_{t-1}, and x_{t-1}
+        # carried by the rigid motion that best maps its Dirichlet vertices onto their targets
+        # (when the boundary jumps, e.g. reverses, the other two stretch the elements at the boundary)
+        candidates = [2 * x_prev - x_prev2, x_prev.copy(), rigidly_carried(x_prev, D, dirichlet_targets)]
         best, e_best = None, np.inf
         t0 = time.perf_counter()
         for c in candidates:
