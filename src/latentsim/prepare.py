@@ -162,11 +162,19 @@ def tetrahedralize_to(V, surf, target: int, name: str, tolerance: float = 0.05, 
 
 
 def select_dirichlet(model: str, arrays: dict, rule: dict) -> np.ndarray:
-    """Indices of the Dirichlet vertices; rule {'type': 'roots'} selects rod roots."""
+    """Indices of the Dirichlet vertices.
+
+    Rule {'type': 'roots'} selects each rod's root and, with ``clamp`` (the
+    default), also the next vertex, so the root edge's direction is held:
+    a clamped rod (hair in its follicle) rather than a pinned pendulum.
+    """
     if rule["type"] == "roots":
         if "root_of" not in arrays:
             raise meshlib.MeshError("dirichlet rule 'roots' needs a rod scene")
-        return np.unique(arrays["root_of"]).astype(np.int64)
+        roots = np.unique(arrays["root_of"]).astype(np.int64)
+        if rule.get("clamp", True):
+            roots = np.union1d(roots, roots + 1)
+        return roots
     keys = RULE_KEYS[rule["type"]]
     idx = meshlib.select_vertices(arrays["rest_positions"], {k: rule[k] for k in ("type",) + keys if k in rule})
     return np.asarray(idx, dtype=np.int64)
