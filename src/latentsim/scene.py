@@ -76,10 +76,6 @@ def dirichlet_trajectory(rest_D: np.ndarray, p: np.ndarray, dt: float) -> np.nda
     return out
 
 
-def sequence_frames(sequence: dict) -> int:
-    return int(sequence["frames"])
-
-
 # --- the physical model -------------------------------------------------------
 
 

@@ -211,7 +211,6 @@ def _jacobi_eigh3(A: np.ndarray, max_sweeps: int = 12, tol: float = 1e-31):
 
 def _svd3(F: np.ndarray):
     """Rotation-variant SVD in the (3, 3, N) layout; see ``rotation_variant_svd``."""
-    n = F.shape[-1]
     w, Vm = _jacobi_eigh3(np.einsum("kie,kje->ije", F, F))
     w = [w[0], w[1], w[2]]
     v = [Vm[:, 0], Vm[:, 1], Vm[:, 2]]
