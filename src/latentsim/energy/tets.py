@@ -460,11 +460,11 @@ class StVKTets(EnergyTerm):
         C.addcmul_((mu_t * Ft)[:, None, :, :, None], FtT[:, :, None, None, :])
         C.addcmul_((mu_t * (Ft @ FtT))[:, None, :, None, :], eye[None, :, None, :, None])
         C.addcmul_((lam_t * FtT)[:, :, :, None, None], FtT[:, None, None, :, :])
+        C.mul_(torch.from_numpy(vol)[:, None, None, None, None])
         KC = self._buffer("KC", (n, 12, 9))
         torch.matmul(Kd, C.view(n, 9, 9), out=KC)
-        H = KC @ Kd.transpose(1, 2)
-        H = H * torch.from_numpy(vol)[:, None, None]
-        return 0.5 * (H + H.transpose(1, 2))
+        # dP/dF is symmetric, so H is too (to round-off); a fresh array, callers keep it
+        return KC @ Kd.transpose(1, 2)
 
     def _projected_hessian(self, F, D, vol, mu, lam):
         """W sum_k max(lambda_k, 0) g_k g_k^T over the 9 analytic eigenpairs of dP/dF.
