@@ -25,13 +25,10 @@ def progress_bar(iterable, enabled=False, **kwargs):
 
 
 def configure_threads(n: int | None = None):
-    """Keep MKL, OpenMP and torch from fighting over the cores.
+    """Use ``n`` torch threads (the rule's ``threads``).
 
-    Must run before numpy/torch spin up their pools to take full effect; the
-    stage scripts call it first thing.
+    The OpenMP/MKL wait policy is set when ``latentsim`` is imported.
     """
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    os.environ.setdefault("KMP_BLOCKTIME", "0")
     if n:
         import torch
 
