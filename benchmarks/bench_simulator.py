@@ -42,7 +42,7 @@ def bench_scene(name, sc, meshes, frames, warmup, hessian):
     with tempfile.TemporaryDirectory() as tmp:
         prepare_mesh(name, sc["model"], sc["mesh"], sc["dirichlet"], meshes, Path(tmp) / "mesh.h5")
         arrays = read_mesh_arrays(Path(tmp) / "mesh.h5")
-    pot = build_potential(sc["model"], arrays, sc["material"], sc["dt"], sc["gravity"])
+    pot = build_potential(sc["model"], arrays, sc["material"], sc["dt"], sc["gravity"], free_only=True)
     solver = ImplicitEuler(pot, NewtonSettings(**dict(sc["newton"], hessian=hessian)))
     seq = sc["sequences"][0]
     T = min(int(seq["frames"]), frames + warmup + 1)

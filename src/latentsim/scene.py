@@ -79,7 +79,7 @@ def dirichlet_trajectory(rest_D: np.ndarray, p: np.ndarray, dt: float) -> np.nda
 # --- the physical model -------------------------------------------------------
 
 
-def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity, w_bc: float = 1e5):
+def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity, w_bc: float = 1e5, free_only: bool = False):
     """IncrementalPotential of a scene from its mesh arrays and material.
 
     Parameters
@@ -89,8 +89,23 @@ def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity
         element arrays of the model: 'edges' (rods), 'triangles' (shell), 'tets'.
     material : youngs_modulus [Pa], poisson_ratio, density [kg/m^3], and
         radius [m] (rods) or thickness [m] (shell).
+    free_only : drop the elastic stencils whose vertices are all Dirichlet.
+        Their energy is then a constant, so the full-space solver (which
+        prescribes the Dirichlet vertices exactly) loses nothing; losses and
+        metrics, where decoded Dirichlet vertices may move, need them all.
+        Masses always come from every element.
     """
     X = torch.as_tensor(np.asarray(arrays["rest_positions"], dtype=np.float64))
+    fixed = np.zeros(len(X), dtype=bool)
+    fixed[np.asarray(arrays["dirichlet"], dtype=np.int64)] = True
+
+    def active(stencils):
+        """The stencils the solver needs: all of them, or those touching a free vertex."""
+        if not free_only:
+            return stencils
+        keep = ~fixed[np.asarray(stencils)].all(axis=1)
+        return stencils[torch.as_tensor(keep)]
+
     Y = float(material["youngs_modulus"])
     rho = float(material["density"])
     if model == "rods":
@@ -100,7 +115,7 @@ def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity
         triples = torch.as_tensor(np.asarray(arrays["triples"], dtype=np.int64))
         r = float(material["radius"])
         ks, kb = rods.rod_stiffness(Y, r)
-        terms = [rods.RodStretch(X, edges, ks), rods.RodBend(X, triples, kb)]
+        terms = [rods.RodStretch(X, active(edges), ks), rods.RodBend(X, active(triples), kb)]
         masses = rods.lumped_masses_rods(X, edges, rho, r)
     elif model == "shell":
         from .energy import shells
@@ -111,13 +126,16 @@ def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity
         hinges = shells.hinges_from_triangles(tris)
         # Grinspun's hinge weight 3|e|^2/(A1+A2) with k_b = D converges to 6x the plate energy
         # D/2 kappa^2 per area (measured in tests/test_energy_shells.py); 1/6 calibrates it.
-        terms = [shells.ShellMembraneStVK(X, tris, Y, nu, h), shells.ShellHinge(X, hinges, Y, nu, h, stiffness_scale=1.0 / 6.0)]
+        terms = [
+            shells.ShellMembraneStVK(X, active(tris), Y, nu, h),
+            shells.ShellHinge(X, active(hinges), Y, nu, h, stiffness_scale=1.0 / 6.0),
+        ]
         masses = shells.lumped_masses_shell(X, tris, rho, h)
     elif model == "tets":
         from .energy import tets
 
         T = torch.as_tensor(np.asarray(arrays["tets"], dtype=np.int64))
-        terms = [tets.StVKTets(X, T, Y, float(material["poisson_ratio"]))]
+        terms = [tets.StVKTets(X, active(T), Y, float(material["poisson_ratio"]))]
         masses = tets.lumped_masses(X, T, rho)
     else:
         raise ValueError(f"model '{model}': use one of rods, shell, tets")

@@ -77,7 +77,7 @@ def simulate_scene(scene: str, mesh_h5, cfg: dict, out_h5, paraview_dir=None, pr
     model = arrays["model"]
     if model != cfg["model"]:
         raise SimulationError(f"scene '{scene}': {mesh_h5} holds a '{model}' mesh, the config says '{cfg['model']}'")
-    pot = build_potential(model, arrays, cfg["material"], cfg["dt"], cfg["gravity"])
+    pot = build_potential(model, arrays, cfg["material"], cfg["dt"], cfg["gravity"], free_only=True)
     solver = ImplicitEuler(pot, NewtonSettings(**cfg["newton"]))
     rest = np.asarray(arrays["rest_positions"], dtype=np.float64)
     log.info("scene %s: %d DoF, %d free, linear solver %s", scene, 3 * len(rest), len(solver.free_dofs), solver.linear.method)
