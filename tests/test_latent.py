@@ -502,3 +502,14 @@ def test_rollout_divergence_detection(chain_setup, trained):
     assert float(err) < 0.2 * float(motion), (float(err), float(motion))
     # Dirichlet roots are exact in "roots" coordinates
     assert torch.allclose(out["positions"][:, 0], seq["dirichlet_positions"][:, 0], atol=1e-12)
+
+
+def test_autoencoder_never_returns_worse_than_its_pca_start():
+    """On data in an exact 3D subspace, PCA is exact; SGD can only make it worse, so the PCA start is kept."""
+    gen = torch.Generator().manual_seed(0)
+    U = torch.randn(200, 3, generator=gen) @ torch.randn(3, 30, generator=gen)
+    model, hist = fit_autoencoder(U, {"latent_dim": 3, "widths": [16, 16], "epochs": 30, "lr": 0.1, "batch_size": 50}, seed=0)
+    assert hist["kept"] == "pca"
+    assert hist["mse_final"] == hist["mse_initial"] < 1e-10
+    with torch.no_grad():
+        assert ((model(U) - U) ** 2).mean() < 1e-10

@@ -425,8 +425,10 @@ def fit_autoencoder(U: torch.Tensor, config: dict | None = None, seed: int = 0, 
     model : the trained autoencoder in eval mode, on ``device``.
     history : dict with ``loss`` (per-epoch mean of the normalised training
         MSE, i.e. MSE of u / s), ``mse_initial`` (MSE per coordinate of the
-        PCA-initialised model, in data units^2), ``mse_final``, ``pca_scale`` s,
-        ``pca_dim``, ``epochs``.
+        PCA-initialised model, in data units^2), ``mse_final`` (of the model
+        returned), ``kept`` ('trained', or 'pca' when training ended worse than
+        the PCA initialisation, whose weights are then returned), ``pca_scale``
+        s, ``pca_dim``, ``epochs``.
     """
     cfg = _merge(AE_DEFAULTS, config, "fit_autoencoder")
     device = resolve_device(device)
@@ -457,6 +459,7 @@ def fit_autoencoder(U: torch.Tensor, config: dict | None = None, seed: int = 0, 
         return err / (N * d)
 
     history = {"loss": [], "mse_initial": eval_mse(), "pca_scale": s, "pca_dim": model.pca_dim, "epochs": int(cfg["epochs"])}
+    pca_state = copy.deepcopy(model.state_dict())
     bar = tqdm(range(int(cfg["epochs"])), desc="autoencoder", disable=not progress, leave=False)
     for epoch in bar:
         model.train()
@@ -475,6 +478,13 @@ def fit_autoencoder(U: torch.Tensor, config: dict | None = None, seed: int = 0, 
         history["loss"].append(tot / max(cnt, 1))
         bar.set_postfix(loss=f"{history['loss'][-1]:.3e}")
     history["mse_final"] = eval_mse()
+    # Never return a model worse than its own PCA initialisation (small data sets whose PCA is
+    # already near exact can get worse under SGD noise): keep the PCA start instead, and say so.
+    history["kept"] = "trained"
+    if not history["mse_final"] <= history["mse_initial"]:
+        model.load_state_dict(pca_state)
+        history["kept"] = "pca"
+        history["mse_final"] = eval_mse()
     model.eval()
     return model, history
 

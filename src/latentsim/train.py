@@ -67,10 +67,14 @@ def train_autoencoder(trajectories, settings: dict, seed: int, device: str, out_
     ae, history = latent.fit_autoencoder(U.to(torch.float32), cfg, seed=seed, device=device, progress=progress)
     seconds = time.perf_counter() - t0
     ae = ae.cpu()
-    log.info("autoencoder: %d frames of %d dims -> %d latents, %.1f s, mse %.3e -> %.3e", U.shape[0], U.shape[1], cfg["latent_dim"], seconds, history["mse_initial"], history["mse_final"])
+    log.info(
+        "autoencoder: %d frames of %d dims -> %d latents, %.1f s, mse %.3e (PCA start) -> %.3e (kept: %s)",
+        U.shape[0], U.shape[1], cfg["latent_dim"], seconds, history["mse_initial"], history["mse_final"], history["kept"],
+    )
     latent.save_module(out_model, ae, extra={"coordinates": coords.mode, "train_seconds": seconds})
     with atomic_h5(out_latents, config=settings, seed=seed) as g:
         g.attrs["train_seconds"] = seconds
+        g.attrs["kept"] = history["kept"]
         write_dataset(g, "loss", np.asarray(history["loss"], dtype=np.float64))
         grp = g.create_group("sequences", track_order=True)
         for name, s in every.items():
