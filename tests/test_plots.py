@@ -286,7 +286,14 @@ def test_render_frames(example, tmp_path):
     )
     # shared limits contain every ground-truth vertex shown
     x = example["truth"][[0, 4, 8]].reshape(-1, 3)
-    assert (x >= r["limits"][:, 0]).all() and (x <= r["limits"][:, 1]).all()
+    lim = r["limits"]
+    assert lim.shape == (3, 3, 2) and (lim == lim[0]).all()
+    assert (x >= lim[0, :, 0]).all() and (x <= lim[0, :, 1]).all()
+    rows = render.render_frames(example["gt"], {"self": example["ok"]}, "seq", [0, 4], out, bounds="row", dpi=40)["limits"]
+    for k, fr in enumerate([0, 4]):
+        xk = example["truth"][fr]
+        assert (xk >= rows[k, :, 0]).all() and (xk <= rows[k, :, 1]).all()
+    assert not np.allclose(rows[0], rows[1])  # the swing moves the frame-4 box
     img = _png(out)
     # 3 rows x 3 panels, taller than wide
     assert img.shape[0] > img.shape[1]

@@ -140,12 +140,13 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, error: str, colours: dict, annot
         ax.scatter([t[i]], [y[i]], s=60, marker=marker, facecolors=face, edgecolors=[c], linewidths=1.5, zorder=3, clip_on=False)
         if pts["on_front"].iloc[i]:
             ax.scatter([t[i]], [y[i]], s=190, marker="o", facecolors="none", edgecolors="k", linewidths=1.0, zorder=2, clip_on=False)
-        if annotate:
-            label = str(r.method)
-            if diverged[i]:
-                label += f" (diverged @ {int(r.diverged_frame)})"
-            elif e[i] == 0:
-                label += " (exact)"
+        # small multiples name only the divergences (colours name the methods)
+        label = str(r.method) if annotate else ""
+        if diverged[i]:
+            label += f" (diverged @ {int(r.diverged_frame)})" if annotate else f"diverged @ {int(r.diverged_frame)}"
+        elif e[i] == 0 and annotate:
+            label += " (exact)"
+        if label:
             ax.annotate(label, (t[i], y[i]), xytext=(5, 4), textcoords="offset points", fontsize=7)
     front = pts["on_front"].to_numpy()
     if front.any():
@@ -298,7 +299,7 @@ def stability_heatmap(df: pd.DataFrame, path, title="stability: frames survived"
             diverged[i, j] = r.frames_survived < r.frames
     relative = "frames" in df.columns
     colour = frames / total if relative else frames
-    fig, ax = plt.subplots(figsize=(1.6 + 1.45 * C, 1.2 + 0.65 * R))
+    fig, ax = plt.subplots(figsize=(3.0 + 1.3 * C, 2.2 + 0.75 * R), layout="constrained")
     cmap = plt.get_cmap("viridis").with_extremes(bad="0.85")
     vmax = 1.0 if relative else np.nanmax(frames)
     im = ax.imshow(np.ma.masked_invalid(colour), cmap=cmap, vmin=0.0, vmax=vmax, aspect="auto")
@@ -308,7 +309,7 @@ def stability_heatmap(df: pd.DataFrame, path, title="stability: frames survived"
                 ax.text(j, i, "n/a", ha="center", va="center", fontsize=8, color="0.3")
                 continue
             if diverged[i, j]:
-                ax.add_patch(plt.Rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, hatch="xx", edgecolor="red", lw=1.5))
+                ax.add_patch(plt.Rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, hatch="//", edgecolor="red", lw=1.5))
             dark = colour[i, j] < 0.6 * vmax
             text = f"{'✗ ' if diverged[i, j] else ''}{int(frames[i, j])}"
             if not np.isnan(bc[i, j]):
@@ -320,8 +321,9 @@ def stability_heatmap(df: pd.DataFrame, path, title="stability: frames survived"
     ax.set_xticks(range(C), conditions, rotation=30, ha="right", fontsize=8)
     ax.set_yticks(range(R), methods, fontsize=8)
     ax.set_title(title)
-    fig.colorbar(im, ax=ax, label="fraction of frames survived" if relative else "frames survived")
-    fig.tight_layout()
+    fig.colorbar(
+        im, ax=ax, label="fraction of frames survived" if relative else "frames survived", fraction=0.04, pad=0.02
+    )
     save_figure(fig, path, dpi=dpi)
     return {"methods": methods, "conditions": conditions, "frames": frames, "colour": colour, "bc_error": bc, "diverged": diverged}
 
@@ -375,10 +377,12 @@ def energy_curves(series: Mapping, path, dt: float, reference="ground truth", ti
                 raise ValueError(f"energy_curves: series {name!r} quantity {q!r} has shape {y.shape}, expected (T,)")
             t = np.arange(len(y)) * dt
             is_ref = name == reference
-            ax.plot(t, y, color="k" if is_ref else colours[name], lw=2.2 if is_ref else 1.2, ls="-" if is_ref else "--", label=name, zorder=3 if is_ref else 2)
+            # the reference underneath, wide and grey, so a method that matches it stays visible
+            style = {"color": "0.55", "lw": 3.0, "zorder": 1} if is_ref else {"color": colours[name], "lw": 1.2, "ls": "--", "zorder": 2}
+            ax.plot(t, y, label=name, **style)
             fin = np.flatnonzero(np.isfinite(y))
             if len(fin) and fin[-1] < len(y) - 1:
-                ax.plot(t[fin[-1]], y[fin[-1]], "x", color="k" if is_ref else colours[name], ms=9, mew=2)
+                ax.plot(t[fin[-1]], y[fin[-1]], "x", color=style["color"], ms=9, mew=2)
             drawn[q].append(name)
         ax.set_ylabel(_ENERGY_LABELS.get(q, q))
         ax.grid(True, alpha=0.25)
@@ -466,8 +470,9 @@ def training_curves(histories: Mapping, path, key="loss", title=None, dpi=100) -
         ax.set_yscale("log")
         scale = "log"
     else:
-        nz = np.abs(allv[allv != 0])
-        ax.set_yscale("symlog", linthresh=float(nz.min()) if len(nz) else 1.0)
+        # linear band well below every run's typical magnitude, so each run reads logarithmically
+        typical = [np.median(np.abs(v[np.isfinite(v) & (v != 0)])) for v in data.values() if (np.isfinite(v) & (v != 0)).any()]
+        ax.set_yscale("symlog", linthresh=0.1 * float(min(typical)) if typical else 1.0)
         scale = "symlog"
     ax.set_xlabel("epoch")
     ax.set_ylabel(key.replace("_", " "))

@@ -181,9 +181,9 @@ def _load_all(truth, methods, sequence, frames):
 
 def _limits(motions, frames, bounds: str) -> np.ndarray:
     """(3,2) axis limits shared by every panel: the ground truth's frames, or everything finite."""
-    use = motions[:1] if bounds == "truth" else motions
     if bounds not in ("truth", "all"):
         raise ValueError(f"bounds must be 'truth' or 'all', got {bounds!r}")
+    use = motions[:1] if bounds == "truth" else motions
     pts = [m.rest for m in use]
     for m in use:
         for fr in frames:
@@ -193,7 +193,8 @@ def _limits(motions, frames, bounds: str) -> np.ndarray:
     P = np.concatenate(pts)
     lo, hi = P.min(axis=0), P.max(axis=0)
     centre, half = (lo + hi) / 2, (hi - lo) / 2
-    half = np.maximum(half * 1.08, 0.02 * half.max() + 1e-9)
+    # flat objects (a cloth at rest) get depth, so out-of-plane motion stays in view
+    half = np.maximum(half * 1.08, 0.15 * half.max() + 1e-9)
     return np.stack([centre - half, centre + half], axis=1)
 
 
@@ -295,14 +296,16 @@ def render_frames(
     path : output image (PNG unless the suffix says otherwise).
     bounds : ``"truth"`` (default) fits the axes to the ground truth at these
         frames, so a method that flies off is seen leaving the view (the panel
-        says how many vertices are outside); ``"all"`` fits every finite point.
+        says how many vertices are outside); ``"all"`` fits every finite point;
+        ``"row"`` fits each row (frame) to the ground truth at that frame, for
+        motions that travel far (the panels of a row still share their axes).
     elev, azim : float, view angles [degrees]; the vertical axis is y (gravity).
 
     Returns
     -------
     dict with ``status`` ((len(frames), 1 + len(methods)) array of str:
     ``ok``, ``diverged`` or ``missing``), ``labels`` (column labels) and
-    ``limits`` ((3,2) axis limits).
+    ``limits`` ((len(frames), 3, 2) axis limits of each row).
     """
     frames = [int(f) for f in frames]
     if not frames:
@@ -312,7 +315,10 @@ def render_frames(
     bad = [f for f in frames if not 0 <= f < gt.n_frames]
     if bad:
         raise ValueError(f"render_frames: frames {bad} outside sequence {sequence!r} of the ground truth ({gt.n_frames} frames)")
-    limits = _limits(motions, frames, bounds)
+    if bounds == "row":
+        limits = np.stack([_limits(motions, [fr], "truth") for fr in frames])
+    else:
+        limits = np.repeat(_limits(motions, frames, bounds)[None], len(frames), axis=0)
     R, C = len(frames), len(motions)
     header = 0.9  # inches above the panels for the title
     fig = plt.figure(figsize=(panel_size * C, panel_size * R + header))
@@ -321,7 +327,7 @@ def render_frames(
     for i, fr in enumerate(frames):
         for j, m in enumerate(motions):
             ax = fig.add_subplot(R, C, i * C + j + 1, projection="3d")
-            status[i, j] = _draw_panel(ax, m, fr, limits, m.vertical, elev, azim, colours[j])
+            status[i, j] = _draw_panel(ax, m, fr, limits[i], m.vertical, elev, azim, colours[j])
     fig.suptitle(title or f"{sequence}: ground truth vs methods (red: Dirichlet vertices)", fontsize=10)
     fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=1 - header / (panel_size * R + header), wspace=0.02, hspace=0.2)
     path = Path(path)

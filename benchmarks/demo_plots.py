@@ -1,0 +1,129 @@
+"""Render the looking-at-results figures from whatever results/ holds now.
+
+    python benchmarks/demo_plots.py [--scene cloth] [--out results/demo_plots]
+
+For one scene (default cloth) with ``results/sim/{scene}/trajectories.h5``: ground
+truth against the rollout side by side at a few frames, a GIF clip, the
+kinetic energy over time and an XDMF series of the rollout with its per-vertex
+error (open ``paraview/<scene>_<sequence>_<method>.xdmf`` in ParaView, then *Warp By Vector* on
+``displacement``).  Across scenes, where the files exist: the speed-accuracy
+chart and a stability map from ``results/evaluation/summary.csv`` (the latent
+rollout against the full-space solver, the only two methods the pipeline has
+so far), and the training histories of ``results/integrator/*/history.h5``.
+Nothing here is part of the workflow; it shows what the functions draw.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pandas as pd
+
+from latentsim import plots, render
+
+
+def _frames_to_show(T: int, diverged: int, k=4) -> list[int]:
+    """k frames spread over the sequence, one of them just before divergence."""
+    frames = set(np.linspace(0, T - 1, k).astype(int).tolist())
+    if diverged > 0:
+        frames.add(max(diverged - 1, 0))
+    return sorted(frames)
+
+
+def _rollouts(scene: str) -> dict:
+    """Method name -> rollout file: ``results/rollout/{scene}/{method}/rollout.h5`` (or the older
+    ``results/rollout/{scene}/rollout.h5``, named by its ``method`` attribute)."""
+    found = {p.parent.name: p for p in sorted(Path(f"results/rollout/{scene}").glob("*/rollout.h5"))}
+    old = Path(f"results/rollout/{scene}/rollout.h5")
+    if old.exists():
+        with h5py.File(old, "r") as f:
+            found[str(f.attrs.get("method", "latent"))] = old
+    return found
+
+
+def scene_figures(scene: str, out: Path) -> None:
+    truth = Path(f"results/sim/{scene}/trajectories.h5")
+    if not truth.exists():
+        print(f"skip {scene}: {truth} missing")
+        return
+    methods = _rollouts(scene)
+    with h5py.File(truth, "r") as f:
+        common = [n for n, g in f["sequences"].items() if g.attrs.get("split") == "test"]
+    for p in methods.values():
+        with h5py.File(p, "r") as f:
+            common = [n for n in common if n in f["sequences"]]
+    if not common:
+        print(f"skip {scene}: no test sequence common to the ground truth and {sorted(methods)}")
+        return
+    seq = common[0]
+    with h5py.File(truth, "r") as f:
+        T = f[f"sequences/{seq}/positions"].shape[0]
+    div = -1
+    for p in methods.values():
+        with h5py.File(p, "r") as f:
+            d = int(f[f"sequences/{seq}"].attrs.get("diverged_frame", -1))
+        div = d if d >= 0 and (div < 0 or d < div) else div
+    t0 = time.perf_counter()
+    frames = _frames_to_show(T, div)
+    r = render.render_frames(truth, methods, seq, frames, out / f"{scene}_{seq}_frames.png", bounds="row")
+    print(f"{scene}/{seq}: frames {frames} -> {r['status'].tolist()} ({time.perf_counter() - t0:.1f} s)")
+    t0 = time.perf_counter()
+    stride = max(1, T // 60)
+    r = render.render_clip(truth, methods, seq, out / f"{scene}_{seq}.gif", stride=stride, max_frames=60)
+    print(f"{scene}/{seq}: clip of {len(r['frames'])} frames, {r['bytes'] / 1e6:.2f} MB ({time.perf_counter() - t0:.1f} s)")
+    if methods:
+        plots.energy_curves_from_files(truth, methods, seq, out / f"{scene}_{seq}_energy.png")
+    for name, p in methods.items():
+        r = render.write_xdmf_series(p, seq, out / "paraview" / f"{scene}_{seq}_{name}.xdmf", reference=truth)
+        print(f"{scene}/{seq}/{name}: XDMF series, {r['frames']} steps, fields {r['fields']}")
+
+
+def summary_figures(out: Path) -> None:
+    table = Path("results/evaluation/summary.csv")
+    if table.exists():
+        df = pd.read_csv(table)
+        latent = df.assign(ms_per_frame=df["latent_ms"])
+        full = df.assign(method="full_space_newton", ms_per_frame=df["full_ms"], mean_error=0.0, diverged_frame=-1)
+        both = pd.concat([latent, full], ignore_index=True)
+        pts = plots.speed_accuracy_chart(both, out / "speed_accuracy.png")
+        print("speed-accuracy: on the front ->", pts.loc[pts["on_front"], ["scene", "method"]].values.tolist())
+        for scene in sorted(df["scene"].unique())[:1]:
+            plots.speed_accuracy_chart(both, out / f"speed_accuracy_{scene}.png", scene=scene)
+        stab = pd.DataFrame(
+            {
+                "method": df["method"],
+                "condition": df["scene"] + "/" + df["sequence"],
+                "frames_survived": np.where(df["diverged_frame"] >= 0, df["diverged_frame"], df["frames"]),
+                "frames": df["frames"],
+                "bc_error": df["dirichlet_error"],
+                "diverged_frame": df["diverged_frame"],
+            }
+        )
+        plots.stability_heatmap(stab, out / "stability.png", title="test sequences: frames survived (BC: mean Dirichlet error)")
+    root = Path("results/integrator")
+    files = sorted(root.glob("*/history.h5")) + sorted(root.glob("*/*/history.h5"))
+    histories = {str(p.parent.relative_to(root)): p for p in files}
+    if histories:
+        r = plots.training_curves(histories, out / "training_integrator.png", title="latent integrator training")
+        print(f"training curves: {len(histories)} runs, y axis {r['yscale']}")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default="cloth")
+    ap.add_argument("--out", default="results/demo_plots", type=Path)
+    args = ap.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    scene_figures(args.scene, args.out)
+    summary_figures(args.out)
+    print(f"written to {args.out}/")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
