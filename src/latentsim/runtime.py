@@ -51,6 +51,7 @@ __all__ = [
     "NumpyStepper",
     "TorchStepper",
     "export_runtime",
+    "fold_decoder",
     "fold_networks",
     "jvp_vertex_torch",
     "load_runtime",
@@ -78,6 +79,48 @@ def _fold_linear_bn(lin: nn.Linear, bn: nn.BatchNorm1d):
     return scale[:, None] * W, scale * (b - _np(bn.running_mean)) + _np(bn.bias)
 
 
+def fold_decoder(ae, coords) -> dict:
+    """Fold an eval-mode decoder + relative coordinates into float64 arrays.
+
+    Returns the ``dec_*`` layers, the coordinate index arrays and a ``header``
+    (with ``integrator_layers = 0``: a decoder-only runtime, e.g. for reduced
+    solvers, whose :meth:`NumpyStepper.integrate` is unavailable).
+    """
+    r = int(ae.latent_dim)
+    if coords.dim != ae.input_dim:
+        raise ValueError(f"coordinates encode {coords.dim} values, the autoencoder expects {ae.input_dim}")
+    out: dict = {}
+    # hidden layers (Linear + BatchNorm folded, SiLU, identity skip where widths match)
+    br = ae.dec_branch
+    skips = [bool(s) for s in br.skip]
+    for i, block in enumerate(br.blocks):
+        out[f"dec_W{i}"], out[f"dec_b{i}"] = _fold_linear_bn(block[0], block[1])
+    Wp, bp = _np(ae.pca_out.weight), _np(ae.pca_out.bias)  # (d, p), (d,)
+    Wo, bo = _np(br.out.weight), _np(br.out.bias)  # (p, w_L), (p,)
+    if len(br.blocks):
+        out["dec_Wout"] = np.concatenate([Wp[:, :r], Wp @ Wo], axis=1)  # acts on [z; h_L]
+    else:  # no hidden layer: the branch is one linear map of z
+        out["dec_Wout"] = Wp[:, :r] + Wp @ Wo
+    out["dec_bout"] = Wp @ bo + bp
+    out["dirichlet"] = coords.dirichlet.numpy().astype(np.int64)
+    out["free"] = coords.free.numpy().astype(np.int64)
+    out["root_slot"] = (coords.root_slot.numpy() if coords.root_slot is not None else np.zeros(0)).astype(np.int64)
+    out["header"] = {
+        "format": FORMAT,
+        "version": VERSION,
+        "latent_dim": r,
+        "bc_dim": 0,
+        "residual": False,
+        "integrator_layers": 0,
+        "decoder_skips": skips,
+        "encoded_dim": int(coords.dim),
+        "n_vertices": int(coords.n),
+        "mode": coords.mode,
+        "autoencoder_hparams": dict(ae.hparams),
+    }
+    return out
+
+
 def fold_networks(ae, integrator, coords) -> dict:
     """Fold an eval-mode integrator + decoder + relative coordinates into arrays.
 
@@ -92,24 +135,9 @@ def fold_networks(ae, integrator, coords) -> dict:
     dict of float64/int64 arrays plus ``header`` (a JSON-able dict); the
     layout of :func:`export_runtime`'s ``.npz`` file.
     """
-    r = int(ae.latent_dim)
-    if integrator.latent_dim != r:
-        raise ValueError(f"integrator latent dim {integrator.latent_dim} != autoencoder latent dim {r}")
-    if coords.dim != ae.input_dim:
-        raise ValueError(f"coordinates encode {coords.dim} values, the autoencoder expects {ae.input_dim}")
-    out: dict = {}
-    # decoder hidden layers (Linear + BatchNorm folded, SiLU, identity skip where widths match)
-    br = ae.dec_branch
-    skips = [bool(s) for s in br.skip]
-    for i, block in enumerate(br.blocks):
-        out[f"dec_W{i}"], out[f"dec_b{i}"] = _fold_linear_bn(block[0], block[1])
-    Wp, bp = _np(ae.pca_out.weight), _np(ae.pca_out.bias)  # (d, p), (d,)
-    Wo, bo = _np(br.out.weight), _np(br.out.bias)  # (p, w_L), (p,)
-    if len(br.blocks):
-        out["dec_Wout"] = np.concatenate([Wp[:, :r], Wp @ Wo], axis=1)  # acts on [z; h_L]
-    else:  # no hidden layer: the branch is one linear map of z
-        out["dec_Wout"] = Wp[:, :r] + Wp @ Wo
-    out["dec_bout"] = Wp @ bo + bp
+    if integrator.latent_dim != ae.latent_dim:
+        raise ValueError(f"integrator latent dim {integrator.latent_dim} != autoencoder latent dim {ae.latent_dim}")
+    out = fold_decoder(ae, coords)
     # integrator: standardisation folded into the first layer, output scaling into the last
     lins = [m for m in integrator.mlp if isinstance(m, nn.Linear)]
     mu, sd = _np(integrator.in_mean), _np(integrator.in_std)
@@ -122,23 +150,12 @@ def fold_networks(ae, integrator, coords) -> dict:
         if i == len(lins) - 1:
             W, b = osd[:, None] * W, osd * b + om
         out[f"int_W{i}"], out[f"int_b{i}"] = W, b
-    out["dirichlet"] = coords.dirichlet.numpy().astype(np.int64)
-    out["free"] = coords.free.numpy().astype(np.int64)
-    out["root_slot"] = (coords.root_slot.numpy() if coords.root_slot is not None else np.zeros(0)).astype(np.int64)
-    out["header"] = {
-        "format": FORMAT,
-        "version": VERSION,
-        "latent_dim": r,
-        "bc_dim": int(integrator.bc_dim),
-        "residual": bool(integrator.residual),
-        "integrator_layers": len(lins),
-        "decoder_skips": skips,
-        "encoded_dim": int(coords.dim),
-        "n_vertices": int(coords.n),
-        "mode": coords.mode,
-        "autoencoder_hparams": dict(ae.hparams),
-        "integrator_hparams": dict(integrator.hparams),
-    }
+    out["header"].update(
+        bc_dim=int(integrator.bc_dim),
+        residual=bool(integrator.residual),
+        integrator_layers=len(lins),
+        integrator_hparams=dict(integrator.hparams),
+    )
     return out
 
 
@@ -192,7 +209,7 @@ class NumpyStepper:
         self.int_W = [arr(f"int_W{i}") for i in range(L)]
         self.int_b = [arr(f"int_b{i}") for i in range(L)]
         self._q = np.zeros(2 * self.r + 3 * self.k, dtype=dt)
-        self._ia = [np.empty(W.shape[0], dtype=dt) for W in self.int_W]
+        self._ia = [np.empty(W.shape[0], dtype=dt) for W in self.int_W] or [np.empty(0, dtype=dt)]
         self._it = [np.empty(W.shape[0], dtype=dt) for W in self.int_W]
         self._z = np.empty(self.r, dtype=dt)
         self._zin = np.empty(self.r, dtype=dt)
@@ -239,6 +256,8 @@ class NumpyStepper:
     # -- integrator ------------------------------------------------------------
     def integrate(self, z_prev, z_prev2, p, p_prev, p_prev2, out=None) -> np.ndarray:
         """z_t (r,) from z_{t-1}, z_{t-2} (r,) and p_t, p_{t-1}, p_{t-2} (k,)."""
+        if not self.int_W:
+            raise ValueError("this runtime holds a decoder only (no integrator layers)")
         r, k, q = self.r, self.k, self._q
         q[:r] = z_prev
         q[r : 2 * r] = z_prev2
