@@ -85,15 +85,16 @@ def test_speed_accuracy_chart_one_scene_and_summary(tmp_path):
 def test_speed_accuracy_chart_aggregates_sequences(tmp_path):
     df = pd.DataFrame(
         [
-            {"scene": "s", "method": "a", "sequence": "q1", "ms_per_frame": 1.0, "mean_error": 0.1, "diverged_frame": -1},
-            {"scene": "s", "method": "a", "sequence": "q2", "ms_per_frame": 3.0, "mean_error": 0.3, "diverged_frame": -1},
-            {"scene": "s", "method": "b", "sequence": "q1", "ms_per_frame": 2.0, "mean_error": 0.1, "diverged_frame": -1},
-            {"scene": "s", "method": "b", "sequence": "q2", "ms_per_frame": 2.0, "mean_error": 0.1, "diverged_frame": 50},
+            {"scene": "s", "method": "a", "sequence": "q1", "ms_per_frame": 1.0, "mean_error": 0.1, "max_error": 0.5, "diverged_frame": -1},
+            {"scene": "s", "method": "a", "sequence": "q2", "ms_per_frame": 3.0, "mean_error": 0.3, "max_error": 0.9, "diverged_frame": -1},
+            {"scene": "s", "method": "b", "sequence": "q1", "ms_per_frame": 2.0, "mean_error": 0.1, "max_error": 0.2, "diverged_frame": -1},
+            {"scene": "s", "method": "b", "sequence": "q2", "ms_per_frame": 2.0, "mean_error": 0.1, "max_error": 0.2, "diverged_frame": 50},
         ]
     )
     pts = plots.speed_accuracy_chart(df, tmp_path / "s.png", scene="s", dpi=60).set_index("method")
     assert pts.loc["a", "ms_per_frame"] == pytest.approx(2.0)
     assert pts.loc["a", "mean_error"] == pytest.approx(0.2)
+    assert pts.loc["a", "max_error"] == pytest.approx(0.9)
     assert pts.loc["b", "diverged_frame"] == 50
     assert pts["on_front"].to_dict() == {"a": True, "b": False}
 
@@ -297,6 +298,19 @@ def test_render_frames(example, tmp_path):
     img = _png(out)
     # 3 rows x 3 panels, taller than wide
     assert img.shape[0] > img.shape[1]
+    err = r["max_error"]
+    np.testing.assert_allclose(err[:, 0], 0.0)
+    np.testing.assert_allclose(err[:, 1], np.sqrt(3) * 0.002)  # the rollout is the truth shifted by 0.002 per axis
+    np.testing.assert_allclose(err[:2, 2], 0.0)  # the diverging rollout equals the truth until frame 5
+    assert np.isnan(err[2, 2])
+    r2 = render.render_frames(example["gt"], {"self": example["ok"]}, "seq", [4], tmp_path / "err.png", dpi=80, color_by_error=True)
+    np.testing.assert_allclose(r2["max_error"], [[0.0, np.sqrt(3) * 0.002]])
+    img = _png(tmp_path / "err.png")[..., :3]
+    # every vertex is at the top of the scale: the method is drawn in viridis' yellow, the truth is not
+    yellow = (img[..., 0] > 0.5) & (img[..., 1] > 0.5) & (img[..., 2] < 0.45)
+    panels = img.shape[0] * 0.8  # above the colour bar
+    w = img.shape[1]
+    assert yellow[: int(panels), w // 2 :].sum() > 3 and yellow[: int(panels), : w // 2].sum() == 0
 
 
 def test_render_frames_draws_the_mesh(tmp_path):
@@ -354,6 +368,20 @@ def test_render_clip_gif(tmp_path):
         assert im.format == "GIF" and im.n_frames == 5
         w, h = im.size
         assert w > h > 50  # two panels side by side
+        shots = []
+        for k in (0, 1, 4):
+            im.seek(k)
+            shots.append(np.asarray(im.convert("L"), dtype=float))
+    assert np.abs(shots[1] - shots[0]).mean() > 0.1  # the rods swing between frames 0 and 4
+    # frame 16: the rollout has diverged (frame 12): its panel drops the grey panes and
+    # shows only the label, while the ground truth's panel is drawn as before
+    half = w // 2
+
+    def pane(img):
+        return ((img > 200) & (img < 250)).mean()
+
+    assert pane(shots[2][:, half:]) < 0.3 * pane(shots[1][:, half:])
+    assert pane(shots[2][:, :half]) == pytest.approx(pane(shots[1][:, :half]), rel=0.2)
     r = render.render_clip(gt, {"a": ro}, "seq", out, start=20, stride=3, max_frames=100, dpi=40)
     assert r["frames"] == [20, 23, 26, 29]
     with pytest.raises(ValueError, match="'.avi'"):

@@ -111,6 +111,8 @@ def _aggregate_methods(df: pd.DataFrame, error: str) -> pd.DataFrame:
     agg = {"ms_per_frame": ("ms_per_frame", "median"), error: (error, lambda s: s.mean(skipna=False))}
     if "diverged_frame" in df.columns:
         agg["diverged_frame"] = ("diverged_frame", lambda s: int(s[s >= 0].min()) if (s >= 0).any() else -1)
+    if "max_error" in df.columns and error != "max_error":
+        agg["max_error"] = ("max_error", lambda s: s.max(skipna=False))
     if "sequence" in df.columns:
         agg["sequences"] = ("sequence", "nunique")
     out = df.groupby(["scene", "method"], sort=True).agg(**agg).reset_index()
@@ -130,7 +132,9 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, error: str, colours: dict, annot
     pts["on_front"] = pareto_front(t, eligible_e)
     positive = np.isfinite(e) & (e > 0)
     floor = np.nanmin(e[positive]) / 3 if positive.any() else 1e-6
-    ceil = np.nanmax(e[positive]) * 3 if positive.any() else 1.0
+    emax = pts["max_error"].to_numpy(float) if "max_error" in pts.columns else np.full(len(pts), np.nan)
+    top = np.concatenate([e[positive], emax[np.isfinite(emax) & (emax > 0)]])
+    ceil = top.max() * 3 if len(top) else 1.0
     # exact (zero-error) rows sit on the bottom edge, failed (NaN) rows on the top edge
     y = np.where(positive, e, np.where(e == 0, floor, ceil))
     for i, r in enumerate(pts.itertuples(index=False)):
@@ -138,6 +142,10 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, error: str, colours: dict, annot
         marker = "o" if positive[i] else ("v" if e[i] == 0 else "X")
         face = "none" if diverged[i] else c
         ax.scatter([t[i]], [y[i]], s=60, marker=marker, facecolors=face, edgecolors=[c], linewidths=1.5, zorder=3, clip_on=False)
+        if positive[i] and np.isfinite(emax[i]) and emax[i] > e[i]:
+            # whisker up to the max error (over frames and vertices)
+            ax.plot([t[i], t[i]], [e[i], emax[i]], color=c, lw=1.0, alpha=0.6, zorder=1)
+            ax.plot([t[i]], [emax[i]], marker="_", ms=8, color=c, alpha=0.8, zorder=1)
         if pts["on_front"].iloc[i]:
             ax.scatter([t[i]], [y[i]], s=190, marker="o", facecolors="none", edgecolors="k", linewidths=1.0, zorder=2, clip_on=False)
         # small multiples name only the divergences (colours name the methods)
@@ -172,13 +180,15 @@ def speed_accuracy_chart(df: pd.DataFrame, path, scene=None, error="mean_error",
       (0 for the ground truth itself, drawn as a down triangle on the bottom
       edge; NaN when not measurable, drawn as a cross on the top edge), or any
       column named by ``error`` (e.g. ``max_error``);
+    - ``max_error`` (float, optional): drawn as a whisker above the point;
     - ``diverged_frame`` (int, optional): first diverged frame, -1 when stable.
       Diverged methods are drawn hollow, labelled with the frame, and kept off
       the Pareto front (their error covers only the frames before divergence);
     - ``sequence`` (str, optional).
 
     Several rows of one (scene, method) are aggregated: median ms per frame,
-    mean of the error (NaN if any is NaN), earliest divergence.
+    mean of the error and max of ``max_error`` (NaN if any is NaN), earliest
+    divergence.  The Pareto front is computed on the error column only.
 
     Parameters
     ----------

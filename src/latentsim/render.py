@@ -199,13 +199,17 @@ def _limits(motions, frames, bounds: str) -> np.ndarray:
 
 
 def _shade(x: np.ndarray, tris: np.ndarray, rgb) -> np.ndarray:
-    """(F,4) face colours, Lambert shading two-sided (cloth is seen from both sides)."""
+    """(F,4) face colours, Lambert shading two-sided (cloth is seen from both sides).
+
+    ``rgb`` is one colour (3,) or one per face (F,3).
+    """
     a, b, c = x[tris[:, 0]], x[tris[:, 1]], x[tris[:, 2]]
     nrm = np.cross(b - a, c - a)
     nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
     k = 0.35 + 0.65 * np.abs(nrm @ _LIGHT)
+    base = np.broadcast_to(np.asarray(rgb, dtype=float)[..., :3], (len(tris), 3))
     col = np.empty((len(tris), 4))
-    col[:, :3] = np.clip(np.asarray(rgb[:3])[None, :] * k[:, None], 0, 1)
+    col[:, :3] = np.clip(base * k[:, None], 0, 1)
     col[:, 3] = 1.0
     return col
 
@@ -222,8 +226,12 @@ def _setup_axes(ax, limits, vertical: int, elev, azim):
     ax.set_zticks([])
 
 
-def _draw_panel(ax, motion: Motion, frame: int, limits, vertical, elev, azim, colour, title=True):
-    """Draw one motion at one frame on a 3D axis; returns the panel's status."""
+def _draw_panel(ax, motion: Motion, frame: int, limits, vertical, elev, azim, colour, title=True, values=None, cmap=None):
+    """Draw one motion at one frame on a 3D axis; returns the panel's status.
+
+    ``values`` (n,) in [0, 1], optional, colour the elements through ``cmap``
+    (mean over each element's vertices) instead of the flat ``colour``.
+    """
     ax.cla()
     _setup_axes(ax, limits, vertical, elev, azim)
     status = motion.status(frame)
@@ -241,13 +249,18 @@ def _draw_panel(ax, motion: Motion, frame: int, limits, vertical, elev, azim, co
     else:
         x = motion.at(frame)
         if motion.segments is not None:
+            seg = motion.segments
+            cols = [colour] if values is None else cmap(values[seg].mean(axis=1))
             ax.add_collection3d(
-                Line3DCollection(x[motion.segments], colors=[colour], linewidths=0.8), autolim=False, axlim_clip=True
+                Line3DCollection(x[seg], colors=cols, linewidths=0.8), autolim=False, axlim_clip=True
             )
         if motion.triangles is not None:
             tris = motion.triangles
+            rgb = colour if values is None else cmap(values[tris].mean(axis=1))
+            fc = _shade(x, tris, rgb)
             ax.add_collection3d(
-                Poly3DCollection(x[tris], facecolors=_shade(x, tris, colour), edgecolors="none", linewidths=0.0),
+                # edges in the face colours hide the antialiasing seams between triangles
+                Poly3DCollection(x[tris], facecolors=fc, edgecolors=fc, linewidths=0.3),
                 autolim=False,
                 axlim_clip=True,
             )
@@ -280,6 +293,8 @@ def render_frames(
     panel_size=2.8,
     dpi=100,
     title=None,
+    color_by_error=False,
+    error_max=None,
 ) -> dict:
     """Ground truth against each method, side by side, at chosen frames.
 
@@ -300,12 +315,21 @@ def render_frames(
         ``"row"`` fits each row (frame) to the ground truth at that frame, for
         motions that travel far (the panels of a row still share their axes).
     elev, azim : float, view angles [degrees]; the vertical axis is y (gravity).
+    color_by_error : bool
+        Colour each method's elements by the distance of their vertices to the
+        ground truth at the same frame (viridis, one scale for the whole
+        figure, colour bar at the bottom) instead of a flat colour.
+    error_max : float or None
+        Top of that scale [m]; default the largest error shown.
 
     Returns
     -------
     dict with ``status`` ((len(frames), 1 + len(methods)) array of str:
-    ``ok``, ``diverged`` or ``missing``), ``labels`` (column labels) and
-    ``limits`` ((len(frames), 3, 2) axis limits of each row).
+    ``ok``, ``diverged`` or ``missing``), ``labels`` (column labels),
+    ``limits`` ((len(frames), 3, 2) axis limits of each row) and
+    ``max_error`` ((len(frames), 1 + len(methods)) float: largest vertex
+    distance to the ground truth in each panel [m], 0 for the ground truth,
+    NaN where a panel is not ``ok``).
     """
     frames = [int(f) for f in frames]
     if not frames:
@@ -320,21 +344,39 @@ def render_frames(
     else:
         limits = np.repeat(_limits(motions, frames, bounds)[None], len(frames), axis=0)
     R, C = len(frames), len(motions)
-    header = 0.9  # inches above the panels for the title
-    fig = plt.figure(figsize=(panel_size * C, panel_size * R + header))
+    errors = np.full((R, C), np.nan)
+    per_vertex = {}
+    for i, fr in enumerate(frames):
+        for j, m in enumerate(motions):
+            if m.status(fr) == "ok":
+                per_vertex[i, j] = np.linalg.norm(m.at(fr) - gt.at(fr), axis=1)
+                errors[i, j] = per_vertex[i, j].max()
+    header, footer = 0.9, (0.8 if color_by_error else 0.0)  # inches for the title and the colour bar
+    height = panel_size * R + header + footer
+    fig = plt.figure(figsize=(panel_size * C, height))
     colours = _colours(C)
     status = np.empty((R, C), dtype=object)
+    cmap = plt.get_cmap("viridis")
+    top = error_max if error_max is not None else np.nanmax(errors[:, 1:], initial=0.0)
+    top = float(top) if np.isfinite(top) and top > 0 else 1.0
     for i, fr in enumerate(frames):
         for j, m in enumerate(motions):
             ax = fig.add_subplot(R, C, i * C + j + 1, projection="3d")
-            status[i, j] = _draw_panel(ax, m, fr, limits[i], m.vertical, elev, azim, colours[j])
+            values = np.clip(per_vertex[i, j] / top, 0, 1) if color_by_error and j > 0 and (i, j) in per_vertex else None
+            status[i, j] = _draw_panel(ax, m, fr, limits[i], m.vertical, elev, azim, colours[j], values=values, cmap=cmap)
     fig.suptitle(title or f"{sequence}: ground truth vs methods (red: Dirichlet vertices)", fontsize=10)
-    fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=1 - header / (panel_size * R + header), wspace=0.02, hspace=0.2)
+    fig.subplots_adjust(
+        left=0.01, right=0.99, bottom=(footer + 0.05) / height, top=1 - header / height, wspace=0.02, hspace=0.2
+    )
+    if color_by_error:
+        cax = fig.add_axes((0.25, 0.45 / height, 0.5, 0.12 / height))
+        sm = plt.cm.ScalarMappable(norm=plt.Normalize(0.0, top), cmap=cmap)
+        fig.colorbar(sm, cax=cax, orientation="horizontal", label="vertex distance to ground truth [m]")
     path = Path(path)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".").lower() or "png")
     plt.close(fig)
-    return {"status": status.astype(str), "labels": [m.label for m in motions], "limits": limits}
+    return {"status": status.astype(str), "labels": [m.label for m in motions], "limits": limits, "max_error": errors}
 
 
 def have_ffmpeg() -> bool:
