@@ -48,6 +48,7 @@ from torch import nn
 
 __all__ = [
     "FORMAT",
+    "EagerStepper",
     "NumpyStepper",
     "TorchStepper",
     "export_runtime",
@@ -572,6 +573,30 @@ class TorchStepper:
         return z, self.decode(z, xD, out=x_out)
 
 
+class EagerStepper:
+    """The training modules themselves (eval mode, ``torch.inference_mode``) behind the
+    stepper interface: the eager-PyTorch baseline of :func:`time_step`.  Inputs are
+    tensors of one frame, z (r,), p (k,), xD (m, 3)."""
+
+    def __init__(self, ae, integrator, coords):
+        from .latent import decode_latents
+
+        self.ae, self.integrator, self.coords = ae.eval(), integrator.eval(), coords
+        self._decode = decode_latents
+
+    def integrate(self, z_prev, z_prev2, p, p_prev, p_prev2, out=None):
+        with torch.inference_mode():
+            return self.integrator(z_prev[None], z_prev2[None], p[None], p_prev[None], p_prev2[None])[0]
+
+    def decode(self, z, xD, out=None):
+        with torch.inference_mode():
+            return self._decode(self.ae, self.coords, z[None], xD[None])[0]
+
+    def step(self, z_prev, z_prev2, p, p_prev, p_prev2, xD, z_out=None, x_out=None):
+        z = self.integrate(z_prev, z_prev2, p, p_prev, p_prev2)
+        return z, self.decode(z, xD)
+
+
 # ---------------------------------------------------------------------------
 # files
 # ---------------------------------------------------------------------------
@@ -655,9 +680,9 @@ def _median_ms(samples) -> float:
 def time_step(stepper, z_prev, z_prev2, p, p_prev, p_prev2, xD, repeats: int = 200, warmup: int = 10) -> dict:
     """Median wall time [ms] of integration, decoding and the whole step.
 
-    Works with :class:`NumpyStepper` (NumPy inputs) and :class:`TorchStepper`
-    (tensor inputs; convert first).  The step is timed as one call, so
-    ``step_ms`` includes neither the two timer reads between the halves.
+    Works with :class:`NumpyStepper` (NumPy inputs), :class:`TorchStepper` and
+    :class:`EagerStepper` (tensor inputs).  ``step_ms`` times one whole
+    :meth:`step` call (not the sum of the two halves' medians).
     """
     ti, td, ts = [], [], []
     z = stepper.integrate(z_prev, z_prev2, p, p_prev, p_prev2)
