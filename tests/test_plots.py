@@ -290,11 +290,6 @@ def test_render_frames(example, tmp_path):
     lim = r["limits"]
     assert lim.shape == (3, 3, 2) and (lim == lim[0]).all()
     assert (x >= lim[0, :, 0]).all() and (x <= lim[0, :, 1]).all()
-    rows = render.render_frames(example["gt"], {"self": example["ok"]}, "seq", [0, 4], out, bounds="row", dpi=40)["limits"]
-    for k, fr in enumerate([0, 4]):
-        xk = example["truth"][fr]
-        assert (xk >= rows[k, :, 0]).all() and (xk <= rows[k, :, 1]).all()
-    assert not np.allclose(rows[0], rows[1])  # the swing moves the frame-4 box
     img = _png(out)
     # 3 rows x 3 panels, taller than wide
     assert img.shape[0] > img.shape[1]
@@ -311,6 +306,18 @@ def test_render_frames(example, tmp_path):
     panels = img.shape[0] * 0.8  # above the colour bar
     w = img.shape[1]
     assert yellow[: int(panels), w // 2 :].sum() > 3 and yellow[: int(panels), : w // 2].sum() == 0
+
+
+def test_render_frames_row_bounds(tmp_path):
+    model, rest, cells, D = _rods()
+    truth = _swing(rest, 6, amp=0.5)
+    gt = _write_traj(tmp_path / "gt.h5", model, rest, cells, {"seq": (truth, None)}, dirichlet=D)
+    rows = render.render_frames(gt, {}, "seq", [0, 4], tmp_path / "rows.png", bounds="row", dpi=40)["limits"]
+    for k, fr in enumerate([0, 4]):
+        assert (truth[fr] >= rows[k, :, 0]).all() and (truth[fr] <= rows[k, :, 1]).all()
+    assert not np.allclose(rows[0], rows[1])  # the swing moves the frame-4 box
+    with pytest.raises(ValueError, match="'row'"):
+        render.render_frames(gt, {}, "seq", [0], tmp_path / "x.png", bounds="rows")
 
 
 def test_render_frames_draws_the_mesh(tmp_path):
@@ -384,6 +391,8 @@ def test_render_clip_gif(tmp_path):
     assert pane(shots[2][:, :half]) == pytest.approx(pane(shots[1][:, :half]), rel=0.2)
     r = render.render_clip(gt, {"a": ro}, "seq", out, start=20, stride=3, max_frames=100, dpi=40)
     assert r["frames"] == [20, 23, 26, 29]
+    with pytest.raises(ValueError, match="'row'"):
+        render.render_clip(gt, ro, "seq", out, bounds="row")
     with pytest.raises(ValueError, match="'.avi'"):
         render.render_clip(gt, ro, "seq", tmp_path / "clip.avi")
     if not render.have_ffmpeg():
@@ -429,3 +438,19 @@ def test_write_xdmf_series_divergence_and_guards(example, tmp_path):
         render.write_xdmf_series(example["ok"], "other", tmp_path / "o.xdmf")
     with pytest.raises(ValueError, match=r"\.xdmf"):
         render.write_xdmf_series(example["ok"], "seq", tmp_path / "o.vtu")
+
+
+def test_energy_curves_from_files(example, tmp_path):
+    series = plots.energy_curves_from_files(
+        example["gt"], {"self": example["ok"], "sup": example["div"]}, "seq", tmp_path / "ke.png"
+    )
+    x, dt = example["truth"], 0.05
+    v = np.diff(x, axis=0) / dt
+    expected = np.concatenate([[0.0], 0.5 * (v * v).sum(axis=(1, 2))])  # unit masses
+    np.testing.assert_allclose(series["ground truth"]["kinetic"], expected)
+    np.testing.assert_allclose(series["self"]["kinetic"], expected, atol=1e-12)  # a constant shift has no velocity
+    sup = series["sup"]["kinetic"]
+    assert np.isfinite(sup[:5]).all() and np.isnan(sup[6:]).all()
+    _png(tmp_path / "ke.png")
+    with pytest.raises(ArtefactError, match="'/sequences/other'"):
+        plots.energy_curves_from_files(example["gt"], {}, "other", tmp_path / "ke2.png")

@@ -416,6 +416,12 @@ def energy_curves_from_files(truth_h5, rollouts: Mapping, sequence: str, path, t
     truth_h5 : path of a trajectory-layout file (``trajectories.h5``).
     rollouts : mapping method name -> path of a trajectory-layout file.
     sequence : str, a sequence present in every file.
+    path : output image.
+
+    Returns
+    -------
+    dict name -> {"kinetic": (T,) float} [J], the curves drawn (NaN after a
+    rollout's divergence), the ground truth under ``"ground truth"``.
     """
     from .evaluate import kinetic_energy
 
@@ -433,7 +439,8 @@ def energy_curves_from_files(truth_h5, rollouts: Mapping, sequence: str, path, t
     series = {"ground truth": {"kinetic": ke}}
     for name, p in rollouts.items():
         series[name] = {"kinetic": load(p)[0]}
-    return energy_curves(series, path, dt, title=title or f"kinetic energy, sequence {sequence!r}")
+    energy_curves(series, path, dt, title=title or f"kinetic energy, sequence {sequence!r}")
+    return series
 
 
 # --------------------------------------------------------------------------- training

@@ -143,7 +143,7 @@ def load_motion(h5_path, sequence: str, frames=None, label=None) -> Motion:
             triangles = require(f, "triangles", path=h5_path)[()]
         else:
             triangles = f["surface"][()] if "surface" in f else surface_of(require(f, "tets", path=h5_path)[()])
-        rest = f["rest_positions"][()] if "rest_positions" in f else pos[0]
+        rest = f["rest_positions"][()] if "rest_positions" in f else ds[0]
         dirichlet = f["dirichlet"][()] if "dirichlet" in f else np.zeros(0, dtype=np.int64)
         div = int(g.attrs.get("diverged_frame", -1))
         if label is None:
@@ -180,17 +180,18 @@ def _load_all(truth, methods, sequence, frames):
 
 
 def _limits(motions, frames, bounds: str) -> np.ndarray:
-    """(3,2) axis limits shared by every panel: the ground truth's frames, or everything finite."""
-    if bounds not in ("truth", "all"):
-        raise ValueError(f"bounds must be 'truth' or 'all', got {bounds!r}")
+    """(3,2) axis limits: the ground truth's (``truth``) or every motion's (``all``) finite
+    positions at ``frames``; the rest shape when none is finite."""
     use = motions[:1] if bounds == "truth" else motions
-    pts = [m.rest for m in use]
+    pts = []
     for m in use:
         for fr in frames:
             x = m.at(fr)
             if x is not None:
                 pts.append(x[np.isfinite(x).all(axis=1)])
-    P = np.concatenate(pts)
+    P = np.concatenate(pts) if pts else np.zeros((0, 3))
+    if not len(P):
+        P = motions[0].rest
     lo, hi = P.min(axis=0), P.max(axis=0)
     centre, half = (lo + hi) / 2, (hi - lo) / 2
     # flat objects (a cloth at rest) get depth, so out-of-plane motion stays in view
@@ -334,6 +335,8 @@ def render_frames(
     frames = [int(f) for f in frames]
     if not frames:
         raise ValueError("render_frames: no frames given")
+    if bounds not in ("truth", "all", "row"):
+        raise ValueError(f"render_frames: bounds must be 'truth', 'all' or 'row', got {bounds!r}")
     motions = _load_all(truth, methods, sequence, frames)
     gt = motions[0]
     bad = [f for f in frames if not 0 <= f < gt.n_frames]
@@ -411,6 +414,8 @@ def render_clip(
     ----------
     truth, methods, sequence : as in :func:`render_frames` (``methods`` may
         also be a single path: one rollout against the ground truth).
+    bounds : ``"truth"`` or ``"all"``, as in :func:`render_frames`, over all
+        the clip's frames (the camera never moves).
     path : ``.gif`` (Pillow) or ``.mp4`` (needs ffmpeg; see :func:`have_ffmpeg`).
     start, stride, max_frames : int, which frames to show.
     fps : int, frames per second of the clip.
@@ -429,6 +434,8 @@ def render_clip(
         writer = animation.FFMpegWriter(fps=fps)
     else:
         raise ValueError(f"render_clip: unsupported clip format {suffix!r} ({path}); use .gif or .mp4")
+    if bounds not in ("truth", "all"):
+        raise ValueError(f"render_clip: bounds must be 'truth' or 'all', got {bounds!r}")
     if stride < 1 or max_frames < 1:
         raise ValueError(f"render_clip: stride ({stride}) and max_frames ({max_frames}) must be >= 1")
     T = _as_motion(truth, sequence, [], "ground truth").n_frames  # reads no frames
