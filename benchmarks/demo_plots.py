@@ -70,11 +70,11 @@ def scene_figures(scene: str, out: Path) -> None:
         div = d if d >= 0 and (div < 0 or d < div) else div
     t0 = time.perf_counter()
     frames = _frames_to_show(T, div)
-    r = render.render_frames(truth, methods, seq, frames, out / f"{scene}_{seq}_frames.png", bounds="row")
+    r = render.render_frames(truth, methods, seq, frames, out / f"{scene}_{seq}_frames.png", bounds="row", color_by_error=True)
     print(f"{scene}/{seq}: frames {frames} -> {r['status'].tolist()} ({time.perf_counter() - t0:.1f} s)")
     t0 = time.perf_counter()
     stride = max(1, T // 60)
-    r = render.render_clip(truth, methods, seq, out / f"{scene}_{seq}.gif", stride=stride, max_frames=60)
+    r = render.render_clip(truth, methods, seq, out / f"{scene}_{seq}.gif", stride=stride, max_frames=60, color_by_error=True)
     print(f"{scene}/{seq}: clip of {len(r['frames'])} frames, {r['bytes'] / 1e6:.2f} MB ({time.perf_counter() - t0:.1f} s)")
     if methods:
         plots.energy_curves_from_files(truth, methods, seq, out / f"{scene}_{seq}_energy.png")

@@ -389,8 +389,10 @@ def test_render_clip_gif(tmp_path):
 
     assert pane(shots[2][:, half:]) < 0.3 * pane(shots[1][:, half:])
     assert pane(shots[2][:, :half]) == pytest.approx(pane(shots[1][:, :half]), rel=0.2)
-    r = render.render_clip(gt, {"a": ro}, "seq", out, start=20, stride=3, max_frames=100, dpi=40)
+    r = render.render_clip(gt, {"a": ro}, "seq", out, start=20, stride=3, max_frames=100, dpi=40, color_by_error=True)
     assert r["frames"] == [20, 23, 26, 29]
+    with Image.open(out) as im:
+        assert im.n_frames == 4 and im.size[1] > h  # the colour bar adds a strip below the panels
     with pytest.raises(ValueError, match="'row'"):
         render.render_clip(gt, ro, "seq", out, bounds="row")
     with pytest.raises(ValueError, match="'.avi'"):

@@ -281,6 +281,44 @@ def _colours(n):
     return [(0.45, 0.5, 0.6)] + [cmap(i % 10)[:3] for i in range(n - 1)]
 
 
+_ERROR_CMAP = plt.get_cmap("viridis")  # no red in it: red marks the Dirichlet vertices
+
+
+def _vertex_errors(motions, frames):
+    """Per-vertex distance to the ground truth (motions[0]) of every ``ok`` panel.
+
+    Returns ``per_vertex`` {(row, column): (n,) float} and ``errors``
+    (len(frames), len(motions)) float, each panel's largest distance (NaN
+    where the panel is not ``ok``).
+    """
+    gt = motions[0]
+    errors = np.full((len(frames), len(motions)), np.nan)
+    per_vertex = {}
+    for i, fr in enumerate(frames):
+        for j, m in enumerate(motions):
+            if m.status(fr) == "ok" and gt.status(fr) == "ok":
+                per_vertex[i, j] = np.linalg.norm(m.at(fr) - gt.at(fr), axis=1)
+                errors[i, j] = per_vertex[i, j].max()
+    return per_vertex, errors
+
+
+def _error_scale(errors, error_max=None) -> float:
+    """Top of the error colour scale: ``error_max`` or the largest method error shown."""
+    top = error_max if error_max is not None else np.nanmax(errors[:, 1:], initial=0.0)
+    return float(top) if np.isfinite(top) and top > 0 else 1.0
+
+
+def _error_values(per_vertex, i, j, top):
+    """Colour-map input (n,) in [0, 1] of a method panel, None for the ground truth or an empty panel."""
+    return np.clip(per_vertex[i, j] / top, 0, 1) if j > 0 and (i, j) in per_vertex else None
+
+
+def _error_colorbar(fig, top, bottom, height):
+    cax = fig.add_axes((0.25, bottom, 0.5, height))
+    sm = plt.cm.ScalarMappable(norm=plt.Normalize(0.0, top), cmap=_ERROR_CMAP)
+    fig.colorbar(sm, cax=cax, orientation="horizontal", label="vertex distance to ground truth [m]")
+
+
 def render_frames(
     truth,
     methods,
@@ -347,34 +385,24 @@ def render_frames(
     else:
         limits = np.repeat(_limits(motions, frames, bounds)[None], len(frames), axis=0)
     R, C = len(frames), len(motions)
-    errors = np.full((R, C), np.nan)
-    per_vertex = {}
-    for i, fr in enumerate(frames):
-        for j, m in enumerate(motions):
-            if m.status(fr) == "ok":
-                per_vertex[i, j] = np.linalg.norm(m.at(fr) - gt.at(fr), axis=1)
-                errors[i, j] = per_vertex[i, j].max()
+    per_vertex, errors = _vertex_errors(motions, frames)
     header, footer = 0.9, (0.8 if color_by_error else 0.0)  # inches for the title and the colour bar
     height = panel_size * R + header + footer
     fig = plt.figure(figsize=(panel_size * C, height))
     colours = _colours(C)
     status = np.empty((R, C), dtype=object)
-    cmap = plt.get_cmap("viridis")
-    top = error_max if error_max is not None else np.nanmax(errors[:, 1:], initial=0.0)
-    top = float(top) if np.isfinite(top) and top > 0 else 1.0
+    top = _error_scale(errors, error_max)
     for i, fr in enumerate(frames):
         for j, m in enumerate(motions):
             ax = fig.add_subplot(R, C, i * C + j + 1, projection="3d")
-            values = np.clip(per_vertex[i, j] / top, 0, 1) if color_by_error and j > 0 and (i, j) in per_vertex else None
-            status[i, j] = _draw_panel(ax, m, fr, limits[i], m.vertical, elev, azim, colours[j], values=values, cmap=cmap)
+            values = _error_values(per_vertex, i, j, top) if color_by_error else None
+            status[i, j] = _draw_panel(ax, m, fr, limits[i], m.vertical, elev, azim, colours[j], values=values, cmap=_ERROR_CMAP)
     fig.suptitle(title or f"{sequence}: ground truth vs methods (red: Dirichlet vertices)", fontsize=10)
     fig.subplots_adjust(
         left=0.01, right=0.99, bottom=(footer + 0.05) / height, top=1 - header / height, wspace=0.02, hspace=0.2
     )
     if color_by_error:
-        cax = fig.add_axes((0.25, 0.45 / height, 0.5, 0.12 / height))
-        sm = plt.cm.ScalarMappable(norm=plt.Normalize(0.0, top), cmap=cmap)
-        fig.colorbar(sm, cax=cax, orientation="horizontal", label="vertex distance to ground truth [m]")
+        _error_colorbar(fig, top, 0.45 / height, 0.12 / height)
     path = Path(path)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".").lower() or "png")
@@ -403,6 +431,8 @@ def render_clip(
     panel_size=2.6,
     dpi=90,
     title=None,
+    color_by_error=False,
+    error_max=None,
 ) -> dict:
     """Animated clip of ground truth and methods side by side (GIF, or MP4 with ffmpeg).
 
@@ -419,6 +449,8 @@ def render_clip(
     path : ``.gif`` (Pillow) or ``.mp4`` (needs ffmpeg; see :func:`have_ffmpeg`).
     start, stride, max_frames : int, which frames to show.
     fps : int, frames per second of the clip.
+    color_by_error, error_max : as in :func:`render_frames`; the scale is
+        fixed over the whole clip (default: the largest error in any frame).
 
     Returns
     -------
@@ -445,25 +477,34 @@ def render_clip(
     motions = _load_all(truth, methods, sequence, frames)
     limits = _limits(motions, frames, bounds)
     C = len(motions)
-    fig = plt.figure(figsize=(panel_size * C, panel_size + 0.5))
+    per_vertex, errors = _vertex_errors(motions, frames) if color_by_error else ({}, None)
+    top = _error_scale(errors, error_max) if color_by_error else 1.0
+    footer = 0.85 if color_by_error else 0.0
+    height = panel_size + 0.5 + footer
+    fig = plt.figure(figsize=(panel_size * C, height))
     axes = [fig.add_subplot(1, C, j + 1, projection="3d") for j in range(C)]
     colours = _colours(C)
-    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.0, top=1 - 0.5 / (panel_size + 0.5), wspace=0.02)
+    fig.subplots_adjust(left=0.0, right=1.0, bottom=footer / height, top=1 - 0.5 / height, wspace=0.02)
+    if color_by_error:
+        _error_colorbar(fig, top, 0.5 / height, 0.1 / height)
     head = fig.suptitle("", fontsize=9)
 
-    def update(fr):
-        for ax, m, c in zip(axes, motions, colours):
-            _draw_panel(ax, m, fr, limits, m.vertical, elev, azim, c, title=False)
+    def update(i, fr):
+        for j, (ax, m, c) in enumerate(zip(axes, motions, colours)):
+            values = _error_values(per_vertex, i, j, top) if color_by_error else None
+            _draw_panel(ax, m, fr, limits, m.vertical, elev, azim, c, title=False, values=values, cmap=_ERROR_CMAP)
             ax.set_title(m.label, fontsize=8)
         head.set_text(f"{title or sequence}   frame {fr}   t = {fr * motions[0].dt:.2f} s")
-        return []
 
-    anim = animation.FuncAnimation(fig, update, frames=frames, blit=False)
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp, tempfile.TemporaryDirectory(dir=path.parent, prefix=".clip-") as d:
         # the writers choose the container from the file's suffix, which the atomic temporary name lacks
         inner = Path(d) / f"clip{suffix}"
-        anim.save(inner, writer=writer, dpi=dpi)
+        # driving the writer directly draws each frame once (FuncAnimation.save draws it twice)
+        with writer.saving(fig, inner, dpi):
+            for i, fr in enumerate(frames):
+                update(i, fr)
+                writer.grab_frame()
         os.replace(inner, tmp)
     plt.close(fig)
     return {"frames": frames, "bytes": path.stat().st_size}
