@@ -118,6 +118,32 @@ def test_runtimes_match_modules_float64(mode):
     assert np.abs(x_ref).max() > 0.1
 
 
+@pytest.mark.parametrize("pca_dim", [4, 24])
+def test_narrow_and_wide_pca_layers(pca_dim):
+    """A PCA layer narrower than the last hidden layer keeps the branch output layer apart
+    (folding it would widen the largest matrix); a wide one folds it into W_cat."""
+    coords = RelativeCoordinates(40, [0, 1, 2], "mean")
+    torch.manual_seed(2)
+    ae = Autoencoder(coords.dim, R, [16, 16], pca_dim=pca_dim)
+    ae.init_pca(torch.randn(64, coords.dim))
+    with torch.no_grad():
+        ae.dec_branch.out.weight.normal_(0.0, 0.3)
+    ae.eval()
+    integ = LatentIntegrator(R, K, [8]).eval()
+    folded = rt.fold_networks(ae, integ, coords)
+    assert folded["header"]["decoder_mid"] == (pca_dim < 16)
+    args = _inputs(coords, seed=11, dtype=torch.float64)
+    z_ref, x_ref = _reference(copy.deepcopy(ae).double(), copy.deepcopy(integ).double(), coords, args)
+    z, x = rt.NumpyStepper(folded, np.float64).step(*(a.numpy() for a in args))
+    zt, xt = rt.TorchStepper(rt.torchscript_module(folded, torch.float64)).step(*args)
+    for a, b in ((z, z_ref), (x, x_ref), (zt.numpy(), z_ref), (xt.numpy(), x_ref)):
+        assert np.allclose(a, b, rtol=0, atol=1e-12)
+    st = rt.NumpyStepper(folded, np.float64)
+    v = np.ones(R)
+    du_ref = rt.jvp_vertex_torch(copy.deepcopy(ae).double(), args[0], torch.from_numpy(v), 7)[1]
+    assert np.allclose(st.jvp_vertex(args[0].numpy(), v, 7)[1], du_ref.detach().numpy(), rtol=0, atol=1e-12)
+
+
 @pytest.mark.parametrize("mode", ["roots", "mean"])
 def test_runtimes_match_modules_float32(mode):
     ae, integ, coords = _trained_modules(mode, seed=3)

@@ -11,7 +11,9 @@ handful of dense layers:
   scaling (``out_mean + out_std * y``) into its last;
 - the decoder's residual-branch output layer into the PCA output layer, and the
   PCA skip path ``[z, 0]`` into the same matrix: ``u = W_cat [z; h_L] + b_cat``
-  with ``W_cat = [W_pca[:, :r], W_pca W_o]`` (d x (r + w_L)).
+  with ``W_cat = [W_pca[:, :r], W_pca W_o]`` (d x (r + w_L)) - unless the PCA
+  layer is narrower than the last hidden layer (p < w_L), where that would widen
+  the largest matrix: then ``u = W_pca ([z, 0] + W_o h_L + b_o) + b_pca``.
 
 One frame is then (paper Eq. 3 and the decode)::
 
@@ -98,11 +100,16 @@ def fold_decoder(ae, coords) -> dict:
         out[f"dec_W{i}"], out[f"dec_b{i}"] = _fold_linear_bn(block[0], block[1])
     Wp, bp = _np(ae.pca_out.weight), _np(ae.pca_out.bias)  # (d, p), (d,)
     Wo, bo = _np(br.out.weight), _np(br.out.bias)  # (p, w_L), (p,)
-    if len(br.blocks):
-        out["dec_Wout"] = np.concatenate([Wp[:, :r], Wp @ Wo], axis=1)  # acts on [z; h_L]
-    else:  # no hidden layer: the branch is one linear map of z
-        out["dec_Wout"] = Wp[:, :r] + Wp @ Wo
-    out["dec_bout"] = Wp @ bo + bp
+    d, p = Wp.shape
+    wl = Wo.shape[1]
+    if not len(br.blocks):  # no hidden layer: the branch is one linear map of z
+        out["dec_Wout"], out["dec_bout"] = Wp[:, :r] + Wp @ Wo, Wp @ bo + bp
+    elif d * (r + wl) <= p * (r + wl) + d * p:  # one (d, r + w_L) matrix on [z; h_L]
+        out["dec_Wout"], out["dec_bout"] = np.concatenate([Wp[:, :r], Wp @ Wo], axis=1), Wp @ bo + bp
+    else:  # a narrow PCA layer (p < w_L): folding would widen the largest matrix; keep both
+        out["dec_Wmid"] = np.concatenate([np.eye(p)[:, :r], Wo], axis=1)  # [z; h_L] -> [z, 0] + W_o h_L
+        out["dec_bmid"] = bo
+        out["dec_Wout"], out["dec_bout"] = Wp, bp
     out["dirichlet"] = coords.dirichlet.numpy().astype(np.int64)
     out["free"] = coords.free.numpy().astype(np.int64)
     out["root_slot"] = (coords.root_slot.numpy() if coords.root_slot is not None else np.zeros(0)).astype(np.int64)
@@ -114,6 +121,7 @@ def fold_decoder(ae, coords) -> dict:
         "residual": False,
         "integrator_layers": 0,
         "decoder_skips": skips,
+        "decoder_mid": "dec_Wmid" in out,
         "encoded_dim": int(coords.dim),
         "n_vertices": int(coords.n),
         "mode": coords.mode,
@@ -221,6 +229,11 @@ class NumpyStepper:
         self.dec_W = [arr(f"dec_W{i}") for i in range(nh)]
         self.dec_b = [arr(f"dec_b{i}") for i in range(nh)]
         self.W_out, self.b_out = arr("dec_Wout"), arr("dec_bout")
+        self.mid = bool(hdr.get("decoder_mid", False))
+        if self.mid:
+            self.W_mid, self.b_mid = arr("dec_Wmid"), arr("dec_bmid")
+            self._y = np.empty(self.W_mid.shape[0], dtype=dt)
+            self._y2 = np.empty((2, self.W_mid.shape[0]), dtype=dt)
         widths = [W.shape[0] for W in self.dec_W]
         self._zh = np.zeros(self.r + (widths[-1] if nh else 0), dtype=dt)  # [z; h_L]
         self._h = [np.empty(w, dtype=dt) for w in widths]
@@ -299,6 +312,10 @@ class NumpyStepper:
             else:
                 _silu(a, self._dt[i], out=dst)
             h = dst
+        if self.mid:
+            np.dot(self.W_mid, zh, out=self._y)
+            self._y += self.b_mid
+            zh = self._y
         np.dot(self.W_out, zh, out=self._u)
         self._u += self.b_out
         return self._u
@@ -381,6 +398,10 @@ class NumpyStepper:
                 dst += S
             S = dst
         rows = slice(3 * row, 3 * row + 3)
+        if self.mid:
+            np.dot(zs, self.W_mid.T, out=self._y2)
+            self._y2[0] += self.b_mid
+            zs = self._y2
         np.dot(zs, self.W_out[rows].T, out=self._o2)
         x_v = self._o2[0].astype(np.float64) + self.b_out[rows]
         if xD is not None:
@@ -412,6 +433,9 @@ class NumpyStepper:
                 out += S
             S = out
         full = np.concatenate([Zs, S], axis=1) if len(self.dec_W) else Zs
+        if self.mid:
+            full = full @ self.W_mid.T
+            full[0] += self.b_mid
         Y = (full @ self.W_out.T).astype(np.float64)  # (1 + r, d)
         u = Y[0] + self.b_out
         x = self.decode_from_u(u, xD)
@@ -474,6 +498,9 @@ class _ScriptedStep(nn.Module):
         self.dec_layers = nn.ModuleList(
             [_SkipBlock(linear(folded[f"dec_W{i}"], folded[f"dec_b{i}"]), s) for i, s in enumerate(skips)]
         )
+        self.has_mid = bool(hdr.get("decoder_mid", False))
+        # (a 1 x 1 placeholder where there is no middle layer: TorchScript wants the attribute)
+        self.dec_mid = linear(folded["dec_Wmid"], folded["dec_bmid"]) if self.has_mid else linear(np.zeros((1, 1)), np.zeros(1))
         self.dec_out = linear(folded["dec_Wout"], folded["dec_bout"])
         self.mode = str(hdr["mode"])
         self.residual = bool(hdr["residual"])
@@ -506,6 +533,8 @@ class _ScriptedStep(nn.Module):
             h = block(h)
         if self.has_hidden:
             h = torch.cat([z, h], -1)
+        if self.has_mid:
+            h = self.dec_mid(h)
         u = self.dec_out(h).to(torch.float64).reshape(-1, 3)
         xD = xD.to(torch.float64)
         if self.mode == "roots":
