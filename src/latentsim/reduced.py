@@ -277,10 +277,16 @@ class ReducedImplicitEuler:
         return grad, J.T @ grad, 0.5 * (Hq + Hq.T)
 
     def _converged(self, J, grad, tol, info) -> bool:
-        """Records ||Q^T g|| (J = QR: the full-space gradient projected onto the
-        subspace's tangent space) in ``info`` and tests it against ``tol``."""
-        Q, _ = np.linalg.qr(J)
-        info.gradient_norm = gn = float(np.linalg.norm(Q.T @ grad))
+        """Records ||P g|| (P = J (J^T J)^+ J^T: the full-space gradient projected onto the
+        subspace's tangent space) in ``info`` and tests it against ``tol``.
+
+        ||P g||^2 = g_q^T (J^T J)^+ g_q with g_q = J^T g: an r x r pseudo-inverse
+        instead of a QR of the (3n, r) Jacobian."""
+        gq = J.T @ grad
+        lam, V = np.linalg.eigh(J.T @ J)
+        keep = lam > 1e-12 * max(float(lam[-1]), 1e-300)
+        c = V[:, keep].T @ gq
+        info.gradient_norm = gn = float(np.sqrt(max(float(c @ (c / lam[keep])), 0.0)))
         if not np.isfinite(gn):
             raise ReducedFailed(f"non-finite gradient at iteration {info.iterations}", info)
         info.converged = gn <= tol
