@@ -1,0 +1,580 @@
+r"""Neural Modes (Wang et al. 2024): linear modes, the nonlinear modal map, its loss and ground truth.
+
+Linear modes (paper Sec. 3.2).  The lowest eigenpairs of the rest-state
+elastic Hessian generalised with the lumped mass matrix,
+
+    K e_i = omega_i^2 M e_i,
+
+found by shift-invert Lanczos (``scipy.sparse.linalg.eigsh``, never a dense
+matrix).  With Dirichlet constraints the prescribed DoFs are removed.  A
+free-floating object has six zero modes (rigid translations and rotations);
+K is singular there, so the shift is a small *negative* sigma (K - sigma M is
+positive definite), the k + 6 lowest pairs are computed, and the six whose
+span is the rigid space (checked against the explicit rigid basis R) are
+dropped; the kept modes are projected M-orthogonally off span(R).
+
+Neural Modes (Eq. 10-13).  For modal coordinates z (m,) and optional
+auxiliary inputs a (material/shape parameters),
+
+    n(z) = X + l(z) + y(z),    l(z) = sum_i z_i e_i,    y = MLP(z, a)  (GELU),
+
+trained by minimising, over samples z drawn uniformly in a box (stochastic)
+or on a regular grid,
+
+    L = mean_z [ E(X + l + y) + lambda (l^T y)^2 ] + eta ||y(0)||^2,
+
+E the scene's elastic energy only (``IncrementalPotential.elastic``: no
+inertia, gravity or Dirichlet penalty).  ``orthogonality='unit'`` uses
+(l^T y / |l|)^2 instead of the paper's (l^T y)^2.
+
+Ground truth (Eq. 9).  Nonlinear compliant modes per sample,
+
+    n(z) = argmin_x E(x)   s.t.   l^T (x - X - l) = 0   (i.e. l^T y = 0),
+
+by Newton's method on the KKT system of the single linear constraint, with
+the terms' closed-form per-stencil Hessians assembled sparsely
+(``latentsim.sparse``): the direction dx solves
+
+    [H  c] [dx]   [-g]
+    [c' 0] [mu] = [ 0],    c = l (free DoFs),
+
+by two solves with one factorisation of H (Schur complement of the 1x1
+block).  Iterates stay feasible (c^T dx = 0), and a backtracking line search
+on E keeps the energy decreasing.  For a free-floating object the rigid
+motions that keep l^T y = 0 leave E unchanged; a tiny multiple of M is added
+to H (Levenberg) so that the solve is defined.  The exact Hessian is used
+when it yields a descent direction, the per-stencil PSD projection
+otherwise.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
+import torch
+from torch import nn
+
+from .energy.dynamics import IncrementalPotential
+from .solver import stiffness_matrix
+from .sparse import HessianPattern, scatter_gradient, symmetric_from_upper
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "NM_DEFAULTS",
+    "ConstrainedNewton",
+    "LinearModes",
+    "NeuralModes",
+    "compliant_mode",
+    "direction_correlation",
+    "ground_truth",
+    "latent_directions",
+    "linear_modes",
+    "modal_samples",
+    "neural_modes_loss",
+    "rigid_modes",
+    "train_neural_modes",
+]
+
+
+# --------------------------------------------------------------------------------------------------
+# linear modes
+# --------------------------------------------------------------------------------------------------
+@dataclass
+class LinearModes:
+    """Lowest vibration modes of a scene.
+
+    Attributes
+    ----------
+    omega2 : (k,) eigenvalues omega^2 [1/s^2], ascending.
+    modes : (3n, k) modes over all DoFs (zero on prescribed DoFs), normalised
+        as ``normalization`` says: 'mass' (e^T M e = 1) or 'euclidean' (|e| = 1).
+    free_dofs : (f,) the DoFs the eigenproblem ran on.
+    rigid_removed : 6 for a free-floating object, else 0.
+    normalization : 'mass' | 'euclidean'.
+    """
+
+    omega2: np.ndarray
+    modes: np.ndarray
+    free_dofs: np.ndarray
+    rigid_removed: int
+    normalization: str
+
+
+def rigid_modes(X, masses) -> np.ndarray:
+    """M-orthonormal basis (3n, 6) of rigid motions of rest positions X (n,3): 3 translations, 3 rotations."""
+    X = np.asarray(X, dtype=np.float64)
+    m3 = np.repeat(np.asarray(masses, dtype=np.float64), 3)
+    c = np.average(X, axis=0, weights=np.asarray(masses, dtype=np.float64))
+    r = X - c
+    n = len(X)
+    R = np.zeros((3 * n, 6))
+    for a in range(3):
+        R[a::3, a] = 1.0
+        w = np.zeros(3)
+        w[a] = 1.0
+        R[:, 3 + a] = np.cross(w, r).reshape(-1)
+    # M-orthonormalise (Gram-Schmidt in the M inner product, via Cholesky of the Gram matrix)
+    G = R.T @ (m3[:, None] * R)
+    Lc = np.linalg.cholesky(G)
+    return np.linalg.solve(Lc, R.T).T
+
+
+def _fix_sign(V: np.ndarray) -> np.ndarray:
+    """Make each column's largest-magnitude entry positive (eigenvectors have no sign)."""
+    idx = np.argmax(np.abs(V), axis=0)
+    s = np.sign(V[idx, np.arange(V.shape[1])])
+    s[s == 0] = 1.0
+    return V * s
+
+
+def linear_modes(
+    potential: IncrementalPotential, k: int, x, boundary: str = "dirichlet", normalization: str = "mass", tol: float = 0.0
+) -> LinearModes:
+    """The k lowest non-rigid modes of K e = omega^2 M e at ``x``.
+
+    Parameters
+    ----------
+    potential : the scene's potential (its elastic terms and lumped masses; its
+        ``dirichlet`` set is removed when ``boundary='dirichlet'``).
+    k : number of modes.
+    x : (n,3) state at which K is evaluated, normally the rest state (only
+        there is K positive semi-definite, which the shift-invert needs).
+    boundary : 'dirichlet' (remove the prescribed DoFs) or 'free' (all DoFs
+        free; the six rigid modes are removed).
+    normalization : 'mass' (e^T M e = 1) or 'euclidean' (|e|_2 = 1, the
+        scaling of the paper's released sheet modes, whose modal box is
+        [-0.625, 0.625]^m).
+    """
+    if boundary not in ("dirichlet", "free"):
+        raise ValueError(f"boundary '{boundary}': use 'dirichlet' or 'free'")
+    if normalization not in ("mass", "euclidean"):
+        raise ValueError(f"normalization '{normalization}': use 'mass' or 'euclidean'")
+    n = potential.n_vertices
+    masses = potential.masses.detach().cpu().numpy().astype(np.float64)
+    x = np.asarray(x, dtype=np.float64)
+    free = np.ones(n, dtype=bool)
+    if boundary == "dirichlet":
+        free[potential.dirichlet.cpu().numpy()] = False
+    free_dofs = np.flatnonzero(np.repeat(free, 3))
+    K, _ = stiffness_matrix(potential, x, free_dofs)
+    m = np.repeat(masses, 3)[free_dofs]
+    n_rigid = 6 if boundary == "free" else 0
+    nev = k + n_rigid
+    if nev >= len(free_dofs) - 1:
+        raise ValueError(f"{nev} modes asked of a {len(free_dofs)}-DoF system")
+    # K - sigma M with sigma < 0 is positive definite even where K is singular (free body)
+    sigma = -1e-8 * abs(K.diagonal()).max() / m.max()
+    w, V = scipy.sparse.linalg.eigsh(K.tocsc(), k=nev, M=scipy.sparse.diags(m).tocsc(), sigma=sigma, which="LM", tol=tol)
+    order = np.argsort(w)
+    w, V = w[order], V[:, order]
+    if n_rigid:
+        R = rigid_modes(x, masses)
+        # the six lowest must span the rigid space: their M-projection onto it keeps them whole
+        low = V[:, :n_rigid]
+        captured = np.linalg.norm(R.T @ (m[:, None] * low), axis=0)
+        if not np.all(captured > 1 - 1e-6):
+            raise RuntimeError(f"the six lowest modes are not rigid (captured {captured}); is the object connected?")
+        w, V = w[n_rigid:], V[:, n_rigid:]
+        V = V - R @ (R.T @ (m[:, None] * V))  # deflate the rigid space exactly
+        V = V / np.sqrt((m[:, None] * V * V).sum(0))
+    if normalization == "euclidean":
+        V = V / np.linalg.norm(V, axis=0)
+    V = _fix_sign(V)
+    full = np.zeros((3 * n, k))
+    full[free_dofs] = V
+    return LinearModes(omega2=w, modes=full, free_dofs=free_dofs, rigid_removed=n_rigid, normalization=normalization)
+
+
+# --------------------------------------------------------------------------------------------------
+# the model
+# --------------------------------------------------------------------------------------------------
+NM_DEFAULTS = {
+    "modes": 3,
+    "boundary": "free",
+    "normalization": "euclidean",
+    "widths": [64, 64, 64, 64],
+    "box": 0.625,
+    "sampling": "grid",
+    "grid": 9,
+    "batch_size": 1024,
+    "epochs": 200,
+    "optimizer": "lbfgs",
+    "lr": 1.0,
+    "lbfgs_max_iter": 20,
+    "lam": 1.0e8,
+    "eta": 1.0e7,
+    "orthogonality": "paper",
+    "metric": "euclidean",
+}
+
+
+class NeuralModes(nn.Module):
+    """n(z) = X + sum_i z_i e_i + y(z, a), y an MLP with GELU activations (paper Eq. 10).
+
+    Parameters
+    ----------
+    rest_positions : (n,3) X.
+    modes : (3n, m) linear modes e_i.
+    widths : hidden layer widths (Table 1: the sheet's '5x64' is four hidden
+        layers of 64 plus the output layer).
+    aux_dim : number of auxiliary inputs (material/shape parameters) after z.
+    fixed_dofs : DoFs the correction must leave at rest (Dirichlet), or None.
+    rigid, masses : for a free-floating object, the M-orthonormal rigid modes
+        R (3n, 6) and the vertex masses; the correction is then projected
+        M-orthogonally off span(R), y <- y - R R^T M y (the rigid motion is
+        not part of the modal subspace; a dynamics solver adds it separately).
+    exact_origin : y(z) = MLP(z) - MLP(0), so n(0) = X exactly (to round-off)
+        and the paper's eta ||y(0)||^2 term is identically zero.  False keeps
+        the paper's plain MLP, where only that penalty holds y(0) near 0
+        (|y(0)| ~ 1e-4 |X| after short trainings).
+
+    The output layer starts at zero, so the untrained map is the linear one.
+    Float64 throughout, like the physics.
+    """
+
+    def __init__(self, rest_positions, modes, widths=(64, 64, 64, 64), aux_dim: int = 0, fixed_dofs=None, rigid=None, masses=None, exact_origin=True):
+        super().__init__()
+        X = torch.as_tensor(np.asarray(rest_positions), dtype=torch.float64)
+        E = torch.as_tensor(np.asarray(modes), dtype=torch.float64)
+        self.n, self.m, self.aux_dim = X.shape[0], E.shape[1], int(aux_dim)
+        self.exact_origin = bool(exact_origin)
+        self.hparams = {"n": self.n, "m": self.m, "widths": [int(w) for w in widths], "aux_dim": self.aux_dim, "exact_origin": self.exact_origin}
+        self.register_buffer("X", X.reshape(-1))
+        self.register_buffer("E", E)
+        mask = torch.ones(3 * self.n, dtype=torch.float64)
+        if fixed_dofs is not None and len(fixed_dofs):
+            mask[torch.as_tensor(np.asarray(fixed_dofs), dtype=torch.long)] = 0.0
+        self.register_buffer("mask", mask)
+        if rigid is not None:
+            R = torch.as_tensor(np.asarray(rigid), dtype=torch.float64)
+            m3 = torch.as_tensor(np.repeat(np.asarray(masses, dtype=np.float64), 3))
+            self.register_buffer("R", R)
+            self.register_buffer("MR", m3[:, None] * R)
+        else:
+            self.R = self.MR = None
+        layers, prev = [], self.m + self.aux_dim
+        for w in widths:
+            layers += [nn.Linear(prev, int(w), dtype=torch.float64), nn.GELU()]
+            prev = int(w)
+        out = nn.Linear(prev, 3 * self.n, dtype=torch.float64)
+        nn.init.zeros_(out.weight)
+        nn.init.zeros_(out.bias)
+        self.mlp = nn.Sequential(*layers, out)
+
+    def linear(self, z: torch.Tensor) -> torch.Tensor:
+        """l = sum_i z_i e_i; z (..., m) -> (..., 3n)."""
+        return z[..., : self.m] @ self.E.T
+
+    def correction(self, z: torch.Tensor, aux: torch.Tensor | None = None) -> torch.Tensor:
+        """y(z, a); (..., m) [, (..., aux_dim)] -> (..., 3n), zero on fixed DoFs."""
+        h = z if aux is None else torch.cat([z, aux], -1)
+        y = self.mlp(h)
+        if self.exact_origin:
+            h0 = z.new_zeros(self.m) if aux is None else torch.cat([torch.zeros_like(z), aux], -1)
+            y = y - self.mlp(h0)
+        y = y * self.mask
+        if self.R is not None:
+            y = y - (y @ self.MR) @ self.R.T
+        return y
+
+    def forward(self, z: torch.Tensor, aux: torch.Tensor | None = None) -> torch.Tensor:
+        """n(z): positions (..., n, 3)."""
+        u = self.linear(z) + self.correction(z, aux)
+        return (self.X + u).reshape(z.shape[:-1] + (self.n, 3))
+
+
+def neural_modes_loss(model: NeuralModes, potential: IncrementalPotential, z, aux=None, lam=1e8, eta=1e7, orthogonality="paper", metric="euclidean"):
+    """Paper Eq. 12-13; returns (loss, parts) with parts = mean energy, mean constraint, origin term.
+
+    ``metric='mass'`` uses l^T M y in place of l^T y (see ``ConstrainedNewton``).
+    """
+    l = model.linear(z)
+    y = model.correction(z, aux)
+    x = (model.X + l + y).reshape(z.shape[:-1] + (model.n, 3))
+    energy = potential.elastic(x)
+    if metric == "mass":
+        c = (l * potential.masses.repeat_interleave(3).to(l) * y).sum(-1)
+    elif metric == "euclidean":
+        c = (l * y).sum(-1)
+    else:
+        raise ValueError(f"metric '{metric}': use 'euclidean' or 'mass'")
+    if orthogonality == "unit":
+        c = c / l.norm(dim=-1).clamp_min(1e-12)
+    elif orthogonality != "paper":
+        raise ValueError(f"orthogonality '{orthogonality}': use 'paper' or 'unit'")
+    z0 = torch.zeros((1, model.m), dtype=z.dtype)
+    a0 = None if aux is None else aux[:1]
+    y0 = model.correction(z0, a0)
+    origin = (y0 * y0).sum()
+    loss = energy.mean() + lam * (c * c).mean() + eta * origin
+    return loss, {"energy": energy.mean().detach(), "constraint": (c * c).mean().detach(), "origin": origin.detach()}
+
+
+def modal_samples(kind: str, m: int, box: float, count: int = 0, resolution: int = 9, generator=None) -> torch.Tensor:
+    """Modal coordinates: a regular ``resolution``^m grid over [-box, box]^m, or ``count`` uniform samples."""
+    if kind == "grid":
+        axis = np.linspace(-box, box, resolution)
+        return torch.as_tensor(np.array(list(itertools.product(axis, repeat=m))), dtype=torch.float64)
+    if kind in ("stochastic", "uniform"):
+        return (torch.rand(count, m, generator=generator, dtype=torch.float64) * 2 - 1) * box
+    raise ValueError(f"sampling '{kind}': use 'grid' or 'stochastic'")
+
+
+def train_neural_modes(model: NeuralModes, potential: IncrementalPotential, config: dict | None = None, seed: int = 0, callback=None):
+    """Train Neural Modes self-supervised (Eq. 13).
+
+    config keys (``NM_DEFAULTS``): sampling ('grid' | 'stochastic'), grid,
+    batch_size, box, epochs, optimizer ('lbfgs' with strong-Wolfe line search,
+    as the paper, or 'adam'), lr, lbfgs_max_iter, lam, eta, orthogonality, metric.
+    One epoch = one optimiser step (L-BFGS: up to ``lbfgs_max_iter``
+    iterations) on one batch; stochastic sampling draws a new batch each epoch.
+    ``callback(epoch, model)`` runs after every epoch.
+
+    Returns history: dict of per-epoch lists (loss, energy, constraint, origin) and seconds.
+    """
+    cfg = {**NM_DEFAULTS, **(config or {})}
+    gen = torch.Generator().manual_seed(seed)
+    params = [p for p in model.parameters() if p.requires_grad]
+    if cfg["optimizer"] == "lbfgs":
+        opt = torch.optim.LBFGS(params, lr=float(cfg["lr"]), max_iter=int(cfg["lbfgs_max_iter"]), line_search_fn="strong_wolfe")
+    elif cfg["optimizer"] == "adam":
+        opt = torch.optim.Adam(params, lr=float(cfg["lr"]))
+    else:
+        raise ValueError(f"optimizer '{cfg['optimizer']}': use 'lbfgs' or 'adam'")
+    grid = modal_samples("grid", model.m, cfg["box"], resolution=int(cfg["grid"])) if cfg["sampling"] == "grid" else None
+    hist = {"loss": [], "energy": [], "constraint": [], "origin": []}
+    t0 = time.perf_counter()
+    for epoch in range(int(cfg["epochs"])):
+        z = grid if grid is not None else modal_samples("stochastic", model.m, cfg["box"], int(cfg["batch_size"]), generator=gen)
+        parts = {}
+
+        def closure(z=z, parts=parts):
+            opt.zero_grad()
+            loss, p = neural_modes_loss(model, potential, z, None, cfg["lam"], cfg["eta"], cfg["orthogonality"], cfg["metric"])
+            loss.backward()
+            parts.update(p, loss=loss.detach())
+            return loss
+
+        if cfg["optimizer"] == "lbfgs":
+            opt.step(closure)
+        else:
+            closure()
+            opt.step()
+        for key, values in hist.items():
+            values.append(float(parts[key]))
+        if not np.isfinite(hist["loss"][-1]):
+            raise FloatingPointError(f"Neural Modes training diverged at epoch {epoch + 1}")
+        if callback is not None:
+            callback(epoch, model)
+    hist["seconds"] = time.perf_counter() - t0
+    return hist
+
+
+# --------------------------------------------------------------------------------------------------
+# ground truth: nonlinear compliant modes (Eq. 9)
+# --------------------------------------------------------------------------------------------------
+@dataclass
+class CompliantInfo:
+    iterations: int
+    residual: float  # ||g + mu c|| / ||g_0|| on free DoFs (KKT stationarity)
+    constraint: float  # |l^T y| / (|l| |y|)
+    energy: float
+    levenberg: int  # damping increases (indefinite exact Hessian on the constraint space)
+
+
+class ConstrainedNewton:
+    """Minimise the elastic energy subject to C^T (x - X - l) = 0, for one scene and many l.
+
+    C = [l] (``metric='euclidean'``, the paper's l^T y; or M l with
+    ``metric='mass'``, l^T M y, the inner product in which generalised modes are
+    orthogonal: then a single mode's n(z) -> X + l exactly as z -> 0, while
+    with l^T y and a non-uniform lumped mass a correction of relative size
+    ~|M - mean(M)| remains) with Dirichlet constraints (prescribed DoFs removed), and
+    C = [l, M R] for a free-floating object (R the rigid modes): with the
+    single constraint l^T y = 0 a free body escapes into rigid motions (a
+    translation or rotation satisfies l^T (x - X) = |l|^2 at zero energy), so
+    y is also held M-orthogonal to the rigid modes, the linearised rigid-frame
+    condition that also defines the modes themselves.
+    """
+
+    def __init__(self, potential: IncrementalPotential, rest_positions, free_dofs=None, rigid=None, metric="euclidean", reg=1e-8):
+        if metric not in ("euclidean", "mass"):
+            raise ValueError(f"metric '{metric}': use 'euclidean' (l^T y, the paper) or 'mass' (l^T M y)")
+        self.metric = metric
+        self.pot = potential
+        self.X = np.asarray(rest_positions, dtype=np.float64)
+        n = len(self.X)
+        self.n = n
+        self.free = np.arange(3 * n) if free_dofs is None else np.asarray(free_dofs, dtype=np.int64)
+        self.stencils = [t.stencils.cpu().numpy() for t in potential.terms]
+        self.pattern = HessianPattern(n, self.stencils, self.free)
+        m3 = np.repeat(potential.masses.cpu().numpy().astype(np.float64), 3)
+        self.m3 = m3
+        self.fixed_constraints = None
+        if rigid is not None:
+            self.fixed_constraints = (m3[:, None] * np.asarray(rigid, dtype=np.float64))[self.free]
+        K0, _ = stiffness_matrix(potential, self.X, self.free)
+        self.diag = reg * abs(K0.diagonal()).max() / m3.max() * m3
+        # Levenberg shifts are multiples of M, starting at the lowest nonzero rest eigenvalue's scale
+        self.mass_matrix = scipy.sparse.diags(m3[self.free]).tocsc()
+        self.damping0 = 1e-3 * abs(K0.diagonal()).mean() / m3.mean()
+
+    def energy(self, x) -> float:
+        with torch.no_grad():
+            return float(self.pot.elastic(torch.from_numpy(x.reshape(-1, 3))))
+
+    def grad_hess(self, x, project):
+        xt = torch.from_numpy(x.reshape(-1, 3))
+        grads, blocks = [], []
+        for term in self.pot.terms:
+            g, H = term.local_gradient_hessian(term.gather(xt), project=project)
+            grads.append(g.numpy())
+            blocks.append(H.numpy())
+        g = scatter_gradient(self.n, self.stencils, grads)
+        return g, symmetric_from_upper(self.pattern.assemble(blocks, self.diag)).tocsc()
+
+    def constraints(self, l) -> np.ndarray:
+        """C (f, c): the columns whose inner products with y must vanish."""
+        c = np.asarray(l, dtype=np.float64) * (self.m3 if self.metric == "mass" else 1.0)
+        cols = [] if not np.any(l) else [c[self.free, None]]
+        if self.fixed_constraints is not None:
+            cols.append(self.fixed_constraints)
+        return np.concatenate(cols, axis=1) if cols else np.zeros((len(self.free), 0))
+
+    def solve(self, l, y0=None, rtol: float = 1e-5, etol: float = 1e-7, max_iter: int = 60):
+        """x (3n,) minimising E s.t. C^T (x - X - l) = 0, from X + l + y0 (y0 made feasible).
+
+        Stops when the KKT residual ||g - C (C^T C)^-1 C^T g|| is at most
+        ``rtol`` times the force norm at X + l, or when three successive steps
+        each lower E by less than ``etol`` |E| (the buckled sheet's shallow
+        valleys), or after ``max_iter`` iterations.
+        """
+        X = self.X.reshape(-1)
+        l = np.asarray(l, dtype=np.float64)
+        C = self.constraints(l)
+        CtC = C.T @ C
+        y = np.zeros_like(X)
+        if y0 is not None:
+            yf = np.asarray(y0, dtype=np.float64)[self.free]
+            if C.shape[1]:
+                yf = yf - C @ np.linalg.solve(CtC, C.T @ yf)
+            y[self.free] = yf
+        g_ref = max(float(np.linalg.norm(self._gradient(X + l)[self.free])), 1e-300)
+        x = X + l + y
+        e = self.energy(x)
+        damping, stalls, levenberg = 0.0, 0, 0
+        for it in range(max_iter + 1):
+            g, H = self.grad_hess(x, project=False)
+            gf = g[self.free]
+            r = float(np.linalg.norm(gf - C @ np.linalg.solve(CtC, C.T @ gf))) if C.shape[1] else float(np.linalg.norm(gf))
+            if r <= rtol * g_ref or stalls >= 3 or it == max_iter:
+                break
+            # exact Hessian, shifted by a multiple of M (Levenberg) until the step is a descent
+            # direction (for the KKT step, dx^T (H + d M) dx = -g^T dx: positive curvature)
+            while True:
+                Hs = H if damping == 0 else H + damping * self.mass_matrix
+                dx = self._direction(Hs, gf, C)
+                if gf @ dx < 0 or damping > 1e12 * self.damping0:
+                    break
+                damping = max(4 * damping, self.damping0)
+                levenberg += 1
+            if not gf @ dx < 0:
+                break  # the projected gradient is at round-off level
+            damping = 0.25 * damping if damping > self.damping0 else 0.0
+            slope = float(gf @ dx)
+            step = np.zeros_like(x)
+            step[self.free] = dx
+            alpha = 1.0
+            while alpha > 1e-10:
+                e_try = self.energy(x + alpha * step)
+                if np.isfinite(e_try) and e_try <= e + 1e-4 * alpha * slope:
+                    break
+                alpha *= 0.5
+            else:
+                if -slope > 1e-13 * max(abs(e), 1e-300):
+                    damping = max(4 * damping, self.damping0)
+                    stalls += 1
+                    continue
+                alpha, e_try = 1.0, self.energy(x + step)
+            stalls = stalls + 1 if e - e_try < etol * abs(e) else 0
+            x, e = x + alpha * step, e_try
+        yv = (x - X - l)[self.free]
+        cons = abs(C[:, 0] @ yv) / max(np.linalg.norm(C[:, 0]) * np.linalg.norm(yv), 1e-300) if np.any(l) else 0.0
+        return x, CompliantInfo(it, r / g_ref, cons, e, levenberg)
+
+    def _gradient(self, x):
+        xt = torch.from_numpy(x.reshape(-1, 3))
+        with torch.no_grad():
+            grads = [t.local_gradient_hessian(t.gather(xt), project=False)[0].numpy() for t in self.pot.terms]
+        return scatter_gradient(self.n, self.stencils, grads)
+
+    @staticmethod
+    def _direction(H, gf, C):
+        """dx minimising the quadratic model on {C^T dx = 0}: a - B (C^T B)^{-1} C^T a."""
+        lu = scipy.sparse.linalg.splu(H)
+        a = lu.solve(-gf)
+        if not C.shape[1]:
+            return a
+        B = lu.solve(C)
+        return a - B @ np.linalg.solve(C.T @ B, C.T @ a)
+
+
+def compliant_mode(potential, rest_positions, l, y0=None, free_dofs=None, rigid=None, metric="euclidean", **kwargs):
+    """One ground-truth sample of Eq. 9; returns (x (3n,), CompliantInfo)."""
+    return ConstrainedNewton(potential, rest_positions, free_dofs, rigid, metric).solve(l, y0, **kwargs)
+
+
+def ground_truth(
+    potential, rest_positions, modes, z, free_dofs=None, rigid=None, metric="euclidean", rtol=1e-5, etol=1e-7, max_iter=60, progress=None
+):
+    """Eq. 9 for every row of z (N, m): positions (N, n, 3), energies (N,), infos.
+
+    Each sample starts from the lower-energy of X + l and the previous
+    sample's correction made feasible (grids are visited in order, so the
+    previous sample is usually a neighbour).
+    """
+    solver = ConstrainedNewton(potential, rest_positions, free_dofs, rigid, metric)
+    E = np.asarray(modes, dtype=np.float64)
+    z = np.asarray(z, dtype=np.float64)
+    X = solver.X.reshape(-1)
+    out, infos = np.empty((len(z), len(X))), []
+    y_prev = None
+    for i, zi in enumerate(z):
+        l = E @ zi
+        y0 = None
+        if y_prev is not None and solver.energy(X + l + y_prev) < solver.energy(X + l):
+            y0 = y_prev  # made feasible by solve()
+        x, info = solver.solve(l, y0, rtol=rtol, etol=etol, max_iter=max_iter)
+        out[i] = x
+        infos.append(info)
+        y_prev = x - X - l
+        if progress is not None:
+            progress(i, info)
+    return out.reshape(len(z), -1, 3), np.array([i.energy for i in infos]), infos
+
+
+# --------------------------------------------------------------------------------------------------
+# latent directions at the origin (mode collapse, Fig. 4)
+# --------------------------------------------------------------------------------------------------
+def latent_directions(decoder, m: int) -> torch.Tensor:
+    """Jacobian (3n, m) of z -> x (flattened) at z = 0; ``decoder`` maps (1, m) -> (1, n, 3)."""
+    z0 = torch.zeros(1, m, dtype=torch.float64)
+    J = torch.autograd.functional.jacobian(lambda z: decoder(z).reshape(-1), z0)
+    return J.reshape(-1, m).detach()
+
+
+def direction_correlation(J, masses) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised mass-weighted Gram matrix C_ij = <J_i, J_j>_M / (|J_i|_M |J_j|_M) and its eigenvalues (descending)."""
+    J = np.asarray(J, dtype=np.float64)
+    m3 = np.repeat(np.asarray(masses, dtype=np.float64), 3)
+    G = J.T @ (m3[:, None] * J)
+    d = np.sqrt(np.clip(np.diag(G), 1e-300, None))
+    C = G / np.outer(d, d)
+    return C, np.sort(np.linalg.eigvalsh(C))[::-1]
