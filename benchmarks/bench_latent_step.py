@@ -242,6 +242,8 @@ def bench_scene(name, sc, cfg, args, reading):
         "reduced step ms": red_ms,
         "reduced it/step": red_it,
         "reduced ms/it": red_ms / red_it if ok and red_it > 0 else float("nan"),
+        **{f"reduced {k} ms/it": (float(np.nansum(red[f"{k}_ms"][timed]) / max(np.sum(its), 1)) if ok else float("nan"))
+           for k in ("map", "derivatives", "reduce", "line_search")},
         "reduced / NumPy step": red_ms / t_np["step_ms"],
         "torch.func.jvp / NumPy step": jvp_torch / t_np["step_ms"],
         "reduced failed at": int(red["diverged_frame"]),

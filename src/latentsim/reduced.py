@@ -58,6 +58,9 @@ __all__ = [
 ]
 
 
+TIMING_PARTS = ("map", "derivatives", "reduce", "line_search")
+
+
 class ReducedFailed(RuntimeError):
     """A reduced step did not converge (or met a non-finite value)."""
 
@@ -200,6 +203,9 @@ class ReducedStepInfo:
     converged: bool = False
     projected: int = 0
     energies: list = field(default_factory=list)
+    # wall seconds: the map and its Jacobian, full-space gradient + Hessian, the reduction
+    # J^T g, J^T H J and the solve, the line search (map + energy)
+    timings: dict = field(default_factory=lambda: {"map": 0.0, "derivatives": 0.0, "reduce": 0.0, "line_search": 0.0})
 
 
 class ReducedImplicitEuler:
@@ -240,6 +246,7 @@ class ReducedImplicitEuler:
         # force scale of the convergence test: that of the full solver of this scene
         self.f_ref = float(np.linalg.norm(m[free_v]) * max(np.linalg.norm(self.inner.g), 1.0))
         self._Ddofs = (3 * D[:, None] + np.arange(3)).reshape(-1)
+        self._tm = ReducedStepInfo().timings  # where _reduced_system adds its time (the step's info)
 
     # -- E_total and its derivatives along the subspace -------------------------
     def energy(self, x, x_prev, x_prev2, xD) -> float:
@@ -265,7 +272,9 @@ class ReducedImplicitEuler:
 
     def _reduced_system(self, x, J, x_prev, x_prev2, xD, project):
         """g_q = J^T g and H_q = J^T H J over the moving DoFs (+ the penalty's 2 w_bc J_D^T J_D)."""
+        t0 = time.perf_counter()
         grad, U = self.inner.gradient_hessian(x, x_prev, x_prev2, project=project)
+        self._tm["derivatives"] += time.perf_counter() - t0
         U = U.tocsr()  # the solver may hand back its banded storage
         self.full_gradient(x, xD, grad)
         Jf = J[self.rows]
@@ -344,6 +353,7 @@ class ReducedImplicitEuler:
                 best = (c, x, e)
         q, x, e = best
         info = ReducedStepInfo(energies=[e])
+        self._tm = info.timings
         if self.settings.method == "lbfgs":
             return self._lbfgs(q, x, e, x_prev, x_prev2, xD, info)
         return self._newton(q, x, e, x_prev, x_prev2, xD, info)
@@ -353,7 +363,11 @@ class ReducedImplicitEuler:
         tol = s.tolerance * self.f_ref
         for it in range(s.max_iterations + 1):
             info.iterations = it
+            t0 = time.perf_counter()
             x, J = self.subspace.jacobian(q, xD)
+            t1 = time.perf_counter()
+            info.timings["map"] += t1 - t0
+            d0 = info.timings["derivatives"]
             grad, gq, Hq = self._reduced_system(x, J, x_prev, x_prev2, xD, project=s.hessian == "projected")
             if self._converged(J, grad, tol, info):
                 return q, x, info
@@ -369,7 +383,10 @@ class ReducedImplicitEuler:
                 L = np.linalg.cholesky(Hq + 1e-12 * np.trace(Hq) / len(Hq) * np.eye(len(Hq)))
             dq = -np.linalg.solve(L.T, np.linalg.solve(L, gq))
             slope = float(gq @ dq)
+            t2 = time.perf_counter()
+            info.timings["reduce"] += t2 - t1 - (info.timings["derivatives"] - d0)
             q, x, e = self._line_search(q, dq, e, slope, x_prev, x_prev2, xD, info)
+            info.timings["line_search"] += time.perf_counter() - t2
             info.energies.append(e)
         raise ReducedFailed(f"no convergence in {s.max_iterations} iterations (tangent gradient {info.gradient_norm:.3e}, tolerance {tol:.3e})", info)
 
@@ -442,7 +459,9 @@ def reduced_rollout(subspace, potential, q0, q1, dirichlet_positions, settings: 
     :func:`latentsim.latent.rollout`; NaN after divergence), ``latents`` (T, r),
     ``step_ms`` (T,) (wall time of each step's solve; NaN at frames 0, 1),
     ``iterations`` (T,) int, ``gradient_norm`` (T,), ``diverged_frame`` (first
-    frame that met a non-finite value or did not converge; -1 if none).
+    frame that met a non-finite value or did not converge; -1 if none), and the
+    step's split ``map_ms``, ``derivatives_ms``, ``reduce_ms``, ``line_search_ms`` (T,)
+    (see :class:`ReducedStepInfo`; Newton only).
     """
     solver = solver or ReducedImplicitEuler(subspace, potential, settings, solver_options)
     xD = np.asarray(dirichlet_positions, dtype=np.float64)
@@ -452,6 +471,7 @@ def reduced_rollout(subspace, potential, q0, q1, dirichlet_positions, settings: 
     ms = np.full(T, np.nan)
     iters = np.zeros(T, dtype=np.int64)
     gnorm = np.full(T, np.nan)
+    parts = np.full((T, 4), np.nan)
     Q[0], Q[1] = q0, q1
     X[0], X[1] = subspace.map(Q[0], xD[0]), subspace.map(Q[1], xD[1])
     diverged = -1
@@ -468,8 +488,12 @@ def reduced_rollout(subspace, potential, q0, q1, dirichlet_positions, settings: 
             break
         ms[t] = 1e3 * (time.perf_counter() - t0)
         iters[t], gnorm[t] = info.iterations, info.gradient_norm
+        parts[t] = [1e3 * info.timings[k] for k in TIMING_PARTS]
         Q[t], X[t] = q, x
         if not (np.isfinite(q).all() and np.isfinite(x).all()):
             diverged = t
             break
-    return {"positions": X, "latents": Q, "step_ms": ms, "iterations": iters, "gradient_norm": gnorm, "diverged_frame": int(diverged)}
+    return {
+        "positions": X, "latents": Q, "step_ms": ms, "iterations": iters, "gradient_norm": gnorm,
+        "diverged_frame": int(diverged), **{f"{k}_ms": parts[:, i] for i, k in enumerate(TIMING_PARTS)},
+    }
