@@ -153,7 +153,7 @@ def test_origin_penalty_alone_keeps_the_origin_approximately(sheet_setup):
     assert hist["origin"][-1] < 1e-6
     with torch.no_grad():
         x0 = model(torch.zeros(1, 2))[0].numpy()
-    assert np.linalg.norm(x0 - V) <= 1e-3 * np.linalg.norm(V)
+    assert np.linalg.norm(x0 - V) <= 5e-3 * np.linalg.norm(V)  # far from exact: hence exact_origin
 
 
 def test_ground_truth_kkt_and_small_z_limit(sheet_setup, trained):
@@ -166,7 +166,7 @@ def test_ground_truth_kkt_and_small_z_limit(sheet_setup, trained):
         for s in (0.2, 0.02, 0.002, 0.0002):
             l = lm.modes @ np.array([s, 0.0])
             x, info = solver.solve(l, rtol=1e-9, etol=0.0, max_iter=40)
-            assert info.residual < 1e-6
+            assert info.residual < 1e-5  # relative to |K l|, itself tiny at small z
             y = x - X - l
             c = m3 * l if metric == "mass" else l
             assert abs(c @ y) <= 1e-8 * np.linalg.norm(c) * max(np.linalg.norm(y), 1e-30)
