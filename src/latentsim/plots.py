@@ -11,7 +11,8 @@ tests and callers can check the numbers without reading pixels.
 - :func:`stability_heatmap`: method x condition -> frames survived, with the
   end boundary-condition error; diverged cells hatched;
 - :func:`energy_curves`: kinetic energy (and incremental potential) over time,
-  ground truth against methods;
+  ground truth against methods (:func:`energy_curves_from_files` recomputes
+  the kinetic energy from trajectory files);
 - :func:`training_curves`: loss histories of several runs on one log axis.
 """
 
