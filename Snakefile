@@ -18,6 +18,7 @@ include: "workflow/rules/autoencoder.smk"
 include: "workflow/rules/integrator.smk"
 include: "workflow/rules/rollout.smk"
 include: "workflow/rules/evaluate.smk"
+include: "workflow/rules/neural_modes.smk"
 
 
 report: "workflow/report/workflow.rst"
@@ -28,3 +29,4 @@ rule all:
     default_target: True
     input:
         all_targets(),
+        neural_modes_targets(),

@@ -270,14 +270,15 @@ class NeuralModes(nn.Module):
 
     def linear(self, z: torch.Tensor) -> torch.Tensor:
         """l = sum_i z_i e_i; z (..., m) -> (..., 3n)."""
-        return z[..., : self.m] @ self.E.T
+        return z[..., : self.m].to(self.E.dtype) @ self.E.T
 
     def correction(self, z: torch.Tensor, aux: torch.Tensor | None = None) -> torch.Tensor:
         """y(z, a); (..., m) [, (..., aux_dim)] -> (..., 3n), zero on fixed DoFs."""
-        h = z if aux is None else torch.cat([z, aux], -1)
+        z = z.to(self.E.dtype)
+        h = z if aux is None else torch.cat([z, aux.to(z.dtype)], -1)
         y = self.mlp(h)
         if self.exact_origin:
-            h0 = z.new_zeros(self.m) if aux is None else torch.cat([torch.zeros_like(z), aux], -1)
+            h0 = z.new_zeros(self.m) if aux is None else torch.cat([torch.zeros_like(z), aux.to(z.dtype)], -1)
             y = y - self.mlp(h0)
         y = y * self.mask
         if self.R is not None:
