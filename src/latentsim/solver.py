@@ -19,10 +19,18 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse
 import torch
 
 from .energy.dynamics import IncrementalPotential
-from .sparse import HessianPattern, LinearSolver, NotPositiveDefinite, scatter_gradient
+from .energy.kernels import term_kernel
+from .sparse import (
+    BandedUpper,
+    HessianPattern,
+    LinearSolver,
+    NotPositiveDefinite,
+    scatter_gradient,
+)
 
 
 class NewtonFailed(RuntimeError):
@@ -58,7 +66,13 @@ class StepInfo:
     iterations: int = 0
     gradient_norm: float = float("nan")
     projected: int = 0  # iterations that fell back to the projected Hessian (exact_first)
-    timings: dict = field(default_factory=lambda: dict(energy=0.0, local=0.0, assembly=0.0, solve=0.0))
+    timings: dict = field(default_factory=lambda: {"energy": 0.0, "local": 0.0, "assembly": 0.0, "solve": 0.0})
+
+
+def _dot(a, b) -> float:
+    """a . b without BLAS: OpenBLAS threads its dot products from 10k entries, and waking its
+    threads on a busy 2-core machine costs up to a scheduler tick (4 ms) per call."""
+    return float(np.einsum("i,i->", a, b))
 
 
 def rigidly_carried(x, D, targets):
@@ -70,7 +84,7 @@ def rigidly_carried(x, D, targets):
     U, _, Vt = np.linalg.svd((src - cs).T @ (targets - ct))
     d = np.sign(np.linalg.det(U @ Vt))
     R = (U @ np.diag([1.0, 1.0, d]) @ Vt).T
-    return (x - cs) @ R.T + ct
+    return np.einsum("ij,kj->ik", x - cs, R) + ct
 
 
 class ImplicitEuler:
@@ -80,9 +94,13 @@ class ImplicitEuler:
     ----------
     potential : IncrementalPotential (terms, masses, dt, g, dirichlet)
     settings : NewtonSettings
+    kernels : None (default) runs the compiled per-stencil kernels of
+        ``energy.kernels`` when numba imports and every term has one, else the
+        terms' own closed forms and PyTorch energies (the reference); False
+        forces the reference, True requires the kernels.
     """
 
-    def __init__(self, potential: IncrementalPotential, settings: NewtonSettings | None = None):
+    def __init__(self, potential: IncrementalPotential, settings: NewtonSettings | None = None, kernels=None):
         self.potential = potential
         self.settings = settings or NewtonSettings()
         n = potential.n_vertices
@@ -100,16 +118,42 @@ class ImplicitEuler:
         m_free = self.masses[free_v]
         self.f_ref = float(np.linalg.norm(m_free) * max(np.linalg.norm(self.g), 1.0))
         self.m3 = np.repeat(self.masses, 3)
+        # compiled per-stencil kernels (energy.kernels) when every term has one, unless kernels=False
+        ks = [term_kernel(t) for t in potential.terms] if kernels is not False else [None]
+        self.kernels = ks if all(k is not None for k in ks) else None
+        if kernels and self.kernels is None:
+            raise ValueError("compiled kernels requested, but numba is missing or a term has none")
+        if self.kernels is not None:
+            # targets of the kernels' scatter: the CSR data array, or the banded storage
+            self.slots = [self.pattern.stencil_slots(st) for st in self.stencils]
+            self._diag_slots = self.pattern.diagonal_slots
+            self._target_size = self.pattern.nnz
+            if self.linear.method == "banded":
+                pos = self.pattern.band_positions()
+                self.slots = [np.where(s >= 0, pos[s], -1).astype(np.int32) for s in self.slots]
+                self._diag_slots = pos[self._diag_slots]
+                self._target_size = (self.pattern.bandwidth + 1) * self.pattern.shape[0]
 
     # -- pieces of one Newton iteration --------------------------------------
     def energy(self, x, x_prev, x_prev2) -> float:
         """E_total at x (n,3) numpy; Dirichlet handled by elimination, no penalty."""
+        if self.kernels is not None:
+            a = x - 2.0 * x_prev + x_prev2
+            e = 0.5 / self.potential.dt**2 * float(np.einsum("i,ij,ij->", self.masses, a, a))
+            e -= float(np.einsum("i,ij,j->", self.masses, x, self.g))
+            return e + sum(k.energy(x) for k in self.kernels)
         with torch.no_grad():
             e = self.potential(torch.from_numpy(x), torch.from_numpy(x_prev), torch.from_numpy(x_prev2), penalty=False)
         return float(e)
 
     def gradient_hessian(self, x, x_prev, x_prev2, timings=None, project=True):
-        """Full gradient (3n,) and the free-DoF Hessian (upper CSR), per-stencil PSD-projected or exact."""
+        """Full gradient (3n,) and the free-DoF Hessian, per-stencil PSD-projected or exact.
+
+        The Hessian is its upper triangle as CSR, or a ``sparse.BandedUpper`` when the compiled
+        kernels run and the linear solver is banded (``.tocsr()`` converts).
+        """
+        if self.kernels is not None:
+            return self._gradient_hessian_kernels(x, x_prev, x_prev2, timings, project)
         t0 = time.perf_counter()
         xt = torch.from_numpy(x)
         grads, blocks = [], []
@@ -128,16 +172,40 @@ class ImplicitEuler:
             timings["assembly"] += t2 - t1
         return grad, U
 
+    def _gradient_hessian_kernels(self, x, x_prev, x_prev2, timings, project):
+        """``gradient_hessian`` by the compiled kernels, which add each stencil's gradient and
+        Hessian straight into the gradient and the CSR data (timed as 'local'; 'assembly' is
+        the inertia/gravity part and the matrix wrapper)."""
+        t0 = time.perf_counter()
+        grad = np.zeros(3 * self.n)
+        data = np.zeros(self._target_size)
+        for k, slots in zip(self.kernels, self.slots):
+            k.accumulate(x, grad, data, slots, project)
+        t1 = time.perf_counter()
+        h2 = self.potential.dt**2
+        grad += (self.masses[:, None] / h2 * (x - 2 * x_prev + x_prev2) - self.masses[:, None] * self.g).reshape(-1)
+        data[self._diag_slots] += self.m3[self.free_dofs] / h2
+        p = self.pattern
+        if self.linear.method == "banded":
+            U = BandedUpper(data.reshape(p.bandwidth + 1, p.shape[0]), p)
+        else:
+            U = scipy.sparse.csr_matrix((data, p.indices, p.indptr), shape=p.shape)
+        t2 = time.perf_counter()
+        if timings is not None:
+            timings["local"] += t1 - t0
+            timings["assembly"] += t2 - t1
+        return grad, U
+
     def _newton_direction(self, x, x_prev, x_prev2, U, gf, tm, info):
         """Solve H dx = -g; with ``hessian='exact_first'`` U is exact and may be indefinite."""
         t0 = time.perf_counter()
         try:
             dx = -self.linear.solve(U, gf)
-            if self.settings.hessian == "projected" or gf @ dx < 0:  # (splu cannot tell SPD from indefinite)
+            if self.settings.hessian == "projected" or _dot(gf, dx) < 0:  # (splu cannot tell SPD from indefinite)
                 return dx
         except NotPositiveDefinite:
             if self.settings.hessian != "exact_first":
-                raise NewtonFailed("the projected Hessian is not positive definite", float(np.linalg.norm(gf)), info.iterations)
+                raise NewtonFailed("the projected Hessian is not positive definite", np.sqrt(_dot(gf, gf)), info.iterations)
         finally:
             tm["solve"] += time.perf_counter() - t0
         # the exact Hessian is indefinite here: fall back to per-stencil projection
@@ -183,7 +251,7 @@ class ImplicitEuler:
         for it in range(s.max_iterations + 1):
             grad, U = self.gradient_hessian(x, x_prev, x_prev2, tm, project=s.hessian == "projected")
             gf = grad[self.free_dofs]
-            gnorm = float(np.linalg.norm(gf))
+            gnorm = float(np.sqrt(_dot(gf, gf)))
             info.gradient_norm = gnorm
             if not np.isfinite(gnorm):
                 raise NewtonFailed(f"non-finite gradient at iteration {it}", gnorm, it)
@@ -193,10 +261,10 @@ class ImplicitEuler:
             if it == s.max_iterations:
                 break
             dx_f = self._newton_direction(x, x_prev, x_prev2, U, gf, tm, info)
-            slope = float(gf @ dx_f)
+            slope = _dot(gf, dx_f)
             if not slope < 0:  # not a descent direction: fall back to steepest descent
                 dx_f = -gf / max(U.diagonal().max(), 1e-300)
-                slope = float(gf @ dx_f)
+                slope = _dot(gf, dx_f)
             dx = np.zeros(3 * self.n)
             dx[self.free_dofs] = dx_f
             dx = dx.reshape(-1, 3)

@@ -63,6 +63,7 @@ class HessianPattern:
         cols = np.concatenate(cols)
         key = rows * f + cols
         uniq, slot = np.unique(key, return_inverse=True)
+        self._keys = uniq
         self.nnz = len(uniq)
         self.indices = (uniq % f).astype(np.int32)
         row_of = uniq // f
@@ -79,6 +80,43 @@ class HessianPattern:
         self.all_slots = slot
         self.shape = (f, f)
         self.bandwidth = int(np.max(np.abs(row_of - self.indices))) if self.nnz else 0
+
+    def stencil_slots(self, stencils) -> np.ndarray:
+        """Where each stencil Hessian entry goes in the CSR data array.
+
+        Parameters
+        ----------
+        stencils : (E, k) int vertex indices (one of the sets of the constructor).
+
+        Returns
+        -------
+        (E, 3k (3k+1) / 2) int32: for the upper-triangle entries (p, q), p <= q,
+        of the (3k, 3k) stencil Hessian in row-major order, the data index of
+        the matrix entry (min(r, c), max(r, c)) of the free DoFs r, c of p and
+        q, or -1 where p or q is a Dirichlet DoF.  Adding H[p, q] there for
+        every stencil gives the same matrix as ``assemble`` (H symmetric).
+        """
+        st = np.asarray(stencils, dtype=np.int64)
+        k3 = 3 * st.shape[1]
+        ld = self.local[(3 * st[:, :, None] + np.arange(3)).reshape(len(st), k3)]
+        iu, ju = np.triu_indices(k3)
+        r, c = ld[:, iu], ld[:, ju]
+        valid = (r >= 0) & (c >= 0)
+        key = np.minimum(r, c) * self.shape[0] + np.maximum(r, c)
+        pos = np.searchsorted(self._keys, np.where(valid, key, 0))
+        if not np.all(self._keys[np.minimum(pos, self.nnz - 1)][valid] == key[valid]):
+            raise ValueError("stencils are not part of this Hessian pattern")
+        return np.where(valid, pos, -1).astype(np.int32)
+
+    def band_positions(self) -> np.ndarray:
+        """(nnz,) flat indices into the (bandwidth + 1, f) upper banded storage of each CSR entry."""
+        rows = np.repeat(np.arange(self.shape[0]), np.diff(self.indptr))
+        return (self.bandwidth + rows - self.indices) * self.shape[0] + self.indices
+
+    @property
+    def diagonal_slots(self) -> np.ndarray:
+        """(f,) data indices of the diagonal entries of the free DoFs."""
+        return self._diag_slot
 
     def assemble(self, blocks, diagonal):
         """Upper-triangular CSR matrix from per-term blocks (E_i, 3k_i, 3k_i) and a (3n,) diagonal."""
@@ -111,6 +149,29 @@ def _to_banded_upper(U: scipy.sparse.csr_matrix, bw: int) -> np.ndarray:
     return ab
 
 
+class BandedUpper:
+    """A symmetric matrix in LAPACK's upper banded storage, ab[bw + i - j, j] = A[i, j] (i <= j).
+
+    What the full-space solver assembles into when its linear solver is
+    'banded' (rods): the kernels add straight into ``ab`` at slots from
+    ``HessianPattern.band_positions``, so no CSR -> band conversion runs.
+    """
+
+    def __init__(self, ab: np.ndarray, pattern: HessianPattern):
+        self.ab = ab
+        self.pattern = pattern
+        self.shape = pattern.shape
+
+    def diagonal(self) -> np.ndarray:
+        return self.ab[-1]
+
+    def tocsr(self) -> scipy.sparse.csr_matrix:
+        """The upper-triangular CSR matrix of the pattern."""
+        p = self.pattern
+        data = self.ab.reshape(-1)[p.band_positions()]
+        return scipy.sparse.csr_matrix((data, p.indices, p.indptr), shape=p.shape)
+
+
 def symmetric_from_upper(U):
     """Full symmetric matrix from its upper triangle."""
     return U + scipy.sparse.triu(U, k=1).T
@@ -139,9 +200,11 @@ class LinearSolver:
         self._analysed = False
 
     def solve(self, U, b):
-        """Solve with the upper-triangular CSR ``U`` of an SPD matrix."""
+        """Solve with the upper-triangular CSR ``U`` of an SPD matrix (or its ``BandedUpper``)."""
+        if isinstance(U, BandedUpper) and self.method != "banded":
+            U = U.tocsr()
         if self.method == "banded":
-            ab = _to_banded_upper(U, self.bandwidth)
+            ab = U.ab if isinstance(U, BandedUpper) else _to_banded_upper(U, self.bandwidth)
             try:
                 return scipy.linalg.solveh_banded(ab, b, lower=False, check_finite=False)
             except np.linalg.LinAlgError as e:
