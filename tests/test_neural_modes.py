@@ -236,3 +236,15 @@ def test_subspace_map_and_jacobian_for_reduced_dynamics():
     out = reduced_rollout(sub, pot, np.zeros(3), np.zeros(3), np.repeat(V[D][None], T, 0), ReducedSettings(method="newton"))
     assert out["diverged_frame"] == -1
     assert out["positions"][-1][:, 1].mean() < V[:, 1].mean()
+
+
+def test_saved_model_reloads(trained, tmp_path):
+    from latentsim.latent import save_module
+    from latentsim.neural_modes import load_neural_modes
+
+    model = trained[0]
+    save_module(tmp_path / "nm.pt", model)
+    again = load_neural_modes(tmp_path / "nm.pt")
+    z = torch.tensor([[0.1, -0.2], [0.3, 0.0]])
+    with torch.no_grad():
+        assert torch.equal(again(z), model(z))

@@ -76,6 +76,7 @@ __all__ = [
     "ground_truth",
     "latent_directions",
     "linear_modes",
+    "load_neural_modes",
     "modal_samples",
     "neural_modes_loss",
     "rigid_modes",
@@ -289,6 +290,27 @@ class NeuralModes(nn.Module):
         """n(z): positions (..., n, 3)."""
         u = self.linear(z) + self.correction(z, aux)
         return (self.X + u).reshape(z.shape[:-1] + (self.n, 3))
+
+
+def load_neural_modes(path) -> NeuralModes:
+    """A :class:`NeuralModes` saved by ``latent.save_module`` (rule nm_train), in eval mode."""
+    blob = torch.load(path, map_location="cpu", weights_only=True)
+    if blob.get("kind") != "NeuralModes":
+        raise ValueError(f"{path} holds a {blob.get('kind')!r}, not NeuralModes")
+    hp, sd = blob["hparams"], blob["state_dict"]
+    rigid = sd.get("R")
+    model = NeuralModes(
+        sd["X"].reshape(-1, 3).numpy(),
+        sd["E"].numpy(),
+        hp["widths"],
+        hp["aux_dim"],
+        fixed_dofs=np.flatnonzero(sd["mask"].numpy() == 0),
+        rigid=None if rigid is None else rigid.numpy(),
+        masses=None if rigid is None else np.ones(hp["n"]),  # MR is restored from the state dict
+        exact_origin=hp["exact_origin"],
+    )
+    model.load_state_dict(sd)
+    return model.eval()
 
 
 def neural_modes_loss(model: NeuralModes, potential: IncrementalPotential, z, aux=None, lam=1e8, eta=1e7, orthogonality="paper", metric="euclidean"):

@@ -112,11 +112,15 @@ def train_l2_supervised(model: nm.NeuralModes, z, x_gt, epochs=200, lbfgs_max_it
 class DataFree(nn.Module):
     """Sharp et al. 2023: x = X + f(z) - f(0), f an MLP with GELU (the subspace passes through the rest state)."""
 
-    def __init__(self, rest_positions, m, widths):
+    def __init__(self, rest_positions, m, widths, fixed_dofs=None):
         super().__init__()
         X = torch.as_tensor(np.asarray(rest_positions), dtype=torch.float64)
         self.n, self.m = X.shape[0], m
         self.register_buffer("X", X.reshape(-1))
+        mask = torch.ones(3 * self.n, dtype=torch.float64)
+        if fixed_dofs is not None and len(fixed_dofs):
+            mask[torch.as_tensor(np.asarray(fixed_dofs), dtype=torch.long)] = 0.0
+        self.register_buffer("mask", mask)
         layers, prev = [], m
         for w in widths:
             layers += [nn.Linear(prev, int(w), dtype=torch.float64), nn.GELU()]
@@ -124,7 +128,7 @@ class DataFree(nn.Module):
         self.mlp = nn.Sequential(*layers, nn.Linear(prev, 3 * self.n, dtype=torch.float64))
 
     def forward(self, z):
-        u = self.mlp(z) - self.mlp(z.new_zeros(self.m))
+        u = (self.mlp(z) - self.mlp(z.new_zeros(self.m))) * self.mask
         return (self.X + u).reshape(z.shape[:-1] + (self.n, 3))
 
 
