@@ -117,12 +117,30 @@ def test_reduced_gradient_matches_finite_differences(beam, kind):
     assert np.allclose(gq, fd, rtol=1e-5, atol=1e-7 * np.abs(gq).max())
 
 
-@pytest.mark.parametrize("method", ["newton", "lbfgs"])
-def test_energy_decreases_every_iteration_and_methods_agree(beam, method):
+def test_decoder_curvature_matches_autograd(beam):
+    """sum_i g_i d^2 x_i / dq^2 of the decoder subspace against torch.func.hessian."""
+    V, D, _, xD = beam
+    sub, coords, _ = _decoder_subspace(V, D, seed=4)
+    rng = np.random.default_rng(5)
+    q, g = 0.3 * rng.standard_normal(sub.dim), rng.standard_normal(3 * len(V))
+    gt, xDt = torch.from_numpy(g), torch.from_numpy(xD[2])
+
+    def weighted(z):
+        return (gt * coords.decode(sub.ae.decode(z[None])[0], xDt).reshape(-1)).sum()
+
+    ref = torch.func.hessian(weighted)(torch.from_numpy(q)).detach().numpy()
+    C = sub.curvature(q, xD[2], g)
+    assert np.abs(ref).max() > 1e-3
+    assert np.allclose(C, ref, rtol=0, atol=1e-10 * np.abs(ref).max())
+
+
+@pytest.mark.parametrize("method,curvature", [("newton", True), ("newton", False), ("lbfgs", False)])
+def test_energy_decreases_every_iteration_and_methods_agree(beam, method, curvature):
     V, D, pot, xD = beam
     sub, _, _ = _decoder_subspace(V, D, seed=3)
     q0 = sub.project(V, V[D])
-    solver = ReducedImplicitEuler(sub, pot, ReducedSettings(method=method, tolerance=1e-8, max_iterations=200))
+    settings = ReducedSettings(method=method, tolerance=1e-8, max_iterations=200, map_curvature=curvature)
+    solver = ReducedImplicitEuler(sub, pot, settings)
     x0 = sub.map(q0, xD[0])
     q, _, info = solver.step(q0, q0, x0, x0, xD[3])
     assert info.converged and info.iterations >= 2
@@ -130,8 +148,10 @@ def test_energy_decreases_every_iteration_and_methods_agree(beam, method):
     assert np.all(np.diff(E) <= 1e-12 * np.abs(E).max())
     assert E[-1] < E[0]
     ref = ReducedImplicitEuler(sub, pot, ReducedSettings(method="newton", tolerance=1e-10, max_iterations=200))
-    q_ref, _, _ = ref.step(q0, q0, x0, x0, xD[3])
+    q_ref, _, info_ref = ref.step(q0, q0, x0, x0, xD[3])
     assert np.abs(q - q_ref).max() < 1e-4 * max(np.abs(q_ref - q0).max(), 1e-12)
+    if method == "newton" and not curvature:  # Gauss-Newton: linear convergence, more iterations
+        assert info.iterations > info_ref.iterations
 
 
 def test_rollout_records_the_frame_that_does_not_converge(beam):

@@ -142,6 +142,7 @@ class DecoderSubspace:
 
         self.ae, self.coords = ae, coords
         self.net = NumpyStepper(fold_decoder(ae, coords), dtype=np.float64)
+        self._rows = _encoded_rows(coords)
         self.dim = int(ae.latent_dim)
         self.n_vertices = int(coords.n)
         self.hard_dirichlet = bool(coords.hard_dirichlet)
@@ -152,6 +153,12 @@ class DecoderSubspace:
 
     def jacobian(self, q, xD):
         return self.net.decode_jacobian(np.asarray(q, dtype=np.float64), xD)
+
+    def curvature(self, q, xD, grad) -> np.ndarray:
+        """sum_i g_i d^2 x_i / dq dq (r, r) for a full-space gradient g (3n,): the term
+        Gauss-Newton drops.  The relative-coordinates decode is affine in the encoded
+        vector, so only the decoder's second derivatives enter."""
+        return self.net.decode_curvature(np.asarray(q, dtype=np.float64), np.asarray(grad)[self._rows])
 
     def project(self, x, xD) -> np.ndarray:
         """The encoder's latent of positions x (n, 3)."""
@@ -168,8 +175,10 @@ class DecoderSubspace:
 class ReducedSettings:
     """Settings of the per-step reduced solve.
 
-    ``method``: ``newton`` (Gauss-Newton on J^T H J; Newton for linear maps) or
-    ``lbfgs``.  ``hessian``: ``exact_first`` (exact per-stencil Hessians while
+    ``method``: ``newton`` or ``lbfgs``.  ``map_curvature``: Newton adds the
+    map's second-derivative term sum_i g_i d^2 phi_i / dq^2 where the subspace
+    provides it (``curvature``) and the sum stays positive definite, else takes
+    the Gauss-Newton step on J^T H J (exact for linear maps).  ``hessian``: ``exact_first`` (exact per-stencil Hessians while
     the reduced matrix is positive definite, projected otherwise) or
     ``projected``.  ``tolerance`` is relative to the solver's force scale (as
     in :class:`latentsim.solver.NewtonSettings`).  ``penalty``: Dirichlet
@@ -185,6 +194,7 @@ class ReducedSettings:
     min_step: float = 1e-10
     lbfgs_memory: int = 8
     penalty: bool | None = None
+    map_curvature: bool = True
 
     def __post_init__(self):
         if self.method not in ("newton", "lbfgs"):
@@ -202,6 +212,7 @@ class ReducedStepInfo:
     gradient_norm: float = float("nan")
     converged: bool = False
     projected: int = 0
+    gauss_newton: int = 0  # iterations where J^T H J + the map's curvature was indefinite
     energies: list = field(default_factory=list)
     # wall seconds: the map and its Jacobian, full-space gradient + Hessian, the reduction
     # J^T g, J^T H J and the solve, the line search (map + energy)
@@ -373,8 +384,16 @@ class ReducedImplicitEuler:
                 return q, x, info
             if it == s.max_iterations:
                 break
+            L = None
+            if s.map_curvature and hasattr(self.subspace, "curvature"):
+                # the full gradient does not vanish at a reduced minimum, so the map's
+                # curvature matters: without it Gauss-Newton converges only linearly
+                try:
+                    L = np.linalg.cholesky(Hq + self.subspace.curvature(q, xD, grad))
+                except np.linalg.LinAlgError:
+                    info.gauss_newton += 1
             try:
-                L = np.linalg.cholesky(Hq)
+                L = L if L is not None else np.linalg.cholesky(Hq)
             except np.linalg.LinAlgError:
                 if s.hessian == "projected":
                     raise ReducedFailed("the reduced projected Hessian is not positive definite", info) from None

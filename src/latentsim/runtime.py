@@ -447,6 +447,39 @@ class NumpyStepper:
             J[:] = Ju
         return x, J.reshape(3 * self.n, r)
 
+    def decode_curvature(self, z, w) -> np.ndarray:
+        """sum_i w_i d^2 u_i / dz dz (r, r): the Hessian of w . Decoder(z), by second-order forward mode.
+
+        The last layer is linear, so the weights are contracted first (c = W^T w) and only the
+        hidden layers carry second derivatives, (w_l, r, r) per layer, with SiLU'' =
+        s (1 - s) (2 + a (1 - 2 s)).  Allocates (meant for reduced Newton solvers).
+        """
+        r = self.r
+        c = np.asarray(w, dtype=np.float64) @ self.W_out.astype(np.float64)
+        if self.mid:
+            c = c @ self.W_mid.astype(np.float64)
+        if not len(self.dec_W):
+            return np.zeros((r, r))
+        h = np.asarray(z, dtype=np.float64).copy()
+        dh = np.eye(r)  # (w, r): d h / d z
+        d2h = np.zeros((r, r, r))  # (w, r, r)
+        for i, (W, b) in enumerate(zip(self.dec_W, self.dec_b)):
+            W = W.astype(np.float64)
+            a = W @ h + b
+            da = W @ dh
+            d2a = np.tensordot(W, d2h, axes=1)
+            s = 1.0 / (1.0 + np.exp(np.minimum(-a, _SILU_CLAMP)))
+            d1 = s * (1.0 + a * (1.0 - s))
+            d2 = s * (1.0 - s) * (2.0 + a * (1.0 - 2.0 * s))
+            y, dy = a * s, d1[:, None] * da
+            d2y = d2[:, None, None] * da[:, :, None] * da[:, None, :] + d1[:, None, None] * d2a
+            if self.skips[i]:
+                h, dh, d2h = h + y, dh + dy, d2h + d2y
+            else:
+                h, dh, d2h = y, dy, d2y
+        C = np.tensordot(c[r:], d2h, axes=1)  # z enters [z; h_L] linearly
+        return 0.5 * (C + C.T)
+
     def decode_from_u(self, u, xD) -> np.ndarray:
         """Positions (n, 3) from an encoded vector u (d,) (allocates)."""
         u = np.asarray(u, dtype=np.float64).reshape(-1, 3)
