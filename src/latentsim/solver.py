@@ -146,6 +146,20 @@ class ImplicitEuler:
             e = self.potential(torch.from_numpy(x), torch.from_numpy(x_prev), torch.from_numpy(x_prev2), penalty=False)
         return float(e)
 
+    def _evaluate(self, x, x_prev, x_prev2):
+        """E_total at x and, with the compiled kernels, its full gradient (3n,) from the same
+        pass (else None: the reference path gets it with the Hessian)."""
+        if self.kernels is None:
+            return self.energy(x, x_prev, x_prev2), None
+        grad = np.zeros(3 * self.n)
+        e = sum(k.energy_gradient(x, grad) for k in self.kernels)
+        a = x - 2.0 * x_prev + x_prev2
+        h2 = self.potential.dt**2
+        e += 0.5 / h2 * float(np.einsum("i,ij,ij->", self.masses, a, a))
+        e -= float(np.einsum("i,ij,j->", self.masses, x, self.g))
+        grad += (self.masses[:, None] / h2 * a - self.masses[:, None] * self.g).reshape(-1)
+        return e, grad
+
     def gradient_hessian(self, x, x_prev, x_prev2, timings=None, project=True):
         """Full gradient (3n,) and the free-DoF Hessian, per-stencil PSD-projected or exact.
 
@@ -245,11 +259,17 @@ class ImplicitEuler:
             e = self.energy(c, x_prev, x_prev2)
             if e < e_best:
                 best, e_best = c, e
+        x = best
+        e, grad = self._evaluate(x, x_prev, x_prev2) if self.kernels is not None else (e_best, None)
         tm["energy"] += time.perf_counter() - t0
-        x, e = best, e_best
         tol = s.tolerance * self.f_ref
+        project = s.hessian == "projected"
         for it in range(s.max_iterations + 1):
-            grad, U = self.gradient_hessian(x, x_prev, x_prev2, tm, project=s.hessian == "projected")
+            # the kernels return the gradient with each energy, so the Hessian is built only
+            # when the gradient test fails (the reference path builds both together)
+            U = None
+            if grad is None:
+                grad, U = self.gradient_hessian(x, x_prev, x_prev2, tm, project=project)
             gf = grad[self.free_dofs]
             gnorm = float(np.sqrt(_dot(gf, gf)))
             info.gradient_norm = gnorm
@@ -260,6 +280,8 @@ class ImplicitEuler:
                 return x, info
             if it == s.max_iterations:
                 break
+            if U is None:
+                _, U = self.gradient_hessian(x, x_prev, x_prev2, tm, project=project)
             dx_f = self._newton_direction(x, x_prev, x_prev2, U, gf, tm, info)
             slope = _dot(gf, dx_f)
             if not slope < 0:  # not a descent direction: fall back to steepest descent
@@ -275,7 +297,7 @@ class ImplicitEuler:
             resolvable = -slope > s.energy_resolution * max(abs(e), 1e-300)
             while resolvable:
                 x_try = x + alpha * dx
-                e_try = self.energy(x_try, x_prev, x_prev2)
+                e_try, g_try = self._evaluate(x_try, x_prev, x_prev2)
                 if np.isfinite(e_try) and e_try <= e + s.armijo * alpha * slope:
                     break
                 alpha *= 0.5
@@ -288,9 +310,9 @@ class ImplicitEuler:
                     )
             if not resolvable:
                 x_try = x + dx
-                e_try = self.energy(x_try, x_prev, x_prev2)
+                e_try, g_try = self._evaluate(x_try, x_prev, x_prev2)
             tm["energy"] += time.perf_counter() - t0
-            x, e = x_try, e_try
+            x, e, grad = x_try, e_try, g_try
         info.iterations = s.max_iterations
         raise NewtonFailed(
             f"no convergence in {s.max_iterations} iterations (gradient norm {info.gradient_norm:.3e}, tolerance {tol:.3e})",

@@ -7,8 +7,11 @@ solver (one state, many Newton iterations), the per-call overhead of those
 array programs dominates the small per-stencil work, so this module compiles
 the same formulas stencil by stencil with numba:
 
-- ``energy(x)``: the term's energy at x (n, 3), gathered inside the kernel
-  (the line search calls it once per trial step);
+- ``energy(x)``: the term's energy at x (n, 3), gathered inside the kernel;
+- ``energy_gradient(x, grad)``: the energy, and the gradient added into the
+  (3n,) ``grad``, in one pass (the line search: the accepted trial state's
+  gradient then serves the next convergence test, and the Hessian is built
+  only when that test fails);
 - ``accumulate(x, grad, data, slots, project)``: per stencil, the gradient and
   the Hessian (exact, or eigenvalue-clamped as in the oracles), added straight
   into the (3n,) gradient and into the data array of the free-DoF Hessian (the
@@ -74,12 +77,8 @@ if numba is None:  # pragma: no cover
 @njit(**_JIT)
 def _scatter(e, st, g, H, grad, data, slots):
     """Add stencil e's gradient g (3k,) and the upper triangle of H (3k, 3k)."""
-    k = st.shape[1]
-    n3 = 3 * k
-    for a in range(k):
-        v = st[e, a]
-        for i in range(3):
-            grad[3 * v + i] += g[3 * a + i]
+    n3 = 3 * st.shape[1]
+    _scatter_gradient(e, st, g, grad)
     m = 0
     for p in range(n3):
         for q in range(p, n3):
@@ -89,10 +88,22 @@ def _scatter(e, st, g, H, grad, data, slots):
             m += 1
 
 
+GRADIENT, SCATTER, STORE = 0, 1, 2  # modes of the run kernels
+
+
 @njit(**_JIT)
-def _emit(e, st, g, H, grad, data, slots, g_out, H_out, scatter):
-    """Stencil e's g and (symmetric) H: scattered into grad/data, or stored in g_out/H_out."""
-    if scatter:
+def _scatter_gradient(e, st, g, grad):
+    """Add stencil e's gradient g (3k,)."""
+    for a in range(st.shape[1]):
+        v = st[e, a]
+        for i in range(3):
+            grad[3 * v + i] += g[3 * a + i]
+
+
+@njit(**_JIT)
+def _emit(e, st, g, H, grad, data, slots, g_out, H_out, mode):
+    """Stencil e's g and (symmetric) H: scattered into grad/data (SCATTER) or stored in g_out/H_out."""
+    if mode == SCATTER:
         _scatter(e, st, g, H, grad, data, slots)
     else:
         g_out[e] = g
@@ -322,10 +333,11 @@ def _svd3(F, C, Vm, w, U, sig, V, b):
 
 
 @njit(**_JIT)
-def _tet_gh(e, x, st, D, vol, mu, lam, project, g, H, F, S, P, q, FF, U, V, Lf, A, b, sig, w3, N):
-    """Gradient g (12,) and Hessian H (12, 12) of tet e (exact or projected); the rest is scratch.
+def _tet_gh(e, x, st, D, vol, mu, lam, project, hess, g, H, F, S, P, q, FF, U, V, Lf, A, b, sig, w3, N):
+    """Energy (returned), gradient g (12,) and, if ``hess``, Hessian H (12, 12) of tet e.
 
-    The exact Hessian is written to the upper triangle only (all that ``_scatter`` reads).
+    The rest is scratch.  The exact Hessian is written to the upper triangle
+    only (all that ``_scatter`` reads).
     """
     _tet_F(e, x, st, D, F)
     W, m_, l_ = vol[e], mu[e], lam[e]
@@ -336,15 +348,21 @@ def _tet_gh(e, x, st, D, vol, mu, lam, project, g, H, F, S, P, q, FF, U, V, Lf, 
             S[i, j] = F[0, i] * F[0, j] + F[1, i] * F[1, j] + F[2, i] * F[2, j]
         tr += S[i, i]
     tr = 0.5 * (tr - 3.0)
+    nE2 = 0.0
     for i in range(3):
         for j in range(3):
-            S[i, j] = m_ * (S[i, j] - (1.0 if i == j else 0.0)) + (l_ * tr if i == j else 0.0)
+            Eij = 0.5 * (S[i, j] - (1.0 if i == j else 0.0))
+            nE2 += Eij * Eij
+            S[i, j] = 2.0 * m_ * Eij + (l_ * tr if i == j else 0.0)
+    energy = W * (m_ * nE2 + 0.5 * l_ * tr * tr)
     for i in range(3):  # P = F S
         for j in range(3):
             P[i, j] = F[i, 0] * S[0, j] + F[i, 1] * S[1, j] + F[i, 2] * S[2, j]
     for a in range(4):
         for i in range(3):
             g[3 * a + i] = W * (P[i, 0] * D[e, a, 0] + P[i, 1] * D[e, a, 1] + P[i, 2] * D[e, a, 2])
+    if not hess:
+        return energy
     if not project:
         # q_a = F D_a, FF = mu F F^T
         for a in range(4):
@@ -366,7 +384,7 @@ def _tet_gh(e, x, st, D, vol, mu, lam, project, g, H, F, S, P, q, FF, U, V, Lf, 
                         if i == j:
                             h += dSd
                         H[3 * a + i, 3 * b_ + j] = W * h
-        return
+        return energy
     # projected: the 9 analytic eigenpairs of dP/dF in the principal-stretch frame
     _svd3(F, S, P, w3, U, sig, V, b)
     s0, s1, s2 = sig[0] * sig[0], sig[1] * sig[1], sig[2] * sig[2]
@@ -410,10 +428,11 @@ def _tet_gh(e, x, st, D, vol, mu, lam, project, g, H, F, S, P, q, FF, U, V, Lf, 
                 acc += N[k, i] * N[k, j]
             H[i, j] = acc
             H[j, i] = acc
+    return energy
 
 
 @njit(**_JIT)
-def _tet_run(x, st, D, vol, mu, lam, project, grad, data, slots, g_out, H_out, scatter):
+def _tet_run(x, st, D, vol, mu, lam, project, grad, data, slots, g_out, H_out, mode):
     F, S, P, FF = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     U, V, Lf, A, b = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     q = np.empty((4, 3))
@@ -421,9 +440,13 @@ def _tet_run(x, st, D, vol, mu, lam, project, grad, data, slots, g_out, H_out, s
     N = np.empty((9, 12))
     g = np.empty(12)
     H = np.empty((12, 12))
+    total = 0.0
     for e in range(st.shape[0]):
-        _tet_gh(e, x, st, D, vol, mu, lam, project, g, H, F, S, P, q, FF, U, V, Lf, A, b, sig, w3, N)
-        if scatter:
+        total += _tet_gh(e, x, st, D, vol, mu, lam, project, mode != GRADIENT, g, H, F, S, P, q, FF, U, V, Lf, A, b,
+                         sig, w3, N)  # fmt: skip
+        if mode == GRADIENT:
+            _scatter_gradient(e, st, g, grad)
+        elif mode == SCATTER:
             _scatter(e, st, g, H, grad, data, slots)
         else:
             g_out[e] = g
@@ -431,6 +454,7 @@ def _tet_run(x, st, D, vol, mu, lam, project, grad, data, slots, g_out, H_out, s
                 for j in range(i, 12):
                     H_out[e, i, j] = H[i, j]
                     H_out[e, j, i] = H[i, j]
+    return total
 
 
 # ---------------------------------------------------------------------------
@@ -450,7 +474,8 @@ def stretch_energy(x, st, rest_length, ks):
 
 
 @njit(**_JIT)
-def _stretch_run(x, st, rest_length, ks, project, grad, data, slots, g_out, H_out, scatter):
+def _stretch_run(x, st, rest_length, ks, project, grad, data, slots, g_out, H_out, mode):
+    total = 0.0
     g = np.empty(6)
     H = np.empty((6, 6))
     u = np.empty(3)
@@ -471,6 +496,10 @@ def _stretch_run(x, st, rest_length, ks, project, grad, data, slots, g_out, H_ou
             u[i] /= ln
             g[i] = -f * u[i]
             g[3 + i] = f * u[i]
+        total += 0.5 * ks[e] * (ln / lb - 1.0) ** 2 * lb
+        if mode == GRADIENT:
+            _scatter_gradient(e, st, g, grad)
+            continue
         for i in range(3):
             for j in range(3):
                 K = s * (1.0 - c) * u[i] * u[j] + (s * c if i == j else 0.0)
@@ -478,7 +507,8 @@ def _stretch_run(x, st, rest_length, ks, project, grad, data, slots, g_out, H_ou
                 H[3 + i, 3 + j] = K
                 H[i, 3 + j] = -K
                 H[3 + i, j] = -K
-        _emit(e, st, g, H, grad, data, slots, g_out, H_out, scatter)
+        _emit(e, st, g, H, grad, data, slots, g_out, H_out, mode)
+    return total
 
 
 @njit(**_JIT)
@@ -525,7 +555,8 @@ def _rod_frame(a, b, frame):
 
 
 @njit(**_JIT)
-def _bend_run(x, st, alpha, c0, project, B, grad, data, slots, g_out, H_out, scatter):
+def _bend_run(x, st, alpha, c0, project, B, grad, data, slots, g_out, H_out, mode):
+    total = 0.0
     g = np.empty(9)
     H = np.empty((9, 9))
     H6 = np.empty((6, 6))
@@ -566,6 +597,10 @@ def _bend_run(x, st, alpha, c0, project, B, grad, data, slots, g_out, H_out, sca
             g[i] = -ga[i]
             g[3 + i] = ga[i] - gb[i]
             g[6 + i] = gb[i]
+        total += it2 * f
+        if mode == GRADIENT:
+            _scatter_gradient(e, st, g, grad)
+            continue
         p1 = it2 * B_
         p2 = it2 * A_
         p3 = -2.0 * (C_ * it2 + f * it3)
@@ -608,7 +643,8 @@ def _bend_run(x, st, alpha, c0, project, B, grad, data, slots, g_out, H_out, sca
         if project:
             _rod_frame(a, b, frame)
             _project_translation_free(H, B, M, BH, V, wv, BV, frame, True)
-        _emit(e, st, g, H, grad, data, slots, g_out, H_out, scatter)
+        _emit(e, st, g, H, grad, data, slots, g_out, H_out, mode)
+    return total
 
 
 # ---------------------------------------------------------------------------
@@ -632,7 +668,8 @@ def membrane_energy(x, st, G, K, mu, lam):
 
 
 @njit(**_JIT)
-def _membrane_run(x, st, G, K, mu, lam, project, B, grad, data, slots, g_out, H_out, scatter):
+def _membrane_run(x, st, G, K, mu, lam, project, B, grad, data, slots, g_out, H_out, mode):
+    total = 0.0
     F = np.empty((3, 2))
     S = np.empty((2, 2))
     q = np.empty((3, 3))
@@ -650,9 +687,13 @@ def _membrane_run(x, st, G, K, mu, lam, project, B, grad, data, slots, g_out, H_
             for s in range(2):
                 S[r, s] = F[0, r] * F[0, s] + F[1, r] * F[1, s] + F[2, r] * F[2, s]
         tr = 0.5 * (S[0, 0] + S[1, 1] - 2.0)
+        nE2 = 0.0
         for r in range(2):
             for s in range(2):
-                S[r, s] = m_ * (S[r, s] - (1.0 if r == s else 0.0)) + (l_ * tr if r == s else 0.0)
+                Ers = 0.5 * (S[r, s] - (1.0 if r == s else 0.0))
+                nE2 += Ers * Ers
+                S[r, s] = 2.0 * m_ * Ers + (l_ * tr if r == s else 0.0)
+        total += Ke * (m_ * nE2 + 0.5 * l_ * tr * tr)
         for a in range(3):
             for i in range(3):
                 acc = 0.0
@@ -660,6 +701,9 @@ def _membrane_run(x, st, G, K, mu, lam, project, B, grad, data, slots, g_out, H_
                     acc += (F[i, 0] * S[0, r] + F[i, 1] * S[1, r]) * G[e, a, r]
                 g[3 * a + i] = Ke * acc
                 q[a, i] = F[i, 0] * G[e, a, 0] + F[i, 1] * G[e, a, 1]
+        if mode == GRADIENT:
+            _scatter_gradient(e, st, g, grad)
+            continue
         for i in range(3):
             for jj in range(3):
                 FF[i, jj] = m_ * (F[i, 0] * F[jj, 0] + F[i, 1] * F[jj, 1])
@@ -679,7 +723,8 @@ def _membrane_run(x, st, G, K, mu, lam, project, B, grad, data, slots, g_out, H_
                         H[3 * b + jj, 3 * a + i] = Ke * h
         if project:
             _project_translation_free(H, B, M, BH, V, wv, BV, _NO_FRAME, False)
-        _emit(e, st, g, H, grad, data, slots, g_out, H_out, scatter)
+        _emit(e, st, g, H, grad, data, slots, g_out, H_out, mode)
+    return total
 
 
 @njit(**_JIT)
@@ -737,7 +782,8 @@ def _matmul3(A, B, out, scale):
 
 
 @njit(**_JIT)
-def _hinge_run(x, st, kk, rest_angle, project, B, grad, data, slots, g_out, H_out, scatter):
+def _hinge_run(x, st, kk, rest_angle, project, B, grad, data, slots, g_out, H_out, mode):
+    total = 0.0
     ev, da, db, N1, N2 = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
     gr = np.empty((4, 3))  # grad theta per vertex
     g = np.empty(12)
@@ -768,6 +814,10 @@ def _hinge_run(x, st, kk, rest_angle, project, B, grad, data, slots, g_out, H_ou
         for r in range(4):
             for i in range(3):
                 g[3 * r + i] = k2 * d * gr[r, i]
+        total += kk[e] * d * d
+        if mode == GRADIENT:
+            _scatter_gradient(e, st, g, grad)
+            continue
         # M_s = (I - 2 n n^T) / |N|^2, n = N / |N|
         for i in range(3):
             for j in range(3):
@@ -826,7 +876,8 @@ def _hinge_run(x, st, kk, rest_angle, project, B, grad, data, slots, g_out, H_ou
                         H[qq, p] = h
         if project:
             _project_translation_free(H, B, M, BH, V, wv, BV, _NO_FRAME, False)
-        _emit(e, st, g, H, grad, data, slots, g_out, H_out, scatter)
+        _emit(e, st, g, H, grad, data, slots, g_out, H_out, mode)
+    return total
 
 
 # ---------------------------------------------------------------------------
@@ -854,30 +905,34 @@ class TermKernel:
         self._args = args
         self._basis = basis  # translation-free basis (projection), None for tets / stretch
 
-    def _call(self, x, project, grad, data, slots, g_out, H_out, scatter):
+    def _call(self, x, project, grad, data, slots, g_out, H_out, mode) -> float:
         x = np.ascontiguousarray(x, dtype=np.float64)
         if self._basis is None:
-            self._run(x, self.stencils, *self._args, project, grad, data, slots, g_out, H_out, scatter)
-        else:
-            self._run(x, self.stencils, *self._args, project, self._basis, grad, data, slots, g_out, H_out, scatter)
+            return self._run(x, self.stencils, *self._args, project, grad, data, slots, g_out, H_out, mode)
+        return self._run(x, self.stencils, *self._args, project, self._basis, grad, data, slots, g_out, H_out, mode)
 
     def energy(self, x: np.ndarray) -> float:
         """The term's energy at x (n, 3)."""
         return float(self._energy(np.ascontiguousarray(x, dtype=np.float64), self.stencils, *self._args))
 
-    def accumulate(self, x, grad, data, slots, project: bool):
+    def accumulate(self, x, grad, data, slots, project: bool) -> float:
         """grad (3n,) += gradient; data[slots] += upper triangles of the stencil Hessians.
 
         slots : (E, 3k (3k+1) / 2) int32 target indices of the upper-triangle
         entries of each stencil Hessian (row-major), -1 for dropped entries.
+        Returns the term's energy.
         """
-        self._call(x, bool(project), grad, data, slots, _EMPTY_G, _EMPTY_H, True)
+        return self._call(x, bool(project), grad, data, slots, _EMPTY_G, _EMPTY_H, SCATTER)
+
+    def energy_gradient(self, x, grad) -> float:
+        """grad (3n,) += gradient; returns the energy (one pass, no Hessian)."""
+        return self._call(x, False, grad, _EMPTY_F, _EMPTY_S, _EMPTY_G, _EMPTY_H, GRADIENT)
 
     def local(self, x, project: bool):
         """Per-stencil g (E, 3k) and H (E, 3k, 3k), like ``EnergyTerm.local_gradient_hessian``."""
         E, n3 = self.stencils.shape[0], 3 * self.k
         g, H = np.zeros((E, n3)), np.zeros((E, n3, n3))
-        self._call(x, bool(project), _EMPTY_F, _EMPTY_F, _EMPTY_S, g, H, False)
+        self._call(x, bool(project), _EMPTY_F, _EMPTY_F, _EMPTY_S, g, H, STORE)
         return g, H
 
 
