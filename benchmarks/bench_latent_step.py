@@ -166,7 +166,8 @@ def bench_scene(name, sc, cfg, args, reading):
     r = LI2025_TABLE1[name][1]
     if args.networks == "trained":
         ae = load_autoencoder(ROOT / "results" / "autoencoder" / name / "autoencoder.pt")
-        integ = load_integrator(ROOT / "results" / "integrator" / name / "integrator.pt")
+        folder = ROOT / "results" / "integrator" / name
+        integ = load_integrator(next(p for p in (folder / "self_supervised" / "integrator.pt", folder / "integrator.pt") if p.exists()))
         r = ae.latent_dim
         dec_text = ", ".join(str(w) for w in ae.hparams["widths"])
         int_text = ", ".join(str(w) for w in integ.hparams["widths"])
@@ -298,7 +299,11 @@ def main():
         sc = cfg["scenes"][name]
         for reading in args.readings if args.networks == "paper" else ["trained"]:
             t0 = time.perf_counter()
-            rows.append(bench_scene(name, sc, cfg, args, reading))
+            try:
+                rows.append(bench_scene(name, sc, cfg, args, reading))
+            except (FileNotFoundError, StopIteration):
+                print(f"# {name}: no trained model in results/, skipped", file=sys.stderr, flush=True)
+                continue
             print(f"# {name} ({reading}): {time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
     df = pd.DataFrame(rows)
     text = _markdown(df)

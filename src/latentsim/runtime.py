@@ -436,7 +436,7 @@ class NumpyStepper:
         if self.mid:
             full = full @ self.W_mid.T
             full[0] += self.b_mid
-        Y = (full @ self.W_out.T).astype(np.float64)  # (1 + r, d)
+        Y = np.asarray(full @ self.W_out.T, dtype=np.float64)  # (1 + r, d)
         u = Y[0] + self.b_out
         x = self.decode_from_u(u, xD)
         J = np.zeros((self.n, 3, r))
@@ -455,16 +455,16 @@ class NumpyStepper:
         s (1 - s) (2 + a (1 - 2 s)).  Allocates (meant for reduced Newton solvers).
         """
         r = self.r
-        c = np.asarray(w, dtype=np.float64) @ self.W_out.astype(np.float64)
+        c = np.asarray(w, dtype=np.float64) @ np.asarray(self.W_out, dtype=np.float64)  # no copy in float64
         if self.mid:
-            c = c @ self.W_mid.astype(np.float64)
+            c = c @ np.asarray(self.W_mid, dtype=np.float64)
         if not len(self.dec_W):
             return np.zeros((r, r))
         h = np.asarray(z, dtype=np.float64).copy()
         dh = np.eye(r)  # (w, r): d h / d z
         d2h = np.zeros((r, r, r))  # (w, r, r)
         for i, (W, b) in enumerate(zip(self.dec_W, self.dec_b)):
-            W = W.astype(np.float64)
+            W = np.asarray(W, dtype=np.float64)
             a = W @ h + b
             da = W @ dh
             d2a = np.tensordot(W, d2h, axes=1)
