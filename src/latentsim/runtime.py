@@ -26,8 +26,9 @@ Two runtimes evaluate the same folded weights:
 - :class:`NumpyStepper` - plain NumPy, float32 (default) or float64 networks,
   every buffer preallocated (``np.dot(..., out=)``, in-place ufuncs); positions
   are float64.  It also gives the forward-mode Jacobian-vector product of one
-  decoded vertex (:meth:`NumpyStepper.jvp_vertex`) and the full decoder
-  Jacobian (:meth:`NumpyStepper.decode_jacobian`) for reduced solvers.
+  decoded vertex (:meth:`NumpyStepper.jvp_vertex`), and for reduced solvers
+  the full decoder Jacobian (:meth:`NumpyStepper.decode_jacobian`) and the
+  weighted second derivatives (:meth:`NumpyStepper.decode_curvature`).
 - a TorchScript module (:func:`torchscript_module`), saved with
   ``torch.jit.save`` and loadable with ``torch.jit.load`` alone.
 
