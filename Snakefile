@@ -5,8 +5,9 @@ from snakemake.utils import min_version
 min_version("8.0")
 
 
-# The default config holds every paper scene; --configfile replaces it (it is not merged into it).
-if not config:
+# The default config holds every paper scene; --configfile replaces it (it is not merged into it),
+# and --config key=value overrides either.
+if not workflow.overwrite_configfiles:
 
     configfile: "config/config.yaml"
 

@@ -18,6 +18,5 @@ rule train_autoencoder:
         gpu=gpu_count,
     params:
         train=training_params("autoencoder"),
-        progress=progress(),
     script:
         "../scripts/train_autoencoder.py"

@@ -17,6 +17,5 @@ rule simulate:
         runtime=240,
     params:
         sim=scene_cfg("model", "material", "dt", "gravity", "newton", "sequences"),
-        progress=progress(),
     script:
         "../scripts/simulate.py"

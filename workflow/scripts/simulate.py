@@ -10,7 +10,7 @@ def main(smk):
         smk.params.sim,
         smk.output.trajectories,
         paraview_dir=smk.output.paraview,
-        progress=progress_enabled(smk.params.progress),
+        progress=progress_enabled(smk.config.get("progress", True)),
     )
 
 

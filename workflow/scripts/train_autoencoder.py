@@ -6,7 +6,7 @@ from latentsim.utils import progress_enabled, run_stage
 def main(smk):
     p = smk.params.train
     train_autoencoder(
-        smk.input.trajectories, p["settings"], p["seed"], p["device"], smk.output.model, smk.output.latents, progress=progress_enabled(smk.params.progress)
+        smk.input.trajectories, p["settings"], p["seed"], p["device"], smk.output.model, smk.output.latents, progress=progress_enabled(smk.config.get("progress", True))
     )
 
 

@@ -14,7 +14,7 @@ def main(smk):
         smk.output.model,
         smk.output.history,
         checkpoint=smk.params.checkpoint,
-        progress=progress_enabled(smk.params.progress),
+        progress=progress_enabled(smk.config.get("progress", True)),
     )
 
 
