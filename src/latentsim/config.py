@@ -66,7 +66,33 @@ def validate_config(config: dict, schema_path=SCHEMA) -> dict:
         # the deepest error of the first failing branch is the most specific
         error = max(errors, key=lambda e: len(list(e.absolute_path)))
         raise ConfigError(_describe(error))
+    _check_variants(config)
     return config
+
+
+def _check_variants(config: dict) -> None:
+    """Every scene's ``variants`` entry must name a defined integrator variant."""
+    known = config.get("integrator_variants", {})
+    for name, scene in config.get("scenes", {}).items():
+        for v in scene.get("variants", []):
+            if v not in known:
+                raise ConfigError(f"config key 'scenes.{name}.variants': unknown variant {v!r}; defined in integrator_variants: {sorted(known)}")
+
+
+def integrator_settings(config: dict, scene: str, method: str) -> dict:
+    """A scene's integrator settings for ``method`` (self_supervised or a variant name)."""
+    base = dict(config["scenes"][scene]["integrator"])
+    if method == "self_supervised":
+        return base
+    if method not in config["scenes"][scene].get("variants", []):
+        raise ConfigError(f"scene {scene!r} has no integrator variant {method!r}")
+    base.update(config["integrator_variants"][method])
+    return base
+
+
+def scene_methods(config: dict, scene: str) -> list[str]:
+    """Latent-integrator methods trained for a scene: its own, then its variants."""
+    return ["self_supervised"] + list(config["scenes"][scene].get("variants", []))
 
 
 def load_config(path, schema_path=SCHEMA) -> dict:

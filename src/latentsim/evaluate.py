@@ -24,6 +24,8 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from .io import atomic_path, require  # noqa: E402
+from .paper import LI2025_TABLE1  # noqa: E402
+from .plots import speed_accuracy_chart, stability_heatmap  # noqa: E402
 
 
 def bbox_diagonal(x: np.ndarray) -> float:
@@ -43,68 +45,114 @@ def vertex_errors(pred: np.ndarray, truth: np.ndarray, diag: float):
     return d.mean(axis=-1), d.max(axis=-1)
 
 
-def evaluate_scene(scene: str, trajectories, rollout):
-    """Metrics table (one row per rolled-out sequence) and per-frame curves."""
+def evaluate_scene(scene: str, trajectories, rollouts):
+    """Metrics of every method's rollouts against the full simulation.
+
+    Parameters
+    ----------
+    scene : scene name (a column of the table).
+    trajectories : the simulator's ``trajectories.h5`` (ground truth).
+    rollouts : one path or a list of rollout files (trajectory layout, attrs
+        ``method``); each holds some of the ground truth's sequences.
+
+    Returns
+    -------
+    table : one row per (method, sequence): frames, diverged_frame, mean/max
+        vertex error and Dirichlet error / bbox diagonal (over the frames
+        before divergence), kinetic_ratio (mean rollout KE / mean ground-truth
+        KE), full_ms (the simulator's mean ms/frame), latent_ms (one latent
+        step), speedup, dof, latent_dim.
+    curves : {method: {sequence: per-frame arrays}} for :func:`plot_curves`.
+    """
+    if isinstance(rollouts, (str, bytes)) or hasattr(rollouts, "__fspath__"):
+        rollouts = [rollouts]
     rows, curves = [], {}
-    with h5py.File(trajectories, "r") as ft, h5py.File(rollout, "r") as fr:
+    with h5py.File(trajectories, "r") as ft:
         rest = require(ft, "rest_positions")[()]
         masses = require(ft, "masses")[()]
         D = require(ft, "dirichlet")[()]
         dt = float(ft.attrs["dt"])
         diag = bbox_diagonal(rest)
-        for name, g in require(fr, "sequences").items():
-            gt = require(ft["sequences"], name)
-            truth = gt["positions"][()]
-            pred = g["positions"][()]
-            T = len(truth)
-            div = int(g.attrs["diverged_frame"])
-            ok = slice(0, T if div < 0 else div)
-            mean_e, max_e = vertex_errors(pred[ok], truth[ok], diag)
-            bc_e = np.linalg.norm(pred[ok][:, D] - gt["dirichlet_positions"][ok], axis=-1).mean(-1) / diag
-            ke_t, ke_p = kinetic_energy(truth[ok], masses, dt), kinetic_energy(pred[ok], masses, dt)
-            full_ms = float(gt["frame_ms"][1:].mean())
-            latent_ms = float(g.attrs["step_ms"])
-            rows.append(
-                dict(
-                    scene=scene,
-                    sequence=name,
-                    method="latent_" + str(g.attrs.get("method", "self_supervised")),
-                    frames=T,
-                    diverged_frame=div,
-                    mean_error=float(mean_e.mean()),
-                    max_error=float(max_e.max()),
-                    dirichlet_error=float(bc_e.mean()),
-                    kinetic_ratio=float(ke_p.mean() / max(ke_t.mean(), 1e-300)),
-                    full_ms=full_ms,
-                    latent_ms=latent_ms,
-                    speedup=full_ms / latent_ms,
-                    dof=int(rest.size),
-                    latent_dim=int(g["latents"].shape[-1]),
-                )
-            )
-            curves[name] = dict(mean_error=mean_e, dirichlet_error=bc_e, ke_truth=ke_t, ke_pred=ke_p, dt=dt)
+        for path in rollouts:
+            with h5py.File(path, "r") as fr:
+                method = str(fr.attrs.get("method", "self_supervised"))
+                train_s = {k: float(fr.attrs.get(k, np.nan)) for k in ("autoencoder_train_seconds", "integrator_train_seconds")}
+                for name, g in require(fr, "sequences").items():
+                    gt = require(ft["sequences"], name)
+                    truth = gt["positions"][()]
+                    pred = g["positions"][()]
+                    if pred.shape != truth.shape:
+                        raise ValueError(f"{path}: sequence {name!r} has positions {pred.shape}, ground truth {truth.shape}")
+                    T = len(truth)
+                    div = int(g.attrs["diverged_frame"])
+                    ok = slice(0, T if div < 0 else div)
+                    mean_e, max_e = vertex_errors(pred[ok], truth[ok], diag)
+                    bc_e = np.linalg.norm(pred[ok][:, D] - gt["dirichlet_positions"][ok], axis=-1).mean(-1) / diag
+                    ke_t, ke_p = kinetic_energy(truth[ok], masses, dt), kinetic_energy(pred[ok], masses, dt)
+                    full_ms = float(np.median(gt["frame_ms"][1:]))
+                    latent_ms = float(g.attrs["step_ms"])
+                    parts = {k: float(g.attrs.get(k, np.nan)) for k in ("integrate_ms", "decode_ms")}
+                    rows.append(
+                        dict(
+                            scene=scene,
+                            method=method,
+                            sequence=name,
+                            frames=T,
+                            diverged_frame=div,
+                            mean_error=float(mean_e.mean()),
+                            max_error=float(max_e.max()),
+                            dirichlet_error=float(bc_e.mean()),
+                            kinetic_ratio=float(np.nanmean(ke_p) / max(np.nanmean(ke_t), 1e-300)),
+                            full_ms=full_ms,
+                            latent_ms=latent_ms,
+                            **parts,
+                            speedup=full_ms / latent_ms,
+                            dof=int(rest.size),
+                            latent_dim=int(g["latents"].shape[-1]),
+                            **train_s,
+                        )
+                    )
+                    curves.setdefault(method, {})[name] = dict(
+                        mean_error=mean_e, dirichlet_error=bc_e, ke_truth=ke_t, ke_pred=ke_p, dt=dt, frames=T, diverged_frame=div
+                    )
     return pd.DataFrame(rows), curves
 
 
 def plot_curves(scene: str, curves: dict, path):
-    """Error and kinetic energy over time, one column per sequence."""
-    n = max(len(curves), 1)
-    fig, axes = plt.subplots(2, n, figsize=(4.5 * n, 6), squeeze=False)
-    for j, (name, c) in enumerate(curves.items()):
-        t = np.arange(len(c["mean_error"])) * c["dt"]
-        ax = axes[0, j]
-        ax.semilogy(t, np.maximum(c["mean_error"], 1e-12), label="mean vertex error")
-        ax.semilogy(t, np.maximum(c["dirichlet_error"], 1e-12), label="Dirichlet error")
-        ax.set_title(f"{scene} / {name}")
-        ax.set_xlabel("time [s]")
-        ax.set_ylabel("error / bbox diagonal")
-        ax.legend(fontsize=8)
-        ax = axes[1, j]
-        ax.plot(t, c["ke_truth"], label="full space")
-        ax.plot(t, c["ke_pred"], "--", label="latent rollout")
-        ax.set_xlabel("time [s]")
-        ax.set_ylabel("kinetic energy [J]")
-        ax.legend(fontsize=8)
+    """Per test sequence (columns): vertex error, Dirichlet error and kinetic energy over time, one line per method.
+
+    A method's curve ends where it diverged (marked with a cross).  This one
+    figure holds the paper's Figs. 8-12 for the scene: stability of the
+    supervised baselines, the ablations' errors, BC satisfaction and the
+    kinetic energy of the rollout against the ground truth.
+    """
+    sequences = list(dict.fromkeys(name for per in curves.values() for name in per))
+    n = max(len(sequences), 1)
+    fig, axes = plt.subplots(3, n, figsize=(4.8 * n, 9), squeeze=False)
+    for j, name in enumerate(sequences):
+        truth = None  # ground-truth KE: the longest (undiverged) copy among the methods
+        for k, (method, per) in enumerate(curves.items()):
+            if name not in per:
+                continue
+            c = per[name]
+            colour = f"C{k % 10}"
+            t = np.arange(len(c["mean_error"])) * c["dt"]
+            axes[0, j].semilogy(t, np.maximum(c["mean_error"], 1e-12), color=colour, label=method)
+            axes[1, j].semilogy(t, np.maximum(c["dirichlet_error"], 1e-12), color=colour, label=method)
+            axes[2, j].plot(t, c["ke_pred"], color=colour, ls="--", label=method)
+            if c["diverged_frame"] >= 0 and len(t):
+                axes[0, j].plot(t[-1], max(c["mean_error"][-1], 1e-12), "x", color=colour, ms=9)
+            if truth is None or len(c["ke_truth"]) > len(truth[1]):
+                truth = (c["dt"], c["ke_truth"])
+        if truth is not None:
+            axes[2, j].plot(np.arange(len(truth[1])) * truth[0], truth[1], color="k", lw=2.0, alpha=0.5, label="full space")
+        axes[0, j].set_title(f"{scene} / {name}")
+        axes[0, j].set_ylabel("mean vertex error / bbox diag")
+        axes[1, j].set_ylabel("Dirichlet error / bbox diag")
+        axes[2, j].set_ylabel("kinetic energy [J]")
+        axes[2, j].set_xlabel("time [s]")
+        for i in range(3):
+            axes[i, j].legend(fontsize=7)
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100, format="png")
@@ -116,31 +164,116 @@ def write_table(df: pd.DataFrame, path):
         df.to_csv(tmp, index=False, float_format="%.6g")
 
 
-def summarise(tables: list, csv_path, md_path, fig_path):
-    """Concatenate the scene tables; Markdown copy; speed-accuracy chart."""
+def stress_table(scene: str, rollouts) -> pd.DataFrame:
+    """Stability map rows (method x stress condition) from the rollouts' ``stability`` groups.
+
+    Columns: scene, method, condition, frames, frames_survived, diverged,
+    bc_error (mean Dirichlet error / bbox diagonal at the last surviving frame).
+    """
+    rows = []
+    for path in rollouts:
+        with h5py.File(path, "r") as f:
+            method = str(f.attrs.get("method", "self_supervised"))
+            for cond, g in f.get("stability", {}).items():
+                frames, survived = int(g.attrs["frames"]), int(g.attrs["survived"])
+                rows.append(dict(scene=scene, method=method, condition=cond, frames=frames, frames_survived=survived,
+                                 diverged=survived < frames, bc_error=float(g.attrs["dirichlet_error_end"])))  # fmt: skip
+    return pd.DataFrame(rows, columns=["scene", "method", "condition", "frames", "frames_survived", "diverged", "bc_error"])
+
+
+def speed_accuracy_rows(df: pd.DataFrame) -> pd.DataFrame:
+    """Rows for :func:`latentsim.plots.speed_accuracy_chart`: every method, plus the full-space solver at error 0."""
+    pts = df.assign(ms_per_frame=df["latent_ms"])[["scene", "method", "sequence", "ms_per_frame", "mean_error", "max_error", "diverged_frame"]]
+    full = df.groupby(["scene", "sequence"], sort=False)["full_ms"].first().reset_index()
+    full = full.assign(method="full_space", ms_per_frame=full["full_ms"], mean_error=0.0, max_error=0.0, diverged_frame=-1)
+    return pd.concat([full[pts.columns], pts], ignore_index=True)
+
+
+def reconstruction_table(scene: str, latents) -> pd.DataFrame:
+    """Autoencoder reconstruction error per sequence (mean and max vertex error / bbox diagonal) from ``latents.h5``."""
+    rows = []
+    with h5py.File(latents, "r") as f:
+        for name, g in require(f, "sequences").items():
+            rows.append(dict(scene=scene, sequence=name, split=str(g.attrs["split"]),
+                             mean_error=float(g.attrs["mean_error"]), max_error=float(g.attrs["max_error"])))  # fmt: skip
+    return pd.DataFrame(rows)
+
+
+def table1(df: pd.DataFrame) -> pd.DataFrame:
+    """Li et al. Table 1: ours (self-supervised integrator, mean over test sequences) next to the paper's."""
+    rows = []
+    own = df[df["method"] == "self_supervised"]
+    for scene, g in own.groupby("scene", sort=False):
+        paper = LI2025_TABLE1.get(scene)
+        row = dict(
+            scene=scene,
+            dof=int(g["dof"].iloc[0]),
+            latent_dof=int(g["latent_dim"].iloc[0]),
+            full_ms=g["full_ms"].mean(),
+            integrate_ms=g["integrate_ms"].mean(),
+            decode_ms=g["decode_ms"].mean(),
+            total_ms=g["latent_ms"].mean(),
+        )
+        row["speedup"] = row["full_ms"] / row["total_ms"]
+        if paper is not None:
+            row.update(paper_dof=paper[0], paper_latent=paper[1], paper_full_ms=paper[2], paper_integrate_ms=paper[3],
+                       paper_decode_ms=paper[4], paper_total_ms=paper[5], paper_speedup=paper[2] / paper[5])  # fmt: skip
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def stability_table(df: pd.DataFrame) -> pd.DataFrame:
+    """Frames survived per scene, method and test sequence (Li et al. Fig. 8), with the errors and KE ratio."""
+    out = df[["scene", "method", "sequence", "frames", "diverged_frame", "mean_error", "dirichlet_error", "kinetic_ratio"]].copy()
+    out["survived"] = np.where(out["diverged_frame"] < 0, out["frames"], out["diverged_frame"])
+    return out
+
+
+def summarise(tables: list, csv_path, md_path, fig_path, table1_path=None, stability_path=None, reconstruction=(), stress=(), stress_paths=None):
+    """Concatenate the scene tables; Table 1, the stability and reconstruction tables; Markdown copy; speed-accuracy chart."""
     df = pd.concat([pd.read_csv(t) for t in tables], ignore_index=True)
+    rec = pd.concat([pd.read_csv(t) for t in reconstruction], ignore_index=True) if reconstruction else pd.DataFrame()
+    if not rec.empty:  # one row per scene and split: mean of the sequence means, max of the maxima
+        rec = rec.groupby(["scene", "split"], sort=False).agg(mean_error=("mean_error", "mean"), max_error=("max_error", "max")).reset_index()
     write_table(df, csv_path)
+    t1, st = table1(df), stability_table(df)
+    if table1_path is not None:
+        write_table(t1, table1_path)
+    if stability_path is not None:
+        write_table(st, stability_path)
+    text = ["## Li et al. Table 1: full space vs latent integrator (ours, then the paper's)", "", _markdown(t1), "",
+            "## Stability: frames survived per method (Li et al. Fig. 8-11)", "", _markdown(st), "",
+            "## Autoencoder reconstruction error / bbox diagonal (train and test frames)", "", _markdown(rec), "",
+            "## Every method and test sequence", "", _markdown(df)]  # fmt: skip
     with atomic_path(md_path) as tmp:
-        tmp.write_text(_markdown(df) + "\n")
-    fig, ax = plt.subplots(figsize=(6, 4.5))
-    for scene, g in df.groupby("scene"):
-        line = ax.scatter(g["latent_ms"], g["mean_error"].clip(lower=1e-12), label=f"{scene}: latent")
-        ax.scatter(g["full_ms"], np.full(len(g), 1e-12), marker="s", color=line.get_facecolor()[0], label=f"{scene}: full space (reference)")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("ms per frame")
-    ax.set_ylabel("mean vertex error / bbox diagonal")
-    ax.set_title("speed vs accuracy (full space drawn at error 1e-12)")
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    with atomic_path(fig_path) as tmp:
+        tmp.write_text("\n".join(text) + "\n")
+    speed_accuracy_chart(speed_accuracy_rows(df), fig_path, scene=None, title="speed vs accuracy, every scene (full space at error 0)")
+    if stress_paths is not None:
+        frames = [pd.read_csv(t) for t in stress]
+        st_all = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+        csv, png = stress_paths
+        write_table(st_all, csv)
+        if not st_all.empty:
+            st_all = st_all.assign(method=st_all["scene"] + " / " + st_all["method"])
+            stability_heatmap(st_all, png, title="stress conditions: frames survived (fraction coloured)")
+        else:
+            _empty_figure(png, "no stress conditions were run")
+    return df
+
+
+def _empty_figure(path, text: str) -> None:
+    fig, ax = plt.subplots(figsize=(4, 2))
+    ax.text(0.5, 0.5, text, ha="center", va="center")
+    ax.axis("off")
+    with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100, format="png")
     plt.close(fig)
-    return df
 
 
 def _markdown(df: pd.DataFrame) -> str:
     cols = list(df.columns)
+    if df.empty:
+        return "(no rows)"
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for _, r in df.iterrows():
         lines.append("| " + " | ".join(f"{r[c]:.4g}" if isinstance(r[c], float) else str(r[c]) for c in cols) + " |")

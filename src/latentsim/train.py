@@ -13,7 +13,7 @@ import h5py
 import numpy as np
 import torch
 
-from . import latent
+from . import latent, stability
 from .evaluate import bbox_diagonal
 from .io import atomic_h5, require, write_dataset
 from .scene import potential_from_artefact
@@ -126,14 +126,21 @@ def time_latent_step(integ, ae, coords, z1, z0, p, xD, repeats: int) -> dict:
     return {"integrate_ms": float(np.median(ti)), "decode_ms": float(np.median(td)), "step_ms": float(np.median(ti + td))}
 
 
-def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out):
-    """Autoregressive rollout of every test sequence, in the trajectory layout."""
+def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out, method: str = "self_supervised"):
+    """Autoregressive rollout of every test sequence, in the trajectory layout.
+
+    ``method`` names the integrator (self_supervised or a config variant) in
+    the file's ``method`` attribute; ``mode`` records its loss.
+    """
     ae = latent.load_autoencoder(ae_path)
     integ = latent.load_integrator(integrator_path)
-    mode = torch.load(integrator_path, map_location="cpu", weights_only=True)["extra"].get("mode", "self_supervised")
+    extra = torch.load(integrator_path, map_location="cpu", weights_only=True)["extra"]
+    mode = extra.get("mode", "self_supervised")
+    ae_extra = torch.load(ae_path, map_location="cpu", weights_only=True)["extra"]
     with h5py.File(trajectories, "r") as f:
         coords = coordinates_for(f)
         tests = load_sequences(f, "test")
+        train_frames = max(len(s["positions"]) for s in load_sequences(f, "train").values())
         rest = f["rest_positions"][()]
         potential = potential_from_artefact(f)
         root = {k: f[k][()] for k in ("rest_positions", "masses", "dirichlet", "edges", "triangles", "tets", "root_of") if k in f}
@@ -141,7 +148,10 @@ def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out):
     with atomic_h5(out, config=settings) as g:
         for k, v in attrs.items():
             g.attrs[k] = v
-        g.attrs["method"] = mode
+        g.attrs["method"] = method
+        g.attrs["mode"] = mode
+        g.attrs["integrator_train_seconds"] = float(extra.get("train_seconds", float("nan")))
+        g.attrs["autoencoder_train_seconds"] = float(ae_extra.get("train_seconds", float("nan")))
         for k, v in root.items():
             write_dataset(g, k, v)
         grp = g.create_group("sequences", track_order=True)
@@ -158,7 +168,7 @@ def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out):
             timing = time_latent_step(integ, ae, coords, z01[1], z01[0], torch.as_tensor(s["bc"][-1], dtype=torch.float32), xD[-1], settings["timing_repeats"])
             h = grp.create_group(name)
             h.attrs["split"] = "test"
-            h.attrs["method"] = mode
+            h.attrs["method"] = method
             h.attrs["diverged_frame"] = int(res["diverged_frame"])
             h.attrs["rollout_seconds"] = wall
             for k, v in timing.items():
@@ -169,3 +179,27 @@ def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out):
             write_dataset(h, "bc", s["bc"])
             write_dataset(h, "kinetic_energy", res["kinetic_energy"].numpy())
             log.info("rollout %s: %d frames, diverged at %d, %.3f ms/step (%s)", name, len(x), res["diverged_frame"], timing["step_ms"], timing)
+        st = settings.get("stability", {})
+        if st.get("enabled", True) and tests:
+            name, s = next(iter(tests.items()))
+            x = torch.as_tensor(s["positions"])
+            xD = torch.as_tensor(s["dirichlet_positions"])
+            z = latent.encode_positions(ae, coords, x, xD)
+            conditions = stability.stress_conditions(
+                s["bc"], rest[root["dirichlet"]], float(attrs["dt"]), train_frames,
+                factors=st.get("speed_factors", stability.DEFAULT_FACTORS), long_factor=int(st.get("long_factor", 10)),
+                perturbation=float(st.get("perturbation", 0.5)),
+            )
+            grp = g.create_group("stability", track_order=True)
+            grp.attrs["sequence"] = name
+            for c in conditions:
+                r = stability.survive_latent(
+                    integ, ae, coords, z[0], z[0], c, root["dirichlet"], bbox_diagonal(rest), float(settings["max_extent"]),
+                    latent_std=z.std(0), seed=0,
+                )
+                h = grp.create_group(c.name)
+                for k in ("frames", "survived", "dirichlet_error_end"):
+                    h.attrs[k] = r[k]
+                h.attrs["perturbation"] = c.perturbation
+                write_dataset(h, "dirichlet_error", r["dirichlet_error"])
+                log.info("stability %s: survived %d of %d frames, Dirichlet error at the end %.3e", c.name, r["survived"], r["frames"], r["dirichlet_error_end"])

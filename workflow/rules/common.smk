@@ -3,7 +3,12 @@ import json
 
 from snakemake.exceptions import WorkflowError
 
-from latentsim.config import ConfigError, validate_config
+from latentsim.config import (
+    ConfigError,
+    integrator_settings,
+    scene_methods,
+    validate_config,
+)
 
 try:
     validate_config(config, workflow.source_path("../schemas/config.schema.yaml"))
@@ -13,8 +18,12 @@ except ConfigError as e:
 SCENES = sorted(config["scenes"])
 
 
+METHODS = ["self_supervised"] + sorted(config["integrator_variants"])
+
+
 wildcard_constraints:
     scene="|".join(SCENES) if SCENES else "NO_SCENE",
+    method="|".join(METHODS),
 
 
 def canonical(obj):
@@ -48,16 +57,35 @@ def training_params(key):
     return get
 
 
+def integrator_params(wildcards):
+    """Input function: a method's integrator settings (scene's, with the variant's overrides)."""
+    return canonical(
+        {
+            "settings": integrator_settings(config, wildcards.scene, wildcards.method),
+            "seed": config["seed"],
+            "device": config["device"],
+        }
+    )
+
+
+def scene_rollouts(wildcards):
+    """Input function: the rollout of every latent-integrator method of a scene."""
+    return [
+        f"results/rollout/{wildcards.scene}/{m}/rollout.h5"
+        for m in scene_methods(config, wildcards.scene)
+    ]
+
+
 def gpu_count(wildcards):
     return 1 if config["device"] == "cuda" else 0
 
 
-def progress():
-    return bool(config["progress"])
-
-
 def all_targets():
-    out = expand("results/rollout/{scene}/rollout.h5", scene=SCENES)
+    out = [
+        f"results/rollout/{scene}/{method}/rollout.h5"
+        for scene in SCENES
+        for method in scene_methods(config, scene)
+    ]
     out += expand("results/evaluation/{scene}/metrics.csv", scene=SCENES)
     out += ["results/evaluation/summary.csv", "results/evaluation/summary.md"]
     return out

@@ -2,9 +2,18 @@
 rule evaluate:
     input:
         trajectories="results/sim/{scene}/trajectories.h5",
-        rollout="results/rollout/{scene}/rollout.h5",
+        rollouts=scene_rollouts,
+        latents="results/autoencoder/{scene}/latents.h5",
     output:
         metrics="results/evaluation/{scene}/metrics.csv",
+        reconstruction="results/evaluation/{scene}/reconstruction.csv",
+        stress="results/evaluation/{scene}/stress.csv",
+        chart=report(
+            "results/evaluation/{scene}/speed_accuracy.png",
+            caption="../report/speed_accuracy_scene.rst",
+            category="Scenes",
+            subcategory="{scene}",
+        ),
         figure=report(
             "results/evaluation/{scene}/errors.png",
             caption="../report/errors.rst",
@@ -26,6 +35,10 @@ rule evaluate:
 rule summary:
     input:
         metrics=expand("results/evaluation/{scene}/metrics.csv", scene=SCENES),
+        reconstruction=expand(
+            "results/evaluation/{scene}/reconstruction.csv", scene=SCENES
+        ),
+        stress=expand("results/evaluation/{scene}/stress.csv", scene=SCENES),
     output:
         csv=report(
             "results/evaluation/summary.csv",
@@ -33,6 +46,22 @@ rule summary:
             category="Summary",
         ),
         markdown="results/evaluation/summary.md",
+        table1=report(
+            "results/evaluation/table1.csv",
+            caption="../report/table1.rst",
+            category="Summary",
+        ),
+        stability=report(
+            "results/evaluation/stability.csv",
+            caption="../report/stability.rst",
+            category="Summary",
+        ),
+        stress="results/evaluation/stress.csv",
+        stress_map=report(
+            "results/evaluation/stress_map.png",
+            caption="../report/stress_map.rst",
+            category="Summary",
+        ),
         figure=report(
             "results/evaluation/speed_accuracy.png",
             caption="../report/speed_accuracy.rst",

@@ -1,16 +1,17 @@
-# Latent integrator trained on the incremental potential (Li et al. sec. 3.3, Eqs. 4-6).
+# Latent integrator of one method: the scene's self-supervised one (Li et al. sec. 3.3, Eqs. 4-6)
+# or a variant (supervised baseline, ablation) from config integrator_variants.
 rule train_integrator:
     input:
         trajectories="results/sim/{scene}/trajectories.h5",
         autoencoder="results/autoencoder/{scene}/autoencoder.pt",
         latents="results/autoencoder/{scene}/latents.h5",
     output:
-        model="results/integrator/{scene}/integrator.pt",
-        history="results/integrator/{scene}/history.h5",
+        model="results/integrator/{scene}/{method}/integrator.pt",
+        history="results/integrator/{scene}/{method}/history.h5",
     log:
-        "logs/integrator/{scene}.log",
+        "logs/integrator/{scene}/{method}.log",
     benchmark:
-        "results/benchmarks/integrator/{scene}.tsv"
+        "results/benchmarks/integrator/{scene}/{method}.tsv"
     conda:
         "../../envs/latentsim.yaml"
     threads: 1
@@ -19,8 +20,7 @@ rule train_integrator:
         runtime=240,
         gpu=gpu_count,
     params:
-        train=training_params("integrator"),
-        progress=progress(),
-        checkpoint="results/integrator/{scene}/checkpoint.pt",
+        train=integrator_params,
+        checkpoint="results/integrator/{scene}/{method}/checkpoint.pt",
     script:
         "../scripts/train_integrator.py"

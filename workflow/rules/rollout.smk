@@ -1,15 +1,15 @@
-# Autoregressive latent rollout of every test sequence from its first two frames and the BC history.
+# Autoregressive rollout of one method on every test sequence from its first two frames and the BC history.
 rule rollout:
     input:
         trajectories="results/sim/{scene}/trajectories.h5",
         autoencoder="results/autoencoder/{scene}/autoencoder.pt",
-        integrator="results/integrator/{scene}/integrator.pt",
+        integrator="results/integrator/{scene}/{method}/integrator.pt",
     output:
-        rollout="results/rollout/{scene}/rollout.h5",
+        rollout="results/rollout/{scene}/{method}/rollout.h5",
     log:
-        "logs/rollout/{scene}.log",
+        "logs/rollout/{scene}/{method}.log",
     benchmark:
-        "results/benchmarks/rollout/{scene}.tsv"
+        "results/benchmarks/rollout/{scene}/{method}.tsv"
     conda:
         "../../envs/latentsim.yaml"
     threads: 1
@@ -18,5 +18,6 @@ rule rollout:
         runtime=30,
     params:
         rollout=scene_cfg("rollout"),
+        method="{method}",
     script:
         "../scripts/rollout.py"

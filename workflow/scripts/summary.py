@@ -1,10 +1,21 @@
-"""Stage: summary table and speed-accuracy chart across scenes (see latentsim.evaluate)."""
+"""Stage: summary tables and charts across scenes (see latentsim.evaluate.summarise)."""
 from latentsim.evaluate import summarise
 from latentsim.utils import run_stage
 
 
 def main(smk):
-    summarise(list(smk.input.metrics), smk.output.csv, smk.output.markdown, smk.output.figure)
+    out = smk.output
+    summarise(
+        list(smk.input.metrics),
+        out.csv,
+        out.markdown,
+        out.figure,
+        table1_path=out.table1,
+        stability_path=out.stability,
+        reconstruction=list(smk.input.reconstruction),
+        stress=list(smk.input.stress),
+        stress_paths=(out.stress, out.stress_map),
+    )
 
 
 run_stage(snakemake, main)  # noqa: F821 (injected by Snakemake)
