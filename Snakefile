@@ -18,6 +18,7 @@ include: "workflow/rules/simulate.smk"
 include: "workflow/rules/autoencoder.smk"
 include: "workflow/rules/integrator.smk"
 include: "workflow/rules/rollout.smk"
+include: "workflow/rules/baselines.smk"
 include: "workflow/rules/evaluate.smk"
 include: "workflow/rules/neural_modes.smk"
 

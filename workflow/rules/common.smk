@@ -3,6 +3,7 @@ import json
 
 from snakemake.exceptions import WorkflowError
 
+from latentsim.baselines import BASELINES
 from latentsim.config import (
     ConfigError,
     integrator_settings,
@@ -18,7 +19,8 @@ except ConfigError as e:
 SCENES = sorted(config["scenes"])
 
 
-METHODS = ["self_supervised"] + sorted(config["integrator_variants"])
+INTEGRATOR_METHODS = ["self_supervised"] + sorted(config["integrator_variants"])
+METHODS = INTEGRATOR_METHODS + list(BASELINES)
 
 
 wildcard_constraints:
@@ -73,6 +75,7 @@ def scene_rollouts(wildcards):
     return [
         f"results/rollout/{wildcards.scene}/{m}/rollout.h5"
         for m in scene_methods(config, wildcards.scene)
+        + config["scenes"][wildcards.scene]["baselines"]
     ]
 
 
@@ -85,6 +88,7 @@ def all_targets():
         f"results/rollout/{scene}/{method}/rollout.h5"
         for scene in SCENES
         for method in scene_methods(config, scene)
+        + config["scenes"][scene]["baselines"]
     ]
     out += expand("results/evaluation/{scene}/metrics.csv", scene=SCENES)
     out += ["results/evaluation/summary.csv", "results/evaluation/summary.md"]

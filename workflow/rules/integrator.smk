@@ -12,6 +12,8 @@ rule train_integrator:
         "logs/integrator/{scene}/{method}.log",
     benchmark:
         "results/benchmarks/integrator/{scene}/{method}.tsv"
+    wildcard_constraints:
+        method="|".join(INTEGRATOR_METHODS),
     conda:
         "../../envs/latentsim.yaml"
     threads: 1

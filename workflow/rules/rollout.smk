@@ -10,6 +10,8 @@ rule rollout:
         "logs/rollout/{scene}/{method}.log",
     benchmark:
         "results/benchmarks/rollout/{scene}/{method}.tsv"
+    wildcard_constraints:
+        method="|".join(INTEGRATOR_METHODS),
     conda:
         "../../envs/latentsim.yaml"
     threads: 1
