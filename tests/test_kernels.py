@@ -85,8 +85,8 @@ def test_energy_matches_torch(case):
 
 
 def test_fused_energy_gradient_and_assembly_energy(case):
-    """The one-pass energy + gradient (line search) and the assembly pass return the same energy
-    and the same gradient as the energy kernel and the scattered closed-form gradients."""
+    """The one-pass energy + gradient (line search) gives the energy kernel's energy, and it and
+    the assembly pass give the scattered closed-form gradient."""
     _, pot, X, ks = case
     n = pot.n_vertices
     x = states(X, 5)[2]
@@ -101,8 +101,7 @@ def test_fused_energy_gradient_and_assembly_energy(case):
         free = np.arange(3 * n)
         pattern = HessianPattern(n, [st], free)
         grad2, data = np.zeros(3 * n), np.zeros(pattern.nnz)
-        e2 = k.accumulate(x, grad2, data, pattern.stencil_slots(st), False)
-        assert abs(e2 - e) <= 1e-12 * abs(e), term.name
+        k.accumulate(x, grad2, data, pattern.stencil_slots(st), False)
         assert close(grad2, g_ref, 1e-12), term.name
 
 

@@ -201,7 +201,7 @@ class ImplicitEuler:
         data[self._diag_slots] += self.m3[self.free_dofs] / h2
         p = self.pattern
         if self.linear.method == "banded":
-            U = BandedUpper(data.reshape(p.bandwidth + 1, p.shape[0]), p)
+            U = BandedUpper(data, p)
         else:
             U = scipy.sparse.csr_matrix((data, p.indices, p.indptr), shape=p.shape)
         t2 = time.perf_counter()

@@ -109,9 +109,13 @@ class HessianPattern:
         return np.where(valid, pos, -1).astype(np.int32)
 
     def band_positions(self) -> np.ndarray:
-        """(nnz,) flat indices into the (bandwidth + 1, f) upper banded storage of each CSR entry."""
+        """(nnz,) flat indices of each CSR entry in the upper banded storage ab (bandwidth + 1, f)
+        held column by column (Fortran order, LAPACK's): entry (i, j) at j (bandwidth + 1) + bandwidth + i - j.
+
+        Column order keeps the entries of one stencil within a few cache lines.
+        """
         rows = np.repeat(np.arange(self.shape[0]), np.diff(self.indptr))
-        return (self.bandwidth + rows - self.indices) * self.shape[0] + self.indices
+        return self.indices * (self.bandwidth + 1) + self.bandwidth + rows - self.indices
 
     @property
     def diagonal_slots(self) -> np.ndarray:
@@ -144,7 +148,7 @@ def _to_banded_upper(U: scipy.sparse.csr_matrix, bw: int) -> np.ndarray:
     """Upper banded storage ab[bw + i - j, j] = U[i, j] of an upper-triangular CSR."""
     n = U.shape[0]
     rows = np.repeat(np.arange(n), np.diff(U.indptr))
-    ab = np.zeros((bw + 1, n))
+    ab = np.zeros((bw + 1, n), order="F")
     ab[bw + rows - U.indices, U.indices] = U.data
     return ab
 
@@ -157,10 +161,23 @@ class BandedUpper:
     ``HessianPattern.band_positions``, so no CSR -> band conversion runs.
     """
 
-    def __init__(self, ab: np.ndarray, pattern: HessianPattern):
-        self.ab = ab
+    def __init__(self, data: np.ndarray, pattern: HessianPattern):
+        """data : ((bandwidth + 1) f,) the storage column by column (``band_positions``)."""
+        self.data = data
         self.pattern = pattern
         self.shape = pattern.shape
+
+    @property
+    def ab(self) -> np.ndarray:
+        """(bandwidth + 1, f) Fortran-ordered view of the storage, ab[bw + i - j, j] = A[i, j]."""
+        return self.data.reshape(self.shape[0], self.pattern.bandwidth + 1).T
+
+    @classmethod
+    def from_csr(cls, U, pattern: HessianPattern) -> BandedUpper:
+        """The banded storage of an upper-triangular CSR matrix of ``pattern``."""
+        data = np.zeros((pattern.bandwidth + 1) * pattern.shape[0])
+        data[pattern.band_positions()] = U.data
+        return cls(data, pattern)
 
     def diagonal(self) -> np.ndarray:
         return self.ab[-1]
@@ -168,7 +185,7 @@ class BandedUpper:
     def tocsr(self) -> scipy.sparse.csr_matrix:
         """The upper-triangular CSR matrix of the pattern."""
         p = self.pattern
-        data = self.ab.reshape(-1)[p.band_positions()]
+        data = self.data[p.band_positions()]
         return scipy.sparse.csr_matrix((data, p.indices, p.indptr), shape=p.shape)
 
 

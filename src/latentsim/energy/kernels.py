@@ -77,8 +77,12 @@ if numba is None:  # pragma: no cover
 @njit(**_JIT)
 def _scatter(e, st, g, H, grad, data, slots):
     """Add stencil e's gradient g (3k,) and the upper triangle of H (3k, 3k)."""
-    n3 = 3 * st.shape[1]
-    _scatter_gradient(e, st, g, grad)
+    k = st.shape[1]
+    n3 = 3 * k
+    for a in range(k):
+        v = st[e, a]
+        for i in range(3):
+            grad[3 * v + i] += g[3 * a + i]
     m = 0
     for p in range(n3):
         for q in range(p, n3):
@@ -496,8 +500,8 @@ def _stretch_run(x, st, rest_length, ks, project, grad, data, slots, g_out, H_ou
             u[i] /= ln
             g[i] = -f * u[i]
             g[3 + i] = f * u[i]
-        total += 0.5 * ks[e] * (ln / lb - 1.0) ** 2 * lb
         if mode == GRADIENT:
+            total += 0.5 * f * (ln / lb - 1.0) * lb
             _scatter_gradient(e, st, g, grad)
             continue
         for i in range(3):
@@ -597,8 +601,8 @@ def _bend_run(x, st, alpha, c0, project, B, grad, data, slots, g_out, H_out, mod
             g[i] = -ga[i]
             g[3 + i] = ga[i] - gb[i]
             g[6 + i] = gb[i]
-        total += it2 * f
         if mode == GRADIENT:
+            total += it2 * f
             _scatter_gradient(e, st, g, grad)
             continue
         p1 = it2 * B_
@@ -693,7 +697,8 @@ def _membrane_run(x, st, G, K, mu, lam, project, B, grad, data, slots, g_out, H_
                 Ers = 0.5 * (S[r, s] - (1.0 if r == s else 0.0))
                 nE2 += Ers * Ers
                 S[r, s] = 2.0 * m_ * Ers + (l_ * tr if r == s else 0.0)
-        total += Ke * (m_ * nE2 + 0.5 * l_ * tr * tr)
+        if mode == GRADIENT:
+            total += Ke * (m_ * nE2 + 0.5 * l_ * tr * tr)
         for a in range(3):
             for i in range(3):
                 acc = 0.0
@@ -814,8 +819,8 @@ def _hinge_run(x, st, kk, rest_angle, project, B, grad, data, slots, g_out, H_ou
         for r in range(4):
             for i in range(3):
                 g[3 * r + i] = k2 * d * gr[r, i]
-        total += kk[e] * d * d
         if mode == GRADIENT:
+            total += kk[e] * d * d
             _scatter_gradient(e, st, g, grad)
             continue
         # M_s = (I - 2 n n^T) / |N|^2, n = N / |N|
@@ -915,14 +920,13 @@ class TermKernel:
         """The term's energy at x (n, 3)."""
         return float(self._energy(np.ascontiguousarray(x, dtype=np.float64), self.stencils, *self._args))
 
-    def accumulate(self, x, grad, data, slots, project: bool) -> float:
+    def accumulate(self, x, grad, data, slots, project: bool) -> None:
         """grad (3n,) += gradient; data[slots] += upper triangles of the stencil Hessians.
 
         slots : (E, 3k (3k+1) / 2) int32 target indices of the upper-triangle
         entries of each stencil Hessian (row-major), -1 for dropped entries.
-        Returns the term's energy.
         """
-        return self._call(x, bool(project), grad, data, slots, _EMPTY_G, _EMPTY_H, SCATTER)
+        self._call(x, bool(project), grad, data, slots, _EMPTY_G, _EMPTY_H, SCATTER)
 
     def energy_gradient(self, x, grad) -> float:
         """grad (3n,) += gradient; returns the energy (one pass, no Hessian)."""
