@@ -475,7 +475,7 @@ def reduced_rollout(subspace, potential, q0, q1, dirichlet_positions, settings: 
     Returns
     -------
     dict with ``positions`` (T, n, 3) float64 (the layout of
-    :func:`latentsim.latent.rollout`; NaN after divergence), ``latents`` (T, r),
+    :func:`latentsim.latent.rollout`; NaN from the frame whose solve failed on), ``latents`` (T, r),
     ``step_ms`` (T,) (wall time of each step's solve; NaN at frames 0, 1),
     ``iterations`` (T,) int, ``gradient_norm`` (T,), ``diverged_frame`` (first
     frame that met a non-finite value or did not converge; -1 if none), and the
