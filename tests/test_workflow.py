@@ -27,8 +27,9 @@ TINY = ROOT / "config" / "tiny.yaml"
 SCENES_TINY = ["tiny_cloth", "tiny_rods"]
 STAGES = ["prepare_mesh", "simulate", "train_autoencoder", "train_integrator", "rollout", "evaluate"]
 # values that measure wall time, the only things allowed to differ between two identical runs
-TIMING_DATASETS = {"frame_ms"}
-TIMING_ATTRS = {"train_seconds", "rollout_seconds", "step_ms", "integrate_ms", "decode_ms", "autoencoder_train_seconds", "integrator_train_seconds"}
+TIMING_DATASETS = {"frame_ms", "step_ms"}
+TIMING_ATTRS = {"train_seconds", "rollout_seconds", "step_ms", "integrate_ms", "decode_ms", "autoencoder_train_seconds", "integrator_train_seconds",
+                "full_ms", "runtime"} | {f"{r}_{k}_ms" for r in ("numpy", "torchscript", "eager") for k in ("step", "integrate", "decode")}  # fmt: skip
 
 
 def snakemake(*args, cwd=ROOT, check=True, timeout=600):
@@ -221,10 +222,15 @@ def test_same_seed_gives_identical_artefacts(tiny_run, tmp_path):
     work_a, _ = tiny_run
     work_b = tmp_path / "tiny_b"
     snakemake("all", "--cores", "2", "--configfile", str(TINY), "--directory", str(work_b))
-    files = sorted(p.relative_to(work_a) for p in (work_a / "results").rglob("*") if p.suffix in (".h5", ".pt"))
+    files = sorted(p.relative_to(work_a) for p in (work_a / "results").rglob("*") if p.suffix in (".h5", ".pt", ".npz") and p.name != "runtime.pt")
     assert len(files) >= 5 * len(SCENES_TINY)
     for rel in files:
         a, b = work_a / rel, work_b / rel
+        if rel.suffix == ".npz":  # the exported NumPy runtime
+            with np.load(a) as na, np.load(b) as nb:
+                assert sorted(na.files) == sorted(nb.files), rel
+                assert all(np.array_equal(na[k], nb[k]) for k in na.files), rel
+            continue
         if rel.suffix == ".pt":
             ba, bb = torch.load(a, weights_only=True), torch.load(b, weights_only=True)
             key = "state_dict" if "state_dict" in ba else "model"  # modules, or training checkpoints

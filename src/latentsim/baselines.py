@@ -30,7 +30,7 @@ import torch
 from . import latent, reduced
 from .io import atomic_h5, write_dataset
 from .scene import potential_from_artefact
-from .train import coordinates_for, load_sequences
+from .train import coordinates_for, load_sequences, time_full_space
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +69,7 @@ def baseline_rollouts(trajectories, ae_path, method: str, settings: dict, out, p
         potential = potential_from_artefact(f)
         root = {k: f[k][()] for k in ("rest_positions", "masses", "dirichlet", "edges", "triangles", "tets", "root_of") if k in f}
         attrs = {k: f.attrs[k] for k in ("model", "dt", "gravity", "scene")}
+        full = time_full_space(f, next(iter(tests))) if tests else {}
     subspace = make_subspace(method, ae, coords, train, settings)
     rs = reduced.ReducedSettings(
         method=settings.get("method", "newton"), max_iterations=int(settings.get("max_iterations", 50)), tolerance=float(settings.get("tolerance", 1e-6))
@@ -80,6 +81,8 @@ def baseline_rollouts(trajectories, ae_path, method: str, settings: dict, out, p
         g.attrs["method"] = method
         g.attrs["mode"] = "reduced"
         g.attrs["subspace_dim"] = int(subspace.dim)
+        for k, v in full.items():
+            g.attrs[k] = v
         for k, v in root.items():
             write_dataset(g, k, v)
         grp = g.create_group("sequences", track_order=True)

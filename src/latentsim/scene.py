@@ -153,8 +153,12 @@ MATERIAL_KEYS = ("youngs_modulus", "poisson_ratio", "density", "thickness", "rad
 ELEMENT_KEYS = ("edges", "triples", "triangles", "tets", "root_of")
 
 
-def potential_from_artefact(f, w_bc: float = 1e5) -> IncrementalPotential:
-    """Rebuild the IncrementalPotential from a trajectories.h5 (open h5py.File)."""
+def potential_from_artefact(f, w_bc: float = 1e5, free_only: bool = False) -> IncrementalPotential:
+    """Rebuild the IncrementalPotential from a trajectories.h5 (open h5py.File).
+
+    ``free_only``: drop the stencils whose vertices are all prescribed, as the
+    full-space solver does (see :func:`build_potential`).
+    """
     arrays = {k: f[k][()] for k in ("rest_positions", "dirichlet") + ELEMENT_KEYS if k in f}
     material = {k: float(f.attrs[k]) for k in MATERIAL_KEYS if k in f.attrs}
-    return build_potential(str(f.attrs["model"]), arrays, material, float(f.attrs["dt"]), f.attrs["gravity"], w_bc)
+    return build_potential(str(f.attrs["model"]), arrays, material, float(f.attrs["dt"]), f.attrs["gravity"], w_bc, free_only=free_only)

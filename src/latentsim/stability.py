@@ -13,7 +13,9 @@ programs that no method saw during training:
 - ``perturbed_start``: the test program from a perturbed initial state (the
   caller applies ``perturbation``, e.g. noise on the initial latents).
 
-A condition needs no ground truth: what is measured is how long a method
+Every condition starts from the test sequence's first two frames (the
+ground-truth latents z_0, z_1; perturbed for ``perturbed_start``).  A
+condition needs no ground truth beyond them: what is measured is how long a method
 survives (no NaN, bounded extent) and how well it keeps the boundary
 conditions, which are known exactly from the program.
 """

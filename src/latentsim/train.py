@@ -13,10 +13,11 @@ import h5py
 import numpy as np
 import torch
 
-from . import latent, stability
+from . import latent, runtime, stability
 from .evaluate import bbox_diagonal
 from .io import atomic_h5, require, write_dataset
 from .scene import potential_from_artefact
+from .solver import ImplicitEuler, NewtonSettings
 
 log = logging.getLogger(__name__)
 
@@ -108,29 +109,62 @@ def train_integrator(trajectories, ae_path, settings: dict, seed: int, device: s
         write_dataset(g, "latent_mse", np.asarray(history["latent_mse"], dtype=np.float64))
 
 
-def time_latent_step(integ, ae, coords, z1, z0, p, xD, repeats: int) -> dict:
-    """Median wall time [ms] of one latent step: integration, decoding, total."""
-    args = (z1[None], z0[None], p[None], p[None], p[None])
-    xD = xD[None]
-    ti, td = [], []
-    with torch.inference_mode():
-        for _ in range(max(repeats, 1) + 5):
-            t0 = time.perf_counter()
-            z = integ(*args)
-            t1 = time.perf_counter()
-            latent.decode_latents(ae, coords, z, xD)
-            t2 = time.perf_counter()
-            ti.append(t1 - t0)
-            td.append(t2 - t1)
-    ti, td = np.asarray(ti[5:]) * 1e3, np.asarray(td[5:]) * 1e3
-    return {"integrate_ms": float(np.median(ti)), "decode_ms": float(np.median(td)), "step_ms": float(np.median(ti + td))}
+def time_steppers(steppers: dict, z1, z0, p, xD, repeats: int) -> dict:
+    """Median ms of one latent step with each stepper (``{name}_step_ms`` etc.).
+
+    ``step_ms``, ``integrate_ms`` and ``decode_ms`` are those of the fastest
+    stepper (whose name is ``runtime``), the deployable path.
+    """
+    out: dict = {}
+    p = np.asarray(p, dtype=np.float32)
+    for name, st in steppers.items():
+        if name == "numpy":
+            args = (np.asarray(z1, np.float32), np.asarray(z0, np.float32), p, p, p, np.asarray(xD, np.float64))
+        else:
+            pt = torch.as_tensor(p)
+            args = (torch.as_tensor(z1, dtype=torch.float32), torch.as_tensor(z0, dtype=torch.float32), pt, pt, pt, torch.as_tensor(xD, dtype=torch.float64))
+        r = runtime.time_step(st, *args, repeats=repeats)
+        for k, v in r.items():
+            out[f"{name}_{k}"] = v
+    best = min(steppers, key=lambda n: out[f"{n}_step_ms"])
+    out.update(step_ms=out[f"{best}_step_ms"], integrate_ms=out[f"{best}_integrate_ms"], decode_ms=out[f"{best}_decode_ms"])
+    out["runtime"] = best
+    return out
 
 
-def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out, method: str = "self_supervised"):
+def time_full_space(f, sequence: str, frames: int = 5) -> dict:
+    """Median wall time [ms] of full-space Newton frames, timed now (for same-run ratios).
+
+    Steps ``frames`` frames from the middle of ``sequence`` of an open
+    trajectories.h5, each from the stored ground-truth states, with the
+    simulator's own solver settings (tolerance from the file).
+    """
+    pot = potential_from_artefact(f, free_only=True)
+    tol = float(f.attrs.get("newton_tolerance", 1e-6))
+    solver = ImplicitEuler(pot, NewtonSettings(tolerance=tol))
+    g = require(f, "sequences")[sequence]
+    x, xD = g["positions"], g["dirichlet_positions"]
+    T = x.shape[0]
+    t0 = max(2, T // 2 - frames // 2)
+    solver.step(x[t0 - 2], x[t0 - 3] if t0 >= 3 else x[t0 - 2], xD[t0 - 1])  # warm-up: first-call costs (JIT, caches)
+    ms, iters = [], []
+    for t in range(t0, min(T, t0 + frames)):
+        start = time.perf_counter()
+        _, info = solver.step(x[t - 1], x[t - 2], xD[t])
+        ms.append(1e3 * (time.perf_counter() - start))
+        iters.append(info.iterations)
+    return {"full_ms": float(np.median(ms)), "full_iterations": float(np.mean(iters)), "full_frames_timed": len(ms)}
+
+
+def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out, method: str = "self_supervised", runtime_paths=None):
     """Autoregressive rollout of every test sequence, in the trajectory layout.
 
     ``method`` names the integrator (self_supervised or a config variant) in
     the file's ``method`` attribute; ``mode`` records its loss.
+    ``runtime_paths``: (``.npz``, ``.pt``) files to export the deployable
+    runtime to (:mod:`latentsim.runtime`).  One latent step is timed with the
+    NumPy runtime, TorchScript and eager PyTorch, and a few full-space Newton
+    frames in the same process, so the speed-up is a same-run ratio.
     """
     ae = latent.load_autoencoder(ae_path)
     integ = latent.load_integrator(integrator_path)
@@ -145,8 +179,18 @@ def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out, m
         potential = potential_from_artefact(f)
         root = {k: f[k][()] for k in ("rest_positions", "masses", "dirichlet", "edges", "triangles", "tets", "root_of") if k in f}
         attrs = {k: f.attrs[k] for k in ("model", "dt", "gravity", "scene")}
+        full = time_full_space(f, next(iter(tests)), int(settings.get("full_frames_timed", 5))) if tests else {}
+    steppers = {"eager": runtime.EagerStepper(ae, integ, coords)}
+    if runtime_paths is not None:
+        npz, pt = runtime_paths
+        runtime.export_runtime(ae, integ, coords, npz)
+        runtime.export_runtime(ae, integ, coords, pt)
+        steppers["numpy"] = runtime.load_runtime(npz)
+        steppers["torchscript"] = runtime.load_runtime(pt)
     with atomic_h5(out, config=settings) as g:
         for k, v in attrs.items():
+            g.attrs[k] = v
+        for k, v in full.items():
             g.attrs[k] = v
         g.attrs["method"] = method
         g.attrs["mode"] = mode
@@ -165,7 +209,7 @@ def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out, m
                 potential=potential, max_extent=settings["max_extent"], rest_positions=torch.as_tensor(rest),
             )
             wall = time.perf_counter() - t0
-            timing = time_latent_step(integ, ae, coords, z01[1], z01[0], torch.as_tensor(s["bc"][-1], dtype=torch.float32), xD[-1], settings["timing_repeats"])
+            timing = time_steppers(steppers, z01[1], z01[0], s["bc"][-1], s["dirichlet_positions"][-1], settings["timing_repeats"])
             h = grp.create_group(name)
             h.attrs["split"] = "test"
             h.attrs["method"] = method
@@ -194,7 +238,7 @@ def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out, m
             grp.attrs["sequence"] = name
             for c in conditions:
                 r = stability.survive_latent(
-                    integ, ae, coords, z[0], z[0], c, root["dirichlet"], bbox_diagonal(rest), float(settings["max_extent"]),
+                    integ, ae, coords, z[0], z[1], c, root["dirichlet"], bbox_diagonal(rest), float(settings["max_extent"]),
                     latent_std=z.std(0), seed=0,
                 )
                 h = grp.create_group(c.name)

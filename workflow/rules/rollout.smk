@@ -6,6 +6,8 @@ rule rollout:
         integrator="results/integrator/{scene}/{method}/integrator.pt",
     output:
         rollout="results/rollout/{scene}/{method}/rollout.h5",
+        runtime="results/rollout/{scene}/{method}/runtime.npz",
+        torchscript="results/rollout/{scene}/{method}/runtime.pt",
     log:
         "logs/rollout/{scene}/{method}.log",
     benchmark:
