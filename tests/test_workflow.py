@@ -29,7 +29,7 @@ STAGES = ["prepare_mesh", "simulate", "train_autoencoder", "train_integrator", "
 # values that measure wall time, the only things allowed to differ between two identical runs
 TIMING_DATASETS = {"frame_ms", "step_ms"}
 TIMING_ATTRS = {"train_seconds", "rollout_seconds", "step_ms", "integrate_ms", "decode_ms", "autoencoder_train_seconds", "integrator_train_seconds",
-                "full_ms", "runtime"} | {f"{r}_{k}_ms" for r in ("numpy", "torchscript", "eager") for k in ("step", "integrate", "decode")}  # fmt: skip
+                "full_ms", "runtime", "jvp_torch_ms", "jvp_forward_ms"} | {f"{r}_{k}_ms" for r in ("numpy", "torchscript", "eager") for k in ("step", "integrate", "decode")}  # fmt: skip
 
 
 def snakemake(*args, cwd=ROOT, check=True, timeout=600):

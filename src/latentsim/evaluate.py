@@ -24,7 +24,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from .io import atomic_path, require  # noqa: E402
-from .paper import LI2025_TABLE1  # noqa: E402
+from .paper import LI2025_TABLE1, LI2025_TABLE2  # noqa: E402
 from .plots import speed_accuracy_chart, stability_heatmap  # noqa: E402
 
 
@@ -92,7 +92,7 @@ def evaluate_scene(scene: str, trajectories, rollouts):
                     # same-run timing of full-space frames when the rollout stage measured it
                     full_ms = float(fr.attrs.get("full_ms", np.median(gt["frame_ms"][1:])))
                     latent_ms = float(g.attrs["step_ms"])
-                    parts = {k: float(g.attrs.get(k, np.nan)) for k in ("integrate_ms", "decode_ms")}
+                    parts = {k: float(g.attrs.get(k, np.nan)) for k in ("integrate_ms", "decode_ms", "jvp_torch_ms", "jvp_forward_ms")}
                     rows.append(
                         dict(
                             scene=scene,
@@ -223,6 +223,30 @@ def table1(df: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def table2(df: pd.DataFrame, layers: dict | None = None) -> pd.DataFrame:
+    """Li et al. Table 2: the single-vertex Jvp (torch.func.jvp as the paper, and forward mode), our whole
+    latent step, and the whole Fulton-style reduced step when the scene ran that baseline; paper's alongside.
+
+    layers : optional {scene: (decoder layers, integrator layers)} strings of our networks.
+    """
+    rows = []
+    for scene, g in df.groupby("scene", sort=False):
+        own = g[g["method"] == "self_supervised"]
+        if own.empty:
+            continue
+        row = dict(scene=scene, dof=int(own["dof"].iloc[0]), latent_dof=int(own["latent_dim"].iloc[0]))
+        if layers and scene in layers:
+            row["decoder_layers"], row["integrator_layers"] = layers[scene]
+        row.update(jvp_torch_ms=own["jvp_torch_ms"].median(), jvp_forward_ms=own["jvp_forward_ms"].median(), ours_ms=own["latent_ms"].median())
+        fulton = g[g["method"] == "fulton_reduced"]
+        row["fulton_step_ms"] = fulton["latent_ms"].median() if not fulton.empty else np.nan
+        paper = LI2025_TABLE2.get(scene)
+        if paper is not None:
+            row.update(paper_decoder_layers=paper[0], paper_integrator_layers=paper[1], paper_jvp_ms=paper[2], paper_ours_ms=paper[3])
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
 def stability_table(df: pd.DataFrame) -> pd.DataFrame:
     """Frames survived per scene, method and test sequence (Li et al. Fig. 8), with the errors and KE ratio."""
     out = df[["scene", "method", "sequence", "frames", "diverged_frame", "mean_error", "dirichlet_error", "kinetic_ratio"]].copy()
@@ -230,19 +254,24 @@ def stability_table(df: pd.DataFrame) -> pd.DataFrame:
     return out
 
 
-def summarise(tables: list, csv_path, md_path, fig_path, table1_path=None, stability_path=None, reconstruction=(), stress=(), stress_paths=None):
+def summarise(tables: list, csv_path, md_path, fig_path, table1_path=None, stability_path=None, reconstruction=(), stress=(), stress_paths=None,
+              table2_path=None):  # fmt: skip
     """Concatenate the scene tables; Table 1, the stability and reconstruction tables; Markdown copy; speed-accuracy chart."""
     df = pd.concat([pd.read_csv(t) for t in tables], ignore_index=True)
     rec = pd.concat([pd.read_csv(t) for t in reconstruction], ignore_index=True) if reconstruction else pd.DataFrame()
     if not rec.empty:  # one row per scene and split: mean of the sequence means, max of the maxima
         rec = rec.groupby(["scene", "split"], sort=False).agg(mean_error=("mean_error", "mean"), max_error=("max_error", "max")).reset_index()
     write_table(df, csv_path)
-    t1, st = table1(df), stability_table(df)
+    t1, t2, st = table1(df), table2(df), stability_table(df)
     if table1_path is not None:
         write_table(t1, table1_path)
+    if table2_path is not None:
+        write_table(t2, table2_path)
     if stability_path is not None:
         write_table(st, stability_path)
     text = ["## Li et al. Table 1: full space vs latent integrator (ours, then the paper's)", "", _markdown(t1), "",
+            "## Li et al. Table 2: single-vertex Jvp (torch.func.jvp, forward mode), our latent step, a Fulton-style reduced step", "",
+            _markdown(t2), "",
             "## Stability: frames survived per method (Li et al. Fig. 8-11)", "", _markdown(st), "",
             "## Autoencoder reconstruction error / bbox diagonal (train and test frames)", "", _markdown(rec), "",
             "## Every method and test sequence", "", _markdown(df)]  # fmt: skip

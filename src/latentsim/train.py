@@ -132,6 +132,26 @@ def time_steppers(steppers: dict, z1, z0, p, xD, repeats: int) -> dict:
     return out
 
 
+def time_jvps(ae, stepper, coords, z, repeats: int) -> dict:
+    """Li et al. Table 2: one decoded vertex's Jacobian-vector product w.r.t. the latent, timed two ways.
+
+    ``jvp_torch_ms``: ``torch.func.jvp`` of the PyTorch decoder restricted to
+    the vertex (as the paper did); ``jvp_forward_ms``: the hand-written forward
+    mode of the NumPy runtime.  The vertex is the free vertex farthest down the
+    encoded vector (any free vertex costs the same).
+    """
+    v = torch.ones_like(torch.as_tensor(z, dtype=torch.float32))
+    free = np.setdiff1d(np.arange(coords.n), coords.dirichlet.numpy())
+    vertex = int(free[-1])
+    row = stepper._row_of_vertex(vertex)
+    zt = torch.as_tensor(z, dtype=torch.float32)
+    zn, vn = np.asarray(z, dtype=np.float32), v.numpy()
+    return {
+        "jvp_torch_ms": runtime.time_jvp(lambda: runtime.jvp_vertex_torch(ae, zt, v, row), repeats),
+        "jvp_forward_ms": runtime.time_jvp(lambda: stepper.jvp_vertex(zn, vn, vertex), repeats),
+    }
+
+
 def time_full_space(f, sequence: str, frames: int = 5) -> dict:
     """Median wall time [ms] of full-space Newton frames, timed now (for same-run ratios).
 
@@ -210,6 +230,8 @@ def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out, m
             )
             wall = time.perf_counter() - t0
             timing = time_steppers(steppers, z01[1], z01[0], s["bc"][-1], s["dirichlet_positions"][-1], settings["timing_repeats"])
+            if "numpy" in steppers:
+                timing.update(time_jvps(ae, steppers["numpy"], coords, z01[1], settings["timing_repeats"]))
             h = grp.create_group(name)
             h.attrs["split"] = "test"
             h.attrs["method"] = method

@@ -51,6 +51,11 @@ rule summary:
             caption="../report/table1.rst",
             category="Summary",
         ),
+        table2=report(
+            "results/evaluation/table2.csv",
+            caption="../report/table2.rst",
+            category="Summary",
+        ),
         stability=report(
             "results/evaluation/stability.csv",
             caption="../report/stability.rst",

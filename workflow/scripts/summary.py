@@ -11,6 +11,7 @@ def main(smk):
         out.markdown,
         out.figure,
         table1_path=out.table1,
+        table2_path=out.table2,
         stability_path=out.stability,
         reconstruction=list(smk.input.reconstruction),
         stress=list(smk.input.stress),
