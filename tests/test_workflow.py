@@ -124,6 +124,9 @@ def test_tiny_run_writes_tables_and_figures(tiny_run):
     assert np.isfinite(table[["mean_error", "full_ms", "latent_ms"]].to_numpy()).all()
     for scene in SCENES_TINY:
         assert (work / f"results/evaluation/{scene}/errors.png").stat().st_size > 1000
+        assert (work / f"results/evaluation/{scene}/frames.png").stat().st_size > 1000
+        assert (work / f"results/evaluation/{scene}/clip.gif").stat().st_size > 1000
+        assert list((work / f"results/evaluation/{scene}/paraview").glob("self_supervised_*.xdmf"))
         assert (work / f"results/sim/{scene}/paraview").is_dir()
         assert (work / f"logs/sim/{scene}.log").read_text()
         assert (work / f"results/benchmarks/sim/{scene}.tsv").exists()

@@ -308,3 +308,50 @@ def _markdown(df: pd.DataFrame) -> str:
     for _, r in df.iterrows():
         lines.append("| " + " | ".join(f"{r[c]:.4g}" if isinstance(r[c], float) else str(r[c]) for c in cols) + " |")
     return "\n".join(lines)
+
+
+def render_scene(scene: str, trajectories, rollouts, frames_png, clip_gif, paraview_dir, clip_frames: int = 60) -> dict:
+    """Pictures of one scene's first test sequence: every method beside the ground truth.
+
+    - ``frames_png``: four frames (start, a third, two thirds, end), one column per method;
+    - ``clip_gif``: the ground truth, the self-supervised integrator and the method that
+      diverged first (if any, the most telling failure) as an animation;
+    - ``paraview_dir``: an XDMF series per method with displacement and per-vertex error.
+
+    Returns {"sequence", "clip_methods"}.
+    """
+    from pathlib import Path
+
+    from .render import render_clip, render_frames, write_xdmf_series
+
+    methods, diverged = {}, {}
+    for path in rollouts:
+        with h5py.File(path, "r") as f:
+            m = str(f.attrs.get("method", Path(path).parent.name))
+            seqs = list(require(f, "sequences"))
+            if not seqs:
+                continue
+            methods[m] = str(path)
+            diverged[m] = int(f["sequences"][seqs[0]].attrs["diverged_frame"])
+    if not methods:
+        raise ValueError(f"scene {scene}: no rollout holds a test sequence")
+    with h5py.File(rollouts[0], "r") as f:
+        sequence = next(iter(require(f, "sequences")))
+    with h5py.File(trajectories, "r") as f:
+        T = require(f["sequences"], sequence)["positions"].shape[0]
+    picks = [0, T // 3, (2 * T) // 3, T - 1]
+    render_frames(trajectories, methods, sequence, picks, frames_png, title=f"{scene} / {sequence}: ground truth and every method")
+    clip = {m: methods[m] for m in ("self_supervised",) if m in methods}
+    failed = sorted((d, m) for m, d in diverged.items() if d >= 0)
+    if failed:
+        clip[failed[0][1]] = methods[failed[0][1]]
+    if not clip:
+        first = next(iter(methods))
+        clip[first] = methods[first]
+    stride = max(1, T // clip_frames)
+    render_clip(trajectories, clip, sequence, clip_gif, stride=stride, max_frames=clip_frames, title=f"{scene} / {sequence}")
+    out = Path(paraview_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    for m, p in methods.items():
+        write_xdmf_series(p, sequence, out / f"{m}_{sequence}.xdmf", reference=trajectories)
+    return {"sequence": sequence, "clip_methods": list(clip)}

@@ -91,5 +91,6 @@ def all_targets():
         + config["scenes"][scene]["baselines"]
     ]
     out += expand("results/evaluation/{scene}/metrics.csv", scene=SCENES)
+    out += expand("results/evaluation/{scene}/frames.png", scene=SCENES)
     out += ["results/evaluation/summary.csv", "results/evaluation/summary.md"]
     return out

@@ -31,6 +31,37 @@ rule evaluate:
         "../scripts/evaluate.py"
 
 
+# Pictures of the first test sequence: frames of every method beside the ground truth, a clip of the
+# most telling failure and success, and XDMF series for ParaView.
+rule render:
+    input:
+        trajectories="results/sim/{scene}/trajectories.h5",
+        rollouts=scene_rollouts,
+    output:
+        frames=report(
+            "results/evaluation/{scene}/frames.png",
+            caption="../report/frames.rst",
+            category="Scenes",
+            subcategory="{scene}",
+        ),
+        clip=report(
+            "results/evaluation/{scene}/clip.gif",
+            caption="../report/clip.rst",
+            category="Scenes",
+            subcategory="{scene}",
+        ),
+        paraview=directory("results/evaluation/{scene}/paraview"),
+    log:
+        "logs/evaluation/{scene}_render.log",
+    conda:
+        "../../envs/latentsim.yaml"
+    resources:
+        mem_mb=4000,
+        runtime=20,
+    script:
+        "../scripts/render.py"
+
+
 # Summary across scenes: one table (CSV + Markdown) and the speed-accuracy chart.
 rule summary:
     input:
