@@ -19,6 +19,7 @@ include: "workflow/rules/autoencoder.smk"
 include: "workflow/rules/integrator.smk"
 include: "workflow/rules/rollout.smk"
 include: "workflow/rules/baselines.smk"
+include: "workflow/rules/sweep.smk"
 include: "workflow/rules/evaluate.smk"
 include: "workflow/rules/neural_modes.smk"
 

@@ -131,6 +131,9 @@ def test_tiny_run_writes_tables_and_figures(tiny_run):
         assert (work / f"logs/sim/{scene}.log").read_text()
         assert (work / f"results/benchmarks/sim/{scene}.tsv").exists()
     assert (work / "results/evaluation/speed_accuracy.png").stat().st_size > 1000
+    choice = pd.read_csv(work / "results/sweep/tiny_cloth/choice.csv")
+    assert sorted(choice["latent_dim"]) == [2, 4] and choice["chosen"].sum() <= 1
+    assert (work / "results/sweep/tiny_cloth/sweep.png").stat().st_size > 1000
 
 
 def test_paraview_series_reads_back(tiny_run):

@@ -4,6 +4,7 @@ import json
 from snakemake.exceptions import WorkflowError
 
 from latentsim.baselines import BASELINES
+from latentsim.sweep import parse_label, point_label
 from latentsim.config import (
     ConfigError,
     integrator_settings,
@@ -26,6 +27,7 @@ METHODS = INTEGRATOR_METHODS + list(BASELINES)
 wildcard_constraints:
     scene="|".join(SCENES) if SCENES else "NO_SCENE",
     method="|".join(METHODS),
+    point=r"r\d+_s\d+",
 
 
 def canonical(obj):
@@ -79,6 +81,43 @@ def scene_rollouts(wildcards):
     ]
 
 
+def sweep_points(scene):
+    """Wildcard values r<latent_dim>_s<size index> of a scene's sizing sweep."""
+    sw = config["scenes"][scene]["sweep"]
+    return [
+        point_label(r, i) for r in sw["latent_dims"] for i in range(len(sw["sizes"]))
+    ]
+
+
+def sweep_params(wildcards):
+    """Input function: the full settings of one sweep point."""
+    sc = config["scenes"][wildcards.scene]
+    r, i = parse_label(wildcards.point)
+    size = sc["sweep"]["sizes"][i]
+    return canonical(
+        {
+            "autoencoder": dict(
+                sc["autoencoder"], latent_dim=r, widths=size["autoencoder"]
+            ),
+            "integrator": dict(sc["integrator"], widths=size["integrator"]),
+            "rollout": sc["rollout"],
+            "seed": config["seed"],
+            "device": config["device"],
+        }
+    )
+
+
+def sweep_tolerance(wildcards):
+    return config["scenes"][wildcards.scene]["sweep"]["tolerance"]
+
+
+def sweep_results(wildcards):
+    return [
+        f"results/sweep/{wildcards.scene}/{p}/metrics.csv"
+        for p in sweep_points(wildcards.scene)
+    ]
+
+
 def gpu_count(wildcards):
     return 1 if config["device"] == "cuda" else 0
 
@@ -92,5 +131,8 @@ def all_targets():
     ]
     out += expand("results/evaluation/{scene}/metrics.csv", scene=SCENES)
     out += expand("results/evaluation/{scene}/frames.png", scene=SCENES)
+    out += [
+        f"results/sweep/{scene}/choice.csv" for scene in SCENES if sweep_points(scene)
+    ]
     out += ["results/evaluation/summary.csv", "results/evaluation/summary.md"]
     return out

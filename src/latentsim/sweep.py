@@ -1,0 +1,151 @@
+"""Model no more than a scene needs: a sizing sweep over latent dimension and network size.
+
+Each sweep point trains the scene's autoencoder and self-supervised latent
+integrator at one latent dimension and one pair of layer widths (everything
+else as the scene's config says), rolls the integrator out on the test
+sequences and records the error against the full simulation, the frames
+survived and the time of one step with the deployable NumPy runtime.  The
+summary picks the smallest model (fewest parameters) whose mean vertex
+error stays within the scene's tolerance on every test sequence without
+diverging.
+"""
+
+from __future__ import annotations
+
+import time
+
+import h5py
+import numpy as np
+import pandas as pd
+import torch
+
+from . import latent, runtime
+from .evaluate import bbox_diagonal, vertex_errors, write_table
+from .scene import potential_from_artefact
+from .train import coordinates_for, load_sequences
+
+
+def point_label(latent_dim: int, size: int) -> str:
+    """Wildcard value of a sweep point: ``r{latent_dim}_s{size index}``."""
+    return f"r{int(latent_dim)}_s{int(size)}"
+
+
+def parse_label(label: str) -> tuple[int, int]:
+    """Inverse of :func:`point_label`."""
+    r, s = label.split("_")
+    if not (r.startswith("r") and s.startswith("s")):
+        raise ValueError(f"sweep point label {label!r}: expected r<latent_dim>_s<size index>")
+    return int(r[1:]), int(s[1:])
+
+
+def parameter_count(module: torch.nn.Module) -> int:
+    return int(sum(p.numel() for p in module.parameters()))
+
+
+def sweep_point(trajectories, autoencoder: dict, integrator: dict, rollout: dict, seed: int, out_csv, device="cpu") -> pd.DataFrame:
+    """Train, roll out and measure one model size; one CSV row per test sequence.
+
+    Parameters
+    ----------
+    trajectories : the simulator's ``trajectories.h5``.
+    autoencoder, integrator : full settings of this point (the scene's, with
+        latent_dim and widths replaced).
+    rollout : the scene's rollout settings (``max_extent``, ``timing_repeats``).
+    """
+    with h5py.File(trajectories, "r") as f:
+        coords = coordinates_for(f)
+        train = load_sequences(f, "train")
+        tests = load_sequences(f, "test")
+        potential = potential_from_artefact(f)
+        rest = f["rest_positions"][()]
+    diag = bbox_diagonal(rest)
+    U = torch.cat([coords.encode(torch.as_tensor(s["positions"]), torch.as_tensor(s["dirichlet_positions"])) for s in train.values()])
+    ae_cfg = dict(autoencoder)
+    ae_cfg["pca_dim"] = ae_cfg.get("pca_dim") or None
+    t0 = time.perf_counter()
+    ae, _ = latent.fit_autoencoder(U.to(torch.float32), ae_cfg, seed=seed, device=device)
+    ae = ae.cpu().eval()
+    integ, _ = latent.fit_integrator(ae, coords, potential, list(train.values()), dict(integrator), seed=seed, device=device)
+    integ = integ.cpu().eval()
+    train_s = time.perf_counter() - t0
+    stepper = runtime.NumpyStepper(runtime.fold_networks(ae, integ, coords))
+    rows = []
+    for name, s in tests.items():
+        x, xD = torch.as_tensor(s["positions"]), torch.as_tensor(s["dirichlet_positions"])
+        z = latent.encode_positions(ae, coords, x[:2], xD[:2])
+        res = latent.rollout(integ, ae, coords, z[0], z[1], torch.as_tensor(s["bc"]), xD,
+                             max_extent=float(rollout["max_extent"]), rest_positions=torch.as_tensor(rest))  # fmt: skip
+        T, div = len(x), int(res["diverged_frame"])
+        ok = slice(0, T if div < 0 else div)
+        mean_e, max_e = vertex_errors(res["positions"].numpy()[ok], s["positions"][ok], diag)
+        p = np.asarray(s["bc"][-1], dtype=np.float32)
+        timing = runtime.time_step(stepper, z[1].numpy(), z[0].numpy(), p, p, p, np.asarray(s["dirichlet_positions"][-1]),
+                                   repeats=int(rollout["timing_repeats"]))  # fmt: skip
+        rows.append(dict(
+            latent_dim=int(autoencoder["latent_dim"]), autoencoder_widths=" ".join(map(str, autoencoder["widths"])),
+            integrator_widths=" ".join(map(str, integrator["widths"])), decoder_parameters=parameter_count(ae.dec_branch) + parameter_count(ae.pca_out),
+            integrator_parameters=parameter_count(integ), sequence=name, frames=T, diverged_frame=div,
+            mean_error=float(mean_e.mean()) if len(mean_e) else np.nan, max_error=float(max_e.max()) if len(max_e) else np.nan,
+            step_ms=timing["step_ms"], train_seconds=train_s,
+        ))  # fmt: skip
+    df = pd.DataFrame(rows)
+    df["parameters"] = df["decoder_parameters"] + df["integrator_parameters"]
+    write_table(df, out_csv)
+    return df
+
+
+def choose(df: pd.DataFrame, tolerance: float) -> pd.DataFrame:
+    """One row per sweep point (worst sequence), with ``passes`` and the ``chosen`` smallest passing point.
+
+    A point passes when no test sequence diverged and every sequence's mean
+    vertex error / bbox diagonal is at most ``tolerance``; among passing points
+    the one with the fewest parameters (then the lowest latent dimension, then
+    the fastest step) is chosen.
+    """
+    keys = ["latent_dim", "autoencoder_widths", "integrator_widths"]
+    g = df.groupby(keys, sort=False).agg(
+        parameters=("parameters", "first"), mean_error=("mean_error", "max"), max_error=("max_error", "max"),
+        diverged=("diverged_frame", lambda d: bool((d >= 0).any())), step_ms=("step_ms", "median"), train_seconds=("train_seconds", "first"),
+    ).reset_index()  # fmt: skip
+    g["passes"] = (~g["diverged"]) & (g["mean_error"] <= tolerance)
+    g["chosen"] = False
+    ok = g[g["passes"]].sort_values(["parameters", "latent_dim", "step_ms"])
+    if len(ok):
+        g.loc[ok.index[0], "chosen"] = True
+    return g
+
+
+def sweep_chart(table: pd.DataFrame, tolerance: float, scene: str, path) -> None:
+    """Error and ms per step against parameter count, one marker per latent dimension; the choice circled."""
+    import matplotlib.pyplot as plt
+
+    from .plots import save_figure
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for k, (r, g) in enumerate(table.groupby("latent_dim")):
+        colour = f"C{k % 10}"
+        for diverged, h in g.groupby("diverged"):
+            axes[0].scatter(h["parameters"], h["mean_error"].clip(lower=1e-12), edgecolors=colour,
+                            facecolors="none" if diverged else colour, label=f"latent {r}" + (" (diverged)" if diverged else ""))  # fmt: skip
+        axes[1].scatter(g["parameters"], g["step_ms"], color=colour, label=f"latent {r}")
+    pick = table[table["chosen"]]
+    if len(pick):
+        axes[0].scatter(pick["parameters"], pick["mean_error"], s=250, facecolors="none", edgecolors="k", label="chosen")
+        axes[1].scatter(pick["parameters"], pick["step_ms"], s=250, facecolors="none", edgecolors="k", label="chosen")
+    axes[0].axhline(tolerance, color="r", ls="--", label="tolerance")
+    def wide(v):  # log axes only where the values span a decade or more
+        v = np.asarray(v, dtype=float)
+        v = v[np.isfinite(v) & (v > 0)]
+        return len(v) > 1 and v.max() / v.min() >= 10.0
+
+    for ax, ylabel, col in zip(axes, ("worst mean vertex error / bbox diagonal", "ms per latent step (NumPy runtime)"), ("mean_error", "step_ms")):
+        if wide(table["parameters"]):
+            ax.set_xscale("log")
+        if wide(table[col]):
+            ax.set_yscale("log")
+        ax.set_xlabel("parameters (decoder + integrator)")
+        ax.set_ylabel(ylabel)
+        ax.legend(fontsize=7)
+    fig.suptitle(f"{scene}: sizing sweep (hollow: diverged)")
+    fig.tight_layout()
+    save_figure(fig, path)

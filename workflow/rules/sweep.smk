@@ -1,0 +1,48 @@
+# Sizing sweep, one point: train the autoencoder and integrator at one latent dimension and size, roll out, measure.
+rule sweep_point:
+    input:
+        trajectories="results/sim/{scene}/trajectories.h5",
+    output:
+        metrics="results/sweep/{scene}/{point}/metrics.csv",
+    log:
+        "logs/sweep/{scene}/{point}.log",
+    benchmark:
+        "results/benchmarks/sweep/{scene}/{point}.tsv"
+    conda:
+        "../../envs/latentsim.yaml"
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=240,
+        gpu=gpu_count,
+    params:
+        point=sweep_params,
+    script:
+        "../scripts/sweep_point.py"
+
+
+# Sizing sweep, summary: the smallest model within the scene's tolerance, and the chart of error and speed against size.
+rule sweep_summary:
+    input:
+        points=sweep_results,
+    output:
+        choice=report(
+            "results/sweep/{scene}/choice.csv",
+            caption="../report/sweep.rst",
+            category="Sizing",
+            subcategory="{scene}",
+        ),
+        chart=report(
+            "results/sweep/{scene}/sweep.png",
+            caption="../report/sweep.rst",
+            category="Sizing",
+            subcategory="{scene}",
+        ),
+    log:
+        "logs/sweep/{scene}/summary.log",
+    conda:
+        "../../envs/latentsim.yaml"
+    params:
+        tolerance=sweep_tolerance,
+    script:
+        "../scripts/sweep_summary.py"

@@ -1,0 +1,11 @@
+"""Stage: one sizing-sweep point (see latentsim.sweep.sweep_point)."""
+from latentsim.sweep import sweep_point
+from latentsim.utils import run_stage
+
+
+def main(smk):
+    p = smk.params.point
+    sweep_point(smk.input.trajectories, p["autoencoder"], p["integrator"], p["rollout"], p["seed"], smk.output.metrics, device=p["device"])
+
+
+run_stage(snakemake, main)  # noqa: F821 (injected by Snakemake)

@@ -1,0 +1,16 @@
+"""Stage: the sizing sweep's choice and chart (see latentsim.sweep.choose)."""
+import pandas as pd
+
+from latentsim.evaluate import write_table
+from latentsim.sweep import choose, sweep_chart
+from latentsim.utils import run_stage
+
+
+def main(smk):
+    df = pd.concat([pd.read_csv(p) for p in smk.input.points], ignore_index=True)
+    table = choose(df, float(smk.params.tolerance))
+    write_table(table, smk.output.choice)
+    sweep_chart(table, float(smk.params.tolerance), smk.wildcards.scene, smk.output.chart)
+
+
+run_stage(snakemake, main)  # noqa: F821 (injected by Snakemake)
