@@ -89,6 +89,15 @@ def evaluate_scene(scene: str, trajectories, rollouts):
                     mean_e, max_e = vertex_errors(pred[ok], truth[ok], diag)
                     bc_e = np.linalg.norm(pred[ok][:, D] - gt["dirichlet_positions"][ok], axis=-1).mean(-1) / diag
                     ke_t, ke_p = kinetic_energy(truth[ok], masses, dt), kinetic_energy(pred[ok], masses, dt)
+                    # the end of the sequence (last 10% of frames; Li et al. Fig. 10's steady state): error and
+                    # residual motion (RMS vertex displacement per frame / diag; 0 at rest)
+                    tail = slice(max(1, T - max(T // 10, 2)), T)
+                    end_ok = div < 0
+                    end_error = float(mean_e[tail].mean()) if end_ok else np.nan
+                    step = np.linalg.norm(np.diff(pred[tail.start - 1 : T], axis=0), axis=-1) if end_ok else np.full(1, np.nan)
+                    end_motion = float(np.sqrt((step**2).mean()) / diag)
+                    step_t = np.linalg.norm(np.diff(truth[tail.start - 1 : T], axis=0), axis=-1)
+                    end_motion_truth = float(np.sqrt((step_t**2).mean()) / diag)
                     # same-run timing of full-space frames when the rollout stage measured it
                     full_ms = float(fr.attrs.get("full_ms", np.median(gt["frame_ms"][1:])))
                     latent_ms = float(g.attrs["step_ms"])
@@ -104,6 +113,9 @@ def evaluate_scene(scene: str, trajectories, rollouts):
                             max_error=float(max_e.max()),
                             dirichlet_error=float(bc_e.mean()),
                             kinetic_ratio=float(np.nanmean(ke_p) / max(np.nanmean(ke_t), 1e-300)),
+                            end_error=end_error,
+                            end_motion=end_motion,
+                            end_motion_truth=end_motion_truth,
                             full_ms=full_ms,
                             latent_ms=latent_ms,
                             **parts,
@@ -249,7 +261,8 @@ def table2(df: pd.DataFrame, layers: dict | None = None) -> pd.DataFrame:
 
 def stability_table(df: pd.DataFrame) -> pd.DataFrame:
     """Frames survived per scene, method and test sequence (Li et al. Fig. 8), with the errors and KE ratio."""
-    out = df[["scene", "method", "sequence", "frames", "diverged_frame", "mean_error", "dirichlet_error", "kinetic_ratio"]].copy()
+    out = df[["scene", "method", "sequence", "frames", "diverged_frame", "mean_error", "dirichlet_error", "kinetic_ratio",
+              "end_error", "end_motion", "end_motion_truth"]].copy()  # fmt: skip
     out["survived"] = np.where(out["diverged_frame"] < 0, out["frames"], out["diverged_frame"])
     return out
 
