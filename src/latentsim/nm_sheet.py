@@ -105,7 +105,7 @@ def train_l2_supervised(model: nm.NeuralModes, z, x_gt, epochs=200, lbfgs_max_it
         return loss
 
     for _ in range(epochs):
-        hist.append(float(opt.step(closure)))
+        hist.append(float(opt.step(closure).detach()))
     return hist
 
 
@@ -160,7 +160,7 @@ def train_data_free(model: DataFree, potential, box, scale, w_iso=1.0, epochs=10
             loss.backward()
             return loss
 
-        hist.append(float(opt.step(closure)))
+        hist.append(float(opt.step(closure).detach()))
     return hist
 
 
