@@ -9,7 +9,9 @@ as the full-space solver) over a subspace, with :mod:`latentsim.reduced`:
   latent dimension unless ``reduced.pca_dim`` says otherwise;
 - ``fulton_reduced``: the autoencoder's decoder as the subspace map, the
   optimisation-based latent dynamics of Fulton et al. 2019 (no cubature: every
-  element is evaluated).
+  element is evaluated);
+- ``newton_1it``: the full-space solver stopped after one Newton iteration per
+  frame (the cheap variant of the ground truth).
 
 Each writes a rollout file in the trajectory layout of
 :func:`latentsim.train.rollout_scene`, so :mod:`latentsim.evaluate` reads all
@@ -30,11 +32,45 @@ import torch
 from . import latent, reduced
 from .io import atomic_h5, write_dataset
 from .scene import potential_from_artefact
+from .solver import ImplicitEuler, NewtonFailed, NewtonSettings
 from .train import coordinates_for, load_sequences, time_full_space
 
 log = logging.getLogger(__name__)
 
-BASELINES = ("pca_reduced", "fulton_reduced")
+BASELINES = ("pca_reduced", "fulton_reduced", "newton_1it")
+
+
+def newton_rollout(potential_free, x0, x1, dirichlet_positions, iterations: int = 1, tolerance: float = 1e-6) -> dict:
+    """Full-space implicit Euler with at most ``iterations`` Newton iterations per frame (no convergence required).
+
+    The cheap end of the full-space solver: each frame takes the best initial
+    guess of :class:`~latentsim.solver.ImplicitEuler` and ``iterations``
+    line-searched Newton steps.  Returns the layout of
+    :func:`latentsim.reduced.reduced_rollout` (positions, step_ms, iterations,
+    diverged_frame).
+    """
+    solver = ImplicitEuler(potential_free, NewtonSettings(tolerance=tolerance, max_iterations=int(iterations), accept_unconverged=True))
+    xD = np.asarray(dirichlet_positions, dtype=np.float64)
+    T = len(xD)
+    X = np.full((T,) + np.shape(x0), np.nan)
+    X[0], X[1] = x0, x1
+    ms = np.full(T, np.nan)
+    iters = np.zeros(T, dtype=np.int64)
+    diverged = -1
+    for t in range(2, T):
+        t0 = time.perf_counter()
+        try:
+            x, info = solver.step(X[t - 1], X[t - 2], xD[t])
+        except NewtonFailed:
+            diverged = t
+            break
+        ms[t] = 1e3 * (time.perf_counter() - t0)
+        iters[t] = info.iterations
+        if not np.isfinite(x).all():
+            diverged = t
+            break
+        X[t] = x
+    return {"positions": X, "latents": np.zeros((T, 0)), "step_ms": ms, "iterations": iters, "diverged_frame": int(diverged)}
 
 
 def make_subspace(method: str, ae, coords, train: dict, settings: dict):
@@ -70,17 +106,22 @@ def baseline_rollouts(trajectories, ae_path, method: str, settings: dict, out, p
         root = {k: f[k][()] for k in ("rest_positions", "masses", "dirichlet", "edges", "triangles", "tets", "root_of") if k in f}
         attrs = {k: f.attrs[k] for k in ("model", "dt", "gravity", "scene")}
         full = time_full_space(f, next(iter(tests))) if tests else {}
-    subspace = make_subspace(method, ae, coords, train, settings)
-    rs = reduced.ReducedSettings(
-        method=settings.get("method", "newton"), max_iterations=int(settings.get("max_iterations", 50)), tolerance=float(settings.get("tolerance", 1e-6))
-    )
-    solver = reduced.ReducedImplicitEuler(subspace, potential, rs)
+        potential_free = potential_from_artefact(f, free_only=True)
+        tolerance = float(f.attrs.get("newton_tolerance", 1e-6))
+    if method == "newton_1it":
+        subspace, solver = None, None
+    else:
+        subspace = make_subspace(method, ae, coords, train, settings)
+        rs = reduced.ReducedSettings(
+            method=settings.get("method", "newton"), max_iterations=int(settings.get("max_iterations", 50)), tolerance=float(settings.get("tolerance", 1e-6))
+        )
+        solver = reduced.ReducedImplicitEuler(subspace, potential, rs)
     with atomic_h5(out, config=settings) as g:
         for k, v in attrs.items():
             g.attrs[k] = v
         g.attrs["method"] = method
         g.attrs["mode"] = "reduced"
-        g.attrs["subspace_dim"] = int(subspace.dim)
+        g.attrs["subspace_dim"] = int(subspace.dim) if subspace is not None else 3 * len(root["rest_positions"])
         for k, v in full.items():
             g.attrs[k] = v
         for k, v in root.items():
@@ -88,9 +129,12 @@ def baseline_rollouts(trajectories, ae_path, method: str, settings: dict, out, p
         grp = g.create_group("sequences", track_order=True)
         for name, s in tests.items():
             x, xD = s["positions"], s["dirichlet_positions"]
-            q0, q1 = subspace.project(x[0], xD[0]), subspace.project(x[1], xD[1])
             t0 = time.perf_counter()
-            res = reduced.reduced_rollout(subspace, potential, q0, q1, xD, solver=solver)
+            if subspace is None:
+                res = newton_rollout(potential_free, x[0], x[1], xD, iterations=1, tolerance=tolerance)
+            else:
+                q0, q1 = subspace.project(x[0], xD[0]), subspace.project(x[1], xD[1])
+                res = reduced.reduced_rollout(subspace, potential, q0, q1, xD, solver=solver)
             wall = time.perf_counter() - t0
             ms = res["step_ms"][np.isfinite(res["step_ms"])]
             step_ms = float(np.median(ms)) if len(ms) else float("nan")
