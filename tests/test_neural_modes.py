@@ -115,7 +115,7 @@ def trained(sheet_setup):
     pot, V, lm, R = sheet_setup
     torch.manual_seed(0)
     model = NeuralModes(V, lm.modes, (32, 32), rigid=R, masses=pot.masses.numpy())
-    cfg = {"sampling": "grid", "grid": 5, "box": 0.3, "epochs": 25, "lam": 1e6, "eta": 1e6, "optimizer": "lbfgs", "lbfgs_max_iter": 20}
+    cfg = {"sampling": "grid", "grid": 5, "box": 0.3, "epochs": 12, "lam": 1e6, "eta": 1e6, "optimizer": "lbfgs", "lbfgs_max_iter": 20}
     hist = train_neural_modes(model, pot, cfg, seed=0)
     return model, hist, cfg
 
@@ -148,7 +148,7 @@ def test_origin_penalty_alone_keeps_the_origin_approximately(sheet_setup):
     model = NeuralModes(V, lm.modes, (32, 32), rigid=R, masses=pot.masses.numpy(), exact_origin=False)
     with torch.no_grad():
         model.mlp[-1].bias.fill_(1e-3)  # start away from the origin
-    cfg = {"sampling": "grid", "grid": 5, "box": 0.3, "epochs": 10, "lam": 1e6, "eta": 1e6}
+    cfg = {"sampling": "grid", "grid": 5, "box": 0.3, "epochs": 5, "lam": 1e6, "eta": 1e6}
     hist = train_neural_modes(model, pot, cfg, seed=0)
     assert hist["origin"][-1] < 1e-6
     with torch.no_grad():

@@ -172,7 +172,8 @@ def linear_modes(
         raise ValueError(f"{nev} modes asked of a {len(free_dofs)}-DoF system")
     # K - sigma M with sigma < 0 is positive definite even where K is singular (free body)
     sigma = -1e-8 * abs(K.diagonal()).max() / m.max()
-    w, V = scipy.sparse.linalg.eigsh(K.tocsc(), k=nev, M=scipy.sparse.diags(m).tocsc(), sigma=sigma, which="LM", tol=tol)
+    v0 = np.random.default_rng(0).standard_normal(len(free_dofs))  # fixed start: reproducible modes
+    w, V = scipy.sparse.linalg.eigsh(K.tocsc(), k=nev, M=scipy.sparse.diags(m).tocsc(), sigma=sigma, which="LM", tol=tol, v0=v0)
     order = np.argsort(w)
     w, V = w[order], V[:, order]
     if n_rigid:
