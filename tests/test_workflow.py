@@ -189,7 +189,7 @@ def test_editing_one_scenes_integrator_reruns_only_its_downstream_jobs(tiny_run,
     methods = ("self_supervised", "supervised")
     assert sorted(jobs, key=str) == sorted(
         [(stage, "tiny_rods") for stage in ("train_integrator", "rollout") for _ in methods]
-        + [("evaluate", "tiny_rods"), ("summary", None), ("all", None)],
+        + [("evaluate", "tiny_rods"), ("render", "tiny_rods"), ("summary", None), ("all", None)],
         key=str,
     )
 
@@ -203,7 +203,7 @@ def test_editing_a_variant_reruns_only_that_methods_jobs(tiny_run, tmp_path):
     jobs = planned_jobs(snakemake("-n", "all", "--configfile", str(edited), "--directory", str(work)).stdout, methods=True)
     assert sorted(jobs, key=str) == sorted(
         [("train_integrator", "tiny_rods", "supervised"), ("rollout", "tiny_rods", "supervised"), ("evaluate", "tiny_rods", None),
-         ("summary", None, None), ("all", None, None)],
+         ("render", "tiny_rods", None), ("summary", None, None), ("all", None, None)],
         key=str,
     )  # fmt: skip
 
