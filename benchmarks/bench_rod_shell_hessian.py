@@ -6,7 +6,8 @@ and an 11 x 11 sheet (121 vertices), in random deformed states.  For every
 term it times ``local_gradient_hessian`` (closed form, the class default) and
 the autograd oracle ``base.autograd_gradient_hessian`` (torch.func Hessian +
 batched ``eigh`` clamp of the full stencil Hessian), with 1 and 2 torch
-threads.  Reports the minimum and the median over repeats (the machine is
+threads, and the compiled kernels of ``energy.kernels`` (numba, one thread;
+per-stencil outputs like the others, projected and exact).  Reports the minimum and the median over repeats (the machine is
 shared; the minimum is the better estimate of the cost).
 
 Run:  PYTHONPATH=src python3 benchmarks/bench_rod_shell_hessian.py [--repeats 20]
@@ -20,6 +21,7 @@ import time
 import numpy as np
 import torch
 
+from latentsim.energy import kernels
 from latentsim.energy.base import autograd_gradient_hessian
 from latentsim.energy.rods import RodBend, RodStretch, rod_stiffness, rod_topology
 from latentsim.energy.shells import ShellHinge, ShellMembraneStVK, hinges_from_triangles
@@ -79,6 +81,12 @@ def main():
                 cf = timeit(lambda: term.local_gradient_hessian(xe), args.repeats)
                 total = [total[0] + cf[0], total[1] + cf[1]]
                 line = f"{name:12s} {term.name:20s} E={xe.shape[0]:5d}  closed form {cf[0]:7.2f} ms (median {cf[1]:7.2f})"
+                k = kernels.term_kernel(term)
+                if k is not None and threads == 1:
+                    xn = x.numpy()
+                    kp = timeit(lambda: k.local(xn, project=True), args.repeats)
+                    ke = timeit(lambda: k.local(xn, project=False), args.repeats)
+                    line += f" | compiled {kp[0]:7.2f} ms, exact {ke[0]:7.2f} ms"
                 if not args.no_oracle:
                     orc = timeit(lambda: autograd_gradient_hessian(term, xe, project=True), max(3, args.repeats // 4))
                     line += f" | autograd oracle {orc[0]:7.2f} ms (median {orc[1]:7.2f})"

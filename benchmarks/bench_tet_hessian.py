@@ -1,4 +1,4 @@
-"""Time StVKTets.local_gradient_hessian (closed form) against the autograd oracle.
+"""Time StVKTets.local_gradient_hessian (closed form) against the autograd oracle and the compiled kernel.
 
 Usage: PYTHONPATH=src python3 benchmarks/bench_tet_hessian.py [mesh.vtu] [--repeats N]
 
@@ -16,6 +16,7 @@ import time
 import numpy as np
 import torch
 
+from latentsim.energy import kernels
 from latentsim.energy.base import autograd_gradient_hessian
 from latentsim.energy.tets import StVKTets, rotation_variant_svd
 
@@ -89,9 +90,12 @@ def main():
     print(f"mesh: {name}: {X.shape[0]} vertices, {E} tets; torch threads = {torch.get_num_threads()}")
     print(f"inverted elements: {(torch.linalg.det(F) < 0).sum().item()}")
 
+    kern, xn = kernels.term_kernel(term), x.numpy()
     rows = [
         ("closed form, projected", lambda: term.local_gradient_hessian(xe, project=True)),
         ("closed form, exact", lambda: term.local_gradient_hessian(xe, project=False)),
+        ("compiled kernel (numba), projected", lambda: kern.local(xn, project=True)),
+        ("compiled kernel (numba), exact", lambda: kern.local(xn, project=False)),
         ("  rotation-variant SVD (Jacobi)", lambda: rotation_variant_svd(F)),
         ("  LAPACK SVD, numpy (reference)", lambda: np.linalg.svd(F.numpy())),
         ("  LAPACK SVD, torch (reference)", lambda: torch.linalg.svd(F)),
