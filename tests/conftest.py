@@ -18,3 +18,18 @@ def _module_default_dtype(request):
     torch.set_default_dtype(torch.float64)
     yield
     torch.set_default_dtype(old)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _module_torch_threads(request):
+    """Modules that set ``ONE_THREAD = True`` run torch on one thread.
+
+    Their networks are tiny: threading only adds overhead on shared CI cores.
+    """
+    if not getattr(request.module, "ONE_THREAD", False):
+        yield
+        return
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

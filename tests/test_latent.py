@@ -40,13 +40,7 @@ from latentsim.latent import (
 F64 = torch.float64
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_thread():
-    # tiny networks: threading only adds overhead on shared CI cores
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+ONE_THREAD = True  # tiny networks (conftest)
 
 
 # ---------------------------------------------------------------------------

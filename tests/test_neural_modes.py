@@ -36,12 +36,7 @@ FLOAT64 = True
 BETA1 = 1.875104068711961
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+ONE_THREAD = True  # tiny networks (conftest)
 
 
 def cantilever(n=(60, 4, 4), L=1.0, W=0.1, E=1e9, rho=1000.0):

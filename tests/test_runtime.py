@@ -31,12 +31,7 @@ K = 6  # boundary-condition parameters per frame
 R = 3  # latent dimension
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+ONE_THREAD = True  # tiny networks (conftest)
 
 
 def _coords(mode: str) -> RelativeCoordinates:
