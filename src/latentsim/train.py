@@ -152,7 +152,7 @@ def time_jvps(ae, stepper, coords, z, repeats: int) -> dict:
     }
 
 
-def time_full_space(f, sequence: str, frames: int = 5) -> dict:
+def time_full_space(f, sequence: str, frames: int = 20) -> dict:
     """Mean wall time [ms] of full-space Newton frames, timed now (for same-run ratios).
 
     Steps ``frames`` frames spread evenly over ``sequence`` of an open
