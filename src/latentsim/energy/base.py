@@ -22,6 +22,7 @@ Everything here is float64 unless the caller passes float32 states.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch.func import vmap
 
@@ -94,6 +95,26 @@ def autograd_gradient_hessian(term: EnergyTerm, xe: torch.Tensor, project: bool 
     return g.detach(), H.detach()
 
 
+def subset_weights(index, weights, count: int):
+    """Validated (index (k,) long, weights (k,) float64) of a cubature subset of ``count`` stencils.
+
+    Every term's ``weighted_subset(index, weights)`` returns the term over the
+    stencils ``index`` with each stencil's energy scaled by its weight,
+    sum_{e in index} w_e E_e (``latentsim.cubature``); all our energies are
+    linear in a per-stencil stiffness, so the subset is a term of the same
+    class and every solver path, compiled kernels included, serves it.
+    """
+    idx = torch.as_tensor(np.asarray(index, dtype=np.int64))
+    w = torch.as_tensor(np.asarray(weights, dtype=np.float64))
+    if idx.ndim != 1 or w.shape != idx.shape:
+        raise ValueError(f"index and weights must be two (k,) arrays, got shapes {tuple(idx.shape)} and {tuple(w.shape)}")
+    if not bool(torch.all(torch.isfinite(w))) or bool(torch.any(w < 0)):
+        raise ValueError("cubature weights must be finite and non-negative")
+    if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= count):
+        raise ValueError(f"stencil index out of range [0, {count})")
+    return idx, w
+
+
 def project_psd(H: torch.Tensor, floor: float = 0.0) -> torch.Tensor:
     """Clamp the eigenvalues of a batch of symmetric matrices at ``floor``."""
     w, Q = torch.linalg.eigh(H)
@@ -101,4 +122,4 @@ def project_psd(H: torch.Tensor, floor: float = 0.0) -> torch.Tensor:
     return (Q * w.unsqueeze(-2)) @ Q.transpose(-1, -2)
 
 
-__all__ = ["EnergyTerm", "autograd_gradient_hessian", "project_psd"]
+__all__ = ["EnergyTerm", "autograd_gradient_hessian", "project_psd", "subset_weights"]

@@ -59,7 +59,7 @@ import math
 import numpy as np
 import torch
 
-from .base import EnergyTerm
+from .base import EnergyTerm, subset_weights
 
 __all__ = [
     "rod_stiffness",
@@ -184,6 +184,7 @@ class RodStretch(EnergyTerm):
     def __init__(self, rest_positions, edges, ks):
         X = torch.as_tensor(rest_positions, dtype=torch.float64)
         self.stencils = _check_stencils(edges, 2, X.shape[0], "edges")
+        self.rest_positions = X
         E = self.stencils.shape[0]
         self.rest_length = (X[self.stencils[:, 1]] - X[self.stencils[:, 0]]).norm(dim=-1)
         bad = torch.nonzero(self.rest_length <= 0).flatten()
@@ -193,6 +194,11 @@ class RodStretch(EnergyTerm):
         self.ks = _per_stencil(ks, E, "ks")
         self._rest_length_np = self.rest_length.numpy()
         self._ks_np = self.ks.numpy()
+
+    def weighted_subset(self, index, weights) -> "RodStretch":
+        """sum_{e in index} w_e E_e: stiffness w_e ks_e (a cubature, see ``base.subset_weights``)."""
+        idx, w = subset_weights(index, weights, int(self.stencils.shape[0]))
+        return RodStretch(self.rest_positions, self.stencils[idx], self.ks[idx] * w)
 
     def local_energy(self, xe: torch.Tensor) -> torch.Tensor:
         """xe (..., E, 2, 3) -> (..., E)."""
@@ -281,6 +287,7 @@ class RodBend(EnergyTerm):
     def __init__(self, rest_positions, triples, kb, straight_tol: float = 1e-6):
         X = torch.as_tensor(rest_positions, dtype=torch.float64)
         self.stencils = _check_stencils(triples, 3, X.shape[0], "triples")
+        self.rest_positions, self.straight_tol = X, straight_tol
         E = self.stencils.shape[0]
         xe = X[self.stencils]
         a = xe[:, 1] - xe[:, 0]
@@ -313,6 +320,11 @@ class RodBend(EnergyTerm):
         b = xe[..., 2, :] - xe[..., 1, :]
         den = self.rest_product.to(xe) + (a * b).sum(-1)
         return 2.0 * torch.linalg.cross(a, b) / den[..., None]
+
+    def weighted_subset(self, index, weights) -> "RodBend":
+        """sum_{e in index} w_e E_e: stiffness w_e kb_e (a cubature, see ``base.subset_weights``)."""
+        idx, w = subset_weights(index, weights, int(self.stencils.shape[0]))
+        return RodBend(self.rest_positions, self.stencils[idx], self.kb[idx] * w, self.straight_tol)
 
     def local_energy(self, xe: torch.Tensor) -> torch.Tensor:
         """xe (..., E, 3, 3) -> (..., E); uses |a x b|^2 (no square root)."""

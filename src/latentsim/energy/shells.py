@@ -70,7 +70,7 @@ import math
 import numpy as np
 import torch
 
-from .base import EnergyTerm
+from .base import EnergyTerm, subset_weights
 
 __all__ = [
     "plane_stress_lame",
@@ -312,6 +312,7 @@ class ShellMembraneStVK(EnergyTerm):
     def __init__(self, rest_positions, triangles, youngs_modulus, poisson_ratio, thickness):
         X = _as_positions(rest_positions)
         self.stencils = _as_long(triangles, 3, "triangles")
+        self.rest_positions = X
         T = self.stencils.shape[0]
         self.rest_area, Dm = triangle_rest_frames(X, self.stencils)
         self.Dm_inv = torch.linalg.inv(Dm)
@@ -327,6 +328,14 @@ class ShellMembraneStVK(EnergyTerm):
         self._K_np = (self.rest_area * self.thickness).numpy()
         self._mu_np = self.mu.numpy()
         self._lam_np = self.lam.numpy()
+
+    def weighted_subset(self, index, weights) -> "ShellMembraneStVK":
+        """sum_{t in index} w_t E_t: thickness w_t h_t in the energy Abar h Psi (a cubature, see
+        ``base.subset_weights``; only the energy's factor, masses come from the scene)."""
+        idx, w = subset_weights(index, weights, int(self.stencils.shape[0]))
+        mu, lam = self.mu[idx], self.lam[idx]
+        nu = lam / (2.0 * mu + lam)  # plane stress: lam / (2 mu) = nu / (1 - nu)
+        return ShellMembraneStVK(self.rest_positions, self.stencils[idx], 2.0 * mu * (1.0 + nu), nu, self.thickness[idx] * w)
 
     def deformation_gradient(self, xe: torch.Tensor) -> torch.Tensor:
         """F = Ds Dm^{-1}; xe (..., T, 3, 3) -> (..., T, 3, 2)."""
@@ -432,6 +441,7 @@ class ShellHinge(EnergyTerm):
     def __init__(self, rest_positions, hinges, youngs_modulus, poisson_ratio, thickness, stiffness_scale: float = 1.0):
         X = _as_positions(rest_positions)
         self.stencils = _as_long(hinges, 4, "hinges")
+        self.rest_positions = X
         Hn = self.stencils.shape[0]
         x = X[self.stencils]
         e = x[:, 1] - x[:, 0]
@@ -452,6 +462,13 @@ class ShellHinge(EnergyTerm):
         self.kb = float(stiffness_scale) * _per_stencil(kb, Hn, "youngs_modulus/poisson_ratio/thickness")
         self._k_np = (self.kb * self.weight).numpy()
         self._rest_angle_np = self.rest_angle.numpy()
+
+    def weighted_subset(self, index, weights) -> "ShellHinge":
+        """sum_{h in index} w_h E_h: stiffness w_h kb_h (a cubature, see ``base.subset_weights``).
+
+        Built with Y = 12 w kb, nu = 0, h = 1, for which D = Y h^3 / (12 (1 - nu^2)) = w kb."""
+        idx, w = subset_weights(index, weights, int(self.stencils.shape[0]))
+        return ShellHinge(self.rest_positions, self.stencils[idx], 12.0 * self.kb[idx] * w, 0.0, 1.0)
 
     def angle(self, xe: torch.Tensor) -> torch.Tensor:
         """Dihedral angles theta, xe (..., H, 4, 3) -> (..., H)."""

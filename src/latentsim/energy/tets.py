@@ -59,7 +59,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .base import EnergyTerm
+from .base import EnergyTerm, subset_weights
 
 _TINY = np.finfo(np.float64).tiny
 _PAIRS = ((0, 1), (0, 2), (1, 2))
@@ -309,6 +309,7 @@ class StVKTets(EnergyTerm):
         if tets.ndim != 2 or tets.shape[1] != 4:
             raise ValueError(f"tets must have shape (E, 4), got {tuple(tets.shape)}")
         self.stencils = tets
+        self.rest_positions = rest
         Dm = _edge_matrix(rest, tets)
         vol = torch.linalg.det(Dm) / 6.0
         bad = torch.nonzero(~(torch.isfinite(vol) & (vol > 0)), as_tuple=False).flatten()
@@ -339,6 +340,23 @@ class StVKTets(EnergyTerm):
         self._Dminv_soa = np64(self.Dm_inv)  # (3, 3, E)
         self._vol_np, self._mu_np, self._lam_np = np64(vol, (E,)), np64(self.mu, (E,)), np64(self.lam, (E,))
         self._work: dict[str, torch.Tensor] = {}  # cached work arrays of the closed forms
+
+    def weighted_subset(self, index, weights) -> "StVKTets":
+        """sum_{e in index} w_e W_e Psi(F_e) (a cubature, see ``base.subset_weights``).
+
+        StVK is linear in (mu, lam) at a fixed Poisson ratio, so w_e W_e Psi is
+        W_e Psi with Young's modulus w_e Y.
+        """
+        idx, w = subset_weights(index, weights, int(self.stencils.shape[0]))
+
+        def per_element(t):
+            t = torch.as_tensor(t, dtype=torch.float64)
+            return t[idx] if t.ndim else t
+
+        mu, lam = per_element(self.mu), per_element(self.lam)
+        youngs = mu * (3.0 * lam + 2.0 * mu) / (lam + mu)
+        nu = lam / (2.0 * (lam + mu))
+        return StVKTets(self.rest_positions, self.stencils[idx], youngs * w, nu)
 
     # -- kinematics -------------------------------------------------------
     def _rest(self, t: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
