@@ -136,6 +136,21 @@ def test_tiny_run_writes_tables_and_figures(tiny_run):
     assert (work / "results/sweep/tiny_cloth/sweep.png").stat().st_size > 1000
 
 
+def test_reduced_baselines_step_with_a_cubature(tiny_run):
+    """tiny_cloth asks for a 1% cubature: the PCA and Fulton rollouts record one that fits and
+    leaves out most elements, and still finish their test sequence."""
+    work, _ = tiny_run
+    with h5py.File(work / "results/sim/tiny_cloth/trajectories.h5") as f:
+        n_tri = len(f["triangles"])
+    for method in ("pca_reduced", "fulton_reduced"):
+        with h5py.File(work / f"results/rollout/tiny_cloth/{method}/rollout.h5") as g:
+            assert g.attrs["cubature_force_error"] <= 0.01
+            k = int(g.attrs["cubature_elements"])
+            assert 0 < k == len(g["cubature_index"]) < n_tri  # triangles + hinges together: far fewer
+            assert (g["cubature_weights"][()] > 0).all()
+            assert g["sequences/line"].attrs["diverged_frame"] == -1
+
+
 def test_tiny_cloth_swings_out_of_its_plane(tiny_run):
     """The cloth hangs in the xy plane; its corners move along z, so it must bend out of that plane.
 
