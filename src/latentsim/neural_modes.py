@@ -62,7 +62,7 @@ from torch import nn
 
 from .energy.dynamics import IncrementalPotential
 from .solver import stiffness_matrix
-from .sparse import HessianPattern, scatter_gradient, symmetric_from_upper
+from .sparse import HessianPattern, LinearSolver, NotPositiveDefinite, scatter_gradient, symmetric_from_upper
 
 log = logging.getLogger(__name__)
 
@@ -447,7 +447,10 @@ class ConstrainedNewton:
         K0, _ = stiffness_matrix(potential, self.X, self.free)
         self.diag = reg * abs(K0.diagonal()).max() / m3.max() * m3
         # Levenberg shifts are multiples of M, starting at the lowest nonzero rest eigenvalue's scale
-        self.mass_matrix = scipy.sparse.diags(m3[self.free]).tocsc()
+        self.mass_diagonal = m3[self.free]
+        # the scene's fastest SPD solver (PARDISO on tets, with its symbolic analysis reused); an
+        # indefinite exact Hessian falls back to SuperLU on the full matrix (see _direction)
+        self.linear = LinearSolver(self.pattern)
         self.damping0 = 1e-3 * abs(K0.diagonal()).mean() / m3.mean()
 
     def energy(self, x) -> float:
@@ -462,7 +465,7 @@ class ConstrainedNewton:
             grads.append(g.numpy())
             blocks.append(H.numpy())
         g = scatter_gradient(self.n, self.stencils, grads)
-        return g, symmetric_from_upper(self.pattern.assemble(blocks, self.diag)).tocsc()
+        return g, self.pattern.assemble(blocks, self.diag)  # upper triangle, the pattern's CSR
 
     def constraints(self, l) -> np.ndarray:
         """C (f, c): the columns whose inner products with y must vanish."""
@@ -503,7 +506,10 @@ class ConstrainedNewton:
             # exact Hessian, shifted by a multiple of M (Levenberg) until the step is a descent
             # direction (for the KKT step, dx^T (H + d M) dx = -g^T dx: positive curvature)
             while True:
-                Hs = H if damping == 0 else H + damping * self.mass_matrix
+                Hs = H
+                if damping:
+                    Hs = H.copy()
+                    Hs.data[self.pattern.diagonal_slots] += damping * self.mass_diagonal
                 dx = self._direction(Hs, gf, C)
                 if gf @ dx < 0 or damping > 1e12 * self.damping0:
                     break
@@ -539,14 +545,18 @@ class ConstrainedNewton:
             grads = [t.local_gradient_hessian(t.gather(xt), project=False)[0].numpy() for t in self.pot.terms]
         return scatter_gradient(self.n, self.stencils, grads)
 
-    @staticmethod
-    def _direction(H, gf, C):
-        """dx minimising the quadratic model on {C^T dx = 0}: a - B (C^T B)^{-1} C^T a."""
-        lu = scipy.sparse.linalg.splu(H)
-        a = lu.solve(-gf)
+    def _direction(self, U, gf, C):
+        """dx minimising the quadratic model on {C^T dx = 0}: a - B (C^T B)^{-1} C^T a, with
+        [a, B] = H^-1 [-g, C] in one multi-right-hand-side solve; U is H's upper triangle."""
+        rhs = np.column_stack([-gf, C])
+        try:
+            sol = self.linear.solve(U, rhs)
+        except NotPositiveDefinite:  # the exact Hessian may be indefinite: the KKT step still exists
+            sol = scipy.sparse.linalg.splu(symmetric_from_upper(U).tocsc()).solve(rhs)
+        sol = sol.reshape(len(gf), -1)
+        a, B = sol[:, 0], sol[:, 1:]
         if not C.shape[1]:
             return a
-        B = lu.solve(C)
         return a - B @ np.linalg.solve(C.T @ B, C.T @ a)
 
 
