@@ -164,3 +164,26 @@ def test_rollout_records_the_frame_that_does_not_converge(beam):
     assert out["diverged_frame"] == 2
     assert np.isnan(out["positions"][2:]).all() and np.isfinite(out["positions"][:2]).all()
     assert out["positions"].shape == (len(xD), len(V), 3) and out["latents"].shape == (len(xD), 1)
+
+
+@pytest.mark.parametrize("mode", ["mean", "roots"])
+def test_modes_subspace_spans_the_vibration_modes_and_follows_the_clamp(beam, mode):
+    """modes_reduced: q = 0 is the rest shape carried by the clamp's translation, and the
+    directions are the M-orthonormal lowest modes (zero on the clamp), whose reduced stiffness
+    J^T K J is diag(omega^2)."""
+    from latentsim.baselines import modes_subspace
+    from latentsim.solver import lowest_modes, stiffness_matrix
+
+    V, D, pot, _ = beam
+    coords = RelativeCoordinates(len(V), D, "mean") if mode == "mean" else _hard_coords(V, D)
+    sub = modes_subspace(coords, pot, V, 3)
+    t = np.array([0.01, -0.02, 0.03])
+    assert np.allclose(sub.map(np.zeros(3), V[D] + t), V + t, atol=1e-12)
+    _, J = sub.jacobian(np.zeros(3), V[D])
+    assert np.abs(J.reshape(len(V), 3, 3)[D]).max() == 0.0
+    w, _, free = lowest_modes(pot, 3, V)
+    K, _ = stiffness_matrix(pot, V, free)
+    m = np.repeat(pot.masses.numpy(), 3)
+    Jf = J[free]
+    assert np.allclose(Jf.T @ (m[free, None] * Jf), np.eye(3), atol=1e-8)
+    assert np.allclose(Jf.T @ (K @ Jf), np.diag(w), rtol=1e-6, atol=1e-8 * w.max())

@@ -137,12 +137,12 @@ def test_tiny_run_writes_tables_and_figures(tiny_run):
 
 
 def test_reduced_baselines_step_with_a_cubature(tiny_run):
-    """tiny_cloth asks for a 1% cubature: the PCA and Fulton rollouts record one that fits and
-    leaves out most elements, and still finish their test sequence."""
+    """tiny_cloth asks for a 1% cubature: the PCA, linear-modes and Fulton rollouts record one that
+    fits and leaves out most elements, and still finish their test sequence."""
     work, _ = tiny_run
     with h5py.File(work / "results/sim/tiny_cloth/trajectories.h5") as f:
         n_tri = len(f["triangles"])
-    for method in ("pca_reduced", "fulton_reduced"):
+    for method in ("pca_reduced", "modes_reduced", "fulton_reduced"):
         with h5py.File(work / f"results/rollout/tiny_cloth/{method}/rollout.h5") as g:
             assert g.attrs["cubature_force_error"] <= 0.01
             k = int(g.attrs["cubature_elements"])

@@ -7,6 +7,10 @@ as the full-space solver) over a subspace, with :mod:`latentsim.reduced`:
 - ``pca_reduced``: linear subspace of the principal components of the
   training frames (in the autoencoder's relative coordinates), as many as the
   latent dimension unless ``reduced.pca_dim`` says otherwise;
+- ``modes_reduced``: linear subspace of the lowest vibration modes of the rest
+  state (K e = omega^2 M e with the Dirichlet vertices fixed, sparse
+  shift-invert), as many as ``pca_reduced`` takes, in the same relative
+  coordinates (the Dirichlet set's motion carries the modes);
 - ``fulton_reduced``: the autoencoder's decoder as the subspace map, the
   optimisation-based latent dynamics of Fulton et al. 2019;
 - ``newton_1it``: the full-space solver stopped after one Newton iteration per
@@ -37,12 +41,12 @@ from . import latent, reduced
 from .cubature import check_supported, cubature_potential, fit_cubature
 from .io import atomic_h5, write_dataset
 from .scene import potential_from_artefact
-from .solver import ImplicitEuler, NewtonFailed, NewtonSettings
+from .solver import ImplicitEuler, NewtonFailed, NewtonSettings, lowest_modes
 from .train import coordinates_for, load_sequences, time_full_space
 
 log = logging.getLogger(__name__)
 
-BASELINES = ("pca_reduced", "fulton_reduced", "newton_1it")
+BASELINES = ("pca_reduced", "modes_reduced", "fulton_reduced", "newton_1it")
 
 
 def newton_rollout(potential_free, x0, x1, dirichlet_positions, iterations: int = 1, tolerance: float = 1e-6) -> dict:
@@ -78,16 +82,29 @@ def newton_rollout(potential_free, x0, x1, dirichlet_positions, iterations: int 
     return {"positions": X, "latents": np.zeros((T, 0)), "step_ms": ms, "iterations": iters, "diverged_frame": int(diverged)}
 
 
-def make_subspace(method: str, ae, coords, train: dict, settings: dict):
-    """The subspace of a baseline (see the module docstring)."""
+def make_subspace(method: str, ae, coords, train: dict, settings: dict, potential=None, rest_positions=None):
+    """The subspace of a baseline (see the module docstring); ``modes_reduced`` needs the
+    scene's potential and rest positions."""
+    r = int(settings.get("pca_dim") or ae.latent_dim)
     if method == "pca_reduced":
-        r = int(settings.get("pca_dim") or ae.latent_dim)
         X = np.concatenate([s["positions"] for s in train.values()])
         XD = np.concatenate([s["dirichlet_positions"] for s in train.values()])
         return reduced.LinearSubspace.from_frames(coords, X, XD, r)
+    if method == "modes_reduced":
+        return modes_subspace(coords, potential, rest_positions, r)
     if method == "fulton_reduced":
         return reduced.DecoderSubspace(ae, coords)
     raise ValueError(f"unknown baseline {method!r}; known: {list(BASELINES)}")
+
+
+def modes_subspace(coords, potential, rest_positions, r: int) -> reduced.LinearSubspace:
+    """The r lowest vibration modes of the rest state as a :class:`reduced.LinearSubspace` of
+    ``coords`` (zero on the Dirichlet vertices, which follow their prescribed motion)."""
+    X = np.asarray(rest_positions, dtype=np.float64)
+    _, V, free = lowest_modes(potential, r, X)
+    full = np.zeros((X.size, r))
+    full[free] = V
+    return reduced.LinearSubspace.from_vectors(coords, X, potential.dirichlet.cpu().numpy(), full)
 
 
 def fit_subspace_cubature(potential, subspace, train: dict, settings: dict):
@@ -127,7 +144,7 @@ def baseline_rollouts(trajectories, ae_path, method: str, settings: dict, out, p
     if method == "newton_1it":
         subspace, solver, cub = None, None, None
     else:
-        subspace = make_subspace(method, ae, coords, train, settings)
+        subspace = make_subspace(method, ae, coords, train, settings, potential, root["rest_positions"])
         rs = reduced.ReducedSettings(
             method=settings.get("method", "newton"), max_iterations=int(settings.get("max_iterations", 50)), tolerance=float(settings.get("tolerance", 1e-6))
         )

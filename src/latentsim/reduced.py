@@ -117,6 +117,14 @@ class LinearSubspace:
         mean, V, _ = pca_basis(U.reshape(-1, coords.dim), r)
         return cls(coords, mean.numpy(), V.numpy().T)
 
+    @classmethod
+    def from_vectors(cls, coords, rest_positions, dirichlet, vectors):
+        """Subspace about the rest state spanned by full-space vectors (3n, r), e.g. vibration
+        modes (their rows on vertices the coordinates do not encode are dropped)."""
+        X = np.asarray(rest_positions, dtype=np.float64)
+        u0 = coords.encode(torch.as_tensor(X), torch.as_tensor(X[np.asarray(dirichlet, dtype=np.int64)])).numpy().reshape(-1)
+        return cls(coords, u0, np.asarray(vectors, dtype=np.float64)[_encoded_rows(coords)])
+
     def map(self, q, xD) -> np.ndarray:
         return _relative_decode(self.coords, self.u0 + self.basis @ np.asarray(q, dtype=np.float64), xD)
 
