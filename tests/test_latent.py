@@ -397,6 +397,22 @@ def test_checkpoint_resume_equals_uninterrupted(chain_setup, tmp_path):
         fit_integrator(ae, coords, ch.pot, seqs, {**cfg, "widths": [8]}, seed=3, checkpoint_path=path)
 
 
+def test_cosine_learning_rate_decay(chain_setup, tmp_path):
+    """lr_final: the rate follows lr_final + (lr - lr_final)(1 + cos(pi e / E)) / 2 over the epochs
+    (a function of the epoch, so a resumed run sets it alike); lr_final = lr is the constant run."""
+    ch, seqs, coords, ae = chain_setup
+    cfg = dict(widths=[16], epochs=5, lr=1e-3, batch_size=40, checkpoint_every=1)
+    path = tmp_path / "cos.pt"
+    fit_integrator(ae, coords, ch.pot, seqs, {**cfg, "lr_final": 1e-5}, seed=3, checkpoint_path=path)
+    last = torch.load(path, weights_only=True)["optimizer"]["param_groups"][0]["lr"]
+    assert last == pytest.approx(1e-5 + 0.5 * (1e-3 - 1e-5) * (1 + math.cos(math.pi * 4 / 5)), rel=1e-12)
+    const, hc = fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=3)
+    flat, hf = fit_integrator(ae, coords, ch.pot, seqs, {**cfg, "lr_final": 1e-3}, seed=3)
+    assert hf["loss"] == hc["loss"]
+    decayed, hd = fit_integrator(ae, coords, ch.pot, seqs, {**cfg, "lr_final": 1e-5}, seed=3)
+    assert hd["loss"][0] == hc["loss"][0] and hd["loss"][-1] != hc["loss"][-1]  # same first epoch, then slower steps
+
+
 class _NaNAfter:
     """Wraps a potential; returns NaN from the (calls+1)-th evaluation on."""
 

@@ -27,6 +27,7 @@ float32; decoded states are cast to float64 before the potential is evaluated.
 from __future__ import annotations
 
 import copy
+import math
 import os
 import warnings
 from typing import Any, Callable, Sequence
@@ -120,6 +121,7 @@ INTEGRATOR_DEFAULTS: dict[str, Any] = {
     "widths": [256, 256, 256],
     "epochs": 1000,
     "lr": 1e-4,
+    "lr_final": None,  # None: constant lr; else cosine decay from lr to lr_final over the epochs
     "batch_size": 500,
     "mode": "self_supervised",  # or "supervised"
     "noise_scale": 0.1,  # Eq. 5; 0 disables the training noise
@@ -800,7 +802,7 @@ def fit_integrator(
     potential : IncrementalPotential of the scene (the self-supervised loss).
     sequences : training sequences (see :func:`build_triplets`).
     config : keys of :data:`INTEGRATOR_DEFAULTS`: widths, epochs, lr,
-        batch_size, mode ('self_supervised' | 'supervised'), noise_scale,
+        lr_final (cosine decay of the learning rate to it; None: constant), batch_size, mode ('self_supervised' | 'supervised'), noise_scale,
         balancing, balancing_eps, use_penalty, residual, checkpoint_path,
         checkpoint_every.
     seed : seeds weight init, minibatch order and the training noise.
@@ -877,6 +879,10 @@ def fit_integrator(
     epochs, every = int(cfg["epochs"]), max(1, int(cfg["checkpoint_every"]))
     bar = tqdm(range(start, epochs), desc="integrator", disable=not progress, leave=False)
     for epoch in bar:
+        if cfg["lr_final"] is not None:  # cosine decay, a function of the epoch alone (resumes exactly)
+            lr0, lr1 = float(cfg["lr"]), float(cfg["lr_final"])
+            for group in opt.param_groups:
+                group["lr"] = lr1 + 0.5 * (lr0 - lr1) * (1.0 + math.cos(math.pi * epoch / epochs))
         integ.train()
         tot, mse, cnt = 0.0, 0.0, 0
         for b, idx in enumerate(_batches(N, int(cfg["batch_size"]), gen)):
