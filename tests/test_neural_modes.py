@@ -5,7 +5,8 @@
   Euler-Bernoulli; on a free-floating sheet the six rigid modes are absent and
   the first kept eigenvalue is the seventh of the full (dense, tiny) problem.
 - Neural Modes: n(0) = X, lower energy than the linear modes at the same z,
-  the orthogonality l^T y = 0 approximately held.
+  the orthogonality l^T y = 0 approximately held, the sheet's half-turn
+  symmetry kept by the learned correction.
 - Ground truth (Eq. 9): KKT residual small, constraint exact, and the
   solution tends to the linear mode as z -> 0.
 """
@@ -134,6 +135,33 @@ def test_neural_modes_origin_and_energy_below_linear(sheet_setup, trained):
         # the loss's parts are what it says
         _loss, parts = neural_modes_loss(model, pot, z, lam=cfg["lam"], eta=cfg["eta"])
         assert float(parts["energy"]) == pytest.approx(float(e_nm.mean()), rel=1e-12)
+
+
+def test_neural_modes_keep_the_sheets_symmetry(sheet_setup, trained):
+    """The square sheet's mesh and its two lowest modes are invariant under the half turn about
+    its normal (x, z) -> (-x, -z) (the grid's diagonals rule out mirrors); so is the energy, and the
+    trained correction y(z) must be too: act(y(z)) = y(z) for every z."""
+    pot, V, lm, _R = sheet_setup
+    model, _, cfg = trained
+    half_turn = np.array([-1.0, 1.0, -1.0])
+    image = V * half_turn
+    perm = np.array([np.argmin(np.linalg.norm(V - v, axis=1)) for v in image])
+    assert np.allclose(V[perm], image, atol=1e-14)  # a symmetry of the mesh
+
+    def act(u):
+        u = np.asarray(u).reshape(len(u), -1, 3) * half_turn
+        out = np.empty_like(u)
+        out[:, perm] = u
+        return out.reshape(len(u), -1)
+
+    assert np.allclose(act(lm.modes.T), lm.modes.T, atol=1e-10)  # both modes even under it
+    z = modal_samples("grid", 2, cfg["box"], resolution=5)
+    z = z[z.abs().max(1).values > 0]
+    with torch.no_grad():
+        y = model.correction(z).numpy()
+    size = np.linalg.norm(y, axis=1)
+    assert size.min() > 1e-3  # a real correction everywhere off the origin
+    assert (np.linalg.norm(act(y) - y, axis=1) / size).max() < 1e-3
 
 
 def test_origin_penalty_alone_keeps_the_origin_approximately(sheet_setup):
