@@ -5,7 +5,7 @@ elastic Hessian generalised with the lumped mass matrix,
 
     K e_i = omega_i^2 M e_i,
 
-found by shift-invert Lanczos (``scipy.sparse.linalg.eigsh``, never a dense
+found by shift-invert Lanczos (``solver.lowest_modes``: ``eigsh``, never a dense
 matrix).  With Dirichlet constraints the prescribed DoFs are removed.  A
 free-floating object has six zero modes (rigid translations and rotations);
 K is singular there, so the shift is a small *negative* sigma (K - sigma M is
@@ -61,7 +61,7 @@ import torch
 from torch import nn
 
 from .energy.dynamics import IncrementalPotential
-from .solver import stiffness_matrix
+from .solver import fix_sign, lowest_modes, stiffness_matrix
 from .sparse import HessianPattern, LinearSolver, NotPositiveDefinite, scatter_gradient, symmetric_from_upper
 
 log = logging.getLogger(__name__)
@@ -127,14 +127,6 @@ def rigid_modes(X, masses) -> np.ndarray:
     return np.linalg.solve(Lc, R.T).T
 
 
-def _fix_sign(V: np.ndarray) -> np.ndarray:
-    """Make each column's largest-magnitude entry positive (eigenvectors have no sign)."""
-    idx = np.argmax(np.abs(V), axis=0)
-    s = np.sign(V[idx, np.arange(V.shape[1])])
-    s[s == 0] = 1.0
-    return V * s
-
-
 def linear_modes(
     potential: IncrementalPotential, k: int, x, boundary: str = "dirichlet", normalization: str = "mass", tol: float = 0.0
 ) -> LinearModes:
@@ -164,18 +156,9 @@ def linear_modes(
     if boundary == "dirichlet":
         free[potential.dirichlet.cpu().numpy()] = False
     free_dofs = np.flatnonzero(np.repeat(free, 3))
-    K, _ = stiffness_matrix(potential, x, free_dofs)
-    m = np.repeat(masses, 3)[free_dofs]
     n_rigid = 6 if boundary == "free" else 0
-    nev = k + n_rigid
-    if nev >= len(free_dofs) - 1:
-        raise ValueError(f"{nev} modes asked of a {len(free_dofs)}-DoF system")
-    # K - sigma M with sigma < 0 is positive definite even where K is singular (free body)
-    sigma = -1e-8 * abs(K.diagonal()).max() / m.max()
-    v0 = np.random.default_rng(0).standard_normal(len(free_dofs))  # fixed start: reproducible modes
-    w, V = scipy.sparse.linalg.eigsh(K.tocsc(), k=nev, M=scipy.sparse.diags(m).tocsc(), sigma=sigma, which="LM", tol=tol, v0=v0)
-    order = np.argsort(w)
-    w, V = w[order], V[:, order]
+    m = np.repeat(masses, 3)[free_dofs]
+    w, V, _ = lowest_modes(potential, k + n_rigid, x, free_dofs, tol=tol)
     if n_rigid:
         R = rigid_modes(x, masses)
         # the six lowest must span the rigid space: their M-projection onto it keeps them whole
@@ -188,7 +171,7 @@ def linear_modes(
         V = V / np.sqrt((m[:, None] * V * V).sum(0))
     if normalization == "euclidean":
         V = V / np.linalg.norm(V, axis=0)
-    V = _fix_sign(V)
+    V = fix_sign(V)
     full = np.zeros((3 * n, k))
     full[free_dofs] = V
     return LinearModes(omega2=w, modes=full, free_dofs=free_dofs, rigid_removed=n_rigid, normalization=normalization)

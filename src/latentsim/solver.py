@@ -347,12 +347,20 @@ def stiffness_matrix(potential: IncrementalPotential, x, free_dofs=None):
     return symmetric_from_upper(pattern.assemble(blocks, np.zeros(3 * n))).tocsr(), free_dofs
 
 
-def lowest_modes(potential: IncrementalPotential, k: int, x):
+def lowest_modes(potential: IncrementalPotential, k: int, x, free_dofs=None, tol: float = 0.0):
     """The k lowest (omega^2, mode) of K v = omega^2 M v on the free DoFs.
 
-    Sparse shift-invert Lanczos (``eigsh`` with sigma = 0) on the rest-state
-    elastic Hessian at ``x`` (n,3) (normally the rest state) and the lumped
-    mass; no dense matrix is formed.
+    Sparse shift-invert Lanczos (``eigsh`` about a small negative shift, so that
+    K - sigma M is positive definite even where K is singular) on the elastic
+    Hessian at ``x`` (n,3) (normally the rest state) and the lumped mass; no
+    dense matrix is formed.  The Lanczos start vector is fixed and each mode's
+    largest-magnitude entry made positive, so the same inputs give the same
+    modes in every process (ARPACK's own start is random).
+
+    Parameters
+    ----------
+    free_dofs : the DoFs kept; default: all but the potential's Dirichlet set.
+    tol : ARPACK's relative accuracy (0: machine precision).
 
     Returns
     -------
@@ -361,9 +369,20 @@ def lowest_modes(potential: IncrementalPotential, k: int, x):
     import scipy.sparse
     import scipy.sparse.linalg
 
-    K, free = stiffness_matrix(potential, x)
-    m = np.repeat(potential.masses.cpu().numpy(), 3)[free]
-    M = scipy.sparse.diags(m)
-    w, V = scipy.sparse.linalg.eigsh(K, k=k, M=M, sigma=-1e-8 * abs(K.diagonal()).max() / m.max(), which="LM")
+    K, free = stiffness_matrix(potential, x, free_dofs)
+    m = np.repeat(potential.masses.detach().cpu().numpy().astype(np.float64), 3)[free]
+    if k >= len(free) - 1:
+        raise ValueError(f"{k} modes asked of a {len(free)}-DoF system")
+    sigma = -1e-8 * abs(K.diagonal()).max() / m.max()
+    v0 = np.random.default_rng(0).standard_normal(len(free))
+    w, V = scipy.sparse.linalg.eigsh(K.tocsc(), k=k, M=scipy.sparse.diags(m).tocsc(), sigma=sigma, which="LM", tol=tol, v0=v0)
     order = np.argsort(w)
-    return w[order], V[:, order], free
+    return w[order], fix_sign(V[:, order]), free
+
+
+def fix_sign(V: np.ndarray) -> np.ndarray:
+    """Make each column's largest-magnitude entry positive (eigenvectors have no sign)."""
+    idx = np.argmax(np.abs(V), axis=0)
+    s = np.sign(V[idx, np.arange(V.shape[1])])
+    s[s == 0] = 1.0
+    return V * s
