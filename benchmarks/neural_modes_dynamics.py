@@ -10,7 +10,8 @@ Hessian J^T H J (the paper's future work), and the linear modes alone with Gauss
 ms/step (median and mean over the steps) and the position error against the full simulation
 (mean and max over frames of the RMS vertex error, relative to the rest bounding-box diagonal),
 and the median split of a step (map + Jacobian, full-space gradient + Hessian, reduction + solve,
-line search; L-BFGS reports none).
+line search; L-BFGS reports none).  The full-space Newton frame of the same sequence is timed in the
+same run (the mean over 20 frames spread over it, as the rollout stage does).
 
 Every method runs twice: with every element, and with a cubature (latentsim.cubature) fitted to
 each subspace's reduced elastic forces at poses drawn in the scene's Neural Modes training box
@@ -38,6 +39,7 @@ from latentsim.neural_modes import load_neural_modes
 from latentsim.nm_dynamics import NeuralModesSubspace
 from latentsim.reduced import ReducedSettings, reduced_rollout
 from latentsim.scene import potential_from_artefact
+from latentsim.train import time_full_space
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -66,6 +68,7 @@ def main():
             ref = f["sequences"][name]["positions"][: args.frames]
             xD = f["sequences"][name]["dirichlet_positions"][: args.frames]
             X = f["rest_positions"][()]
+            full = time_full_space(f, name)
         model = load_neural_modes(ROOT / "results" / "neural_modes" / scene / "neural_modes.pt")
         diag = float(np.linalg.norm(X.max(0) - X.min(0)))
         D = pot.dirichlet.numpy()
@@ -89,6 +92,8 @@ def main():
             ("Neural Modes, Gauss-Newton, cubature", neural, "newton", cub["Neural Modes"]),
             ("linear modes, Newton, cubature", linear, "newton", cub["linear modes"]),
         )
+        print(f"| {scene} | {X.size:,} | full space, Newton ({full['full_frames_timed']} frames) | | {full['full_ms']:.1f} | | "
+              f"{full['full_iterations']:.1f} | 0 | 0 | | | | | |", flush=True)  # fmt: skip
         for label, sub, method, potential in runs:
             q0 = np.zeros(sub.dim)
             out = reduced_rollout(sub, potential, q0, q0, xD, ReducedSettings(method=method, max_iterations=100))
