@@ -195,3 +195,73 @@ def test_solver_steps_agree_with_the_reference_path(model):
         assert info.iterations >= 1
         assert np.abs(x - y).max() <= 1e-7 * np.ptp(X)
         x2, x1, y2, y1 = x1, x, y1, y
+
+
+# ---------------------------------------------------------------------------
+# the compiled elastic energy of many states (the self-supervised losses)
+# ---------------------------------------------------------------------------
+def test_compiled_elastic_matches_the_terms_in_value_and_gradient(case):
+    """potential.elastic through the kernels (with_compiled_elastic) against the terms' PyTorch
+    energies under autograd, on a (2, 3) batch of states: same energies, same gradients."""
+    _, pot, X, _ = case
+    fast = kernels.with_compiled_elastic(pot)
+    assert fast is not pot and fast.kernels is not None
+    x0 = torch.as_tensor(np.stack(states(X, 4, count=6)).reshape(2, 3, *X.shape))
+    xa, xb = x0.clone().requires_grad_(True), x0.clone().requires_grad_(True)
+    ea, eb = pot.elastic(xa), fast.elastic(xb)
+    assert eb.shape == (2, 3)
+    w = torch.arange(1.0, 7.0, dtype=torch.float64).reshape(2, 3)  # a weighted sum: each state's gradient scaled
+    (w * ea).sum().backward()
+    (w * eb).sum().backward()
+    assert close(eb.detach(), ea.detach())
+    assert close(xb.grad, xa.grad)
+    with torch.no_grad():  # the energy-only pass
+        assert close(fast.elastic(x0), ea.detach())
+
+
+def test_compiled_elastic_is_the_same_on_any_thread_count_and_refuses_second_derivatives(case):
+    _, pot, X, ks = case
+    x = np.stack(states(X, 5, count=5))
+    E1, G1 = kernels.batch_energy_gradient(ks, x, threads=1)
+    E2, G2 = kernels.batch_energy_gradient(ks, x, threads=2)
+    assert np.array_equal(E1, E2) and np.array_equal(G1, G2)
+    xt = torch.as_tensor(x).requires_grad_(True)
+    # with another differentiable term beside it, a Hessian-vector product would silently miss the
+    # elastic part (the kernels' gradient is a constant to autograd): it must raise instead
+    total = (xt**2).sum() + kernels.compiled_energy(ks, xt).sum()
+    with pytest.raises(RuntimeError, match="first derivatives only"):
+        torch.autograd.grad(total, xt, create_graph=True)
+    (g,) = torch.autograd.grad(total, xt)  # a first derivative is fine
+    assert close(g, 2 * xt.detach() + torch.as_tensor(G1))
+    with pytest.raises(ValueError, match="float64 CPU"):
+        kernels.compiled_energy(ks, xt.detach().float())
+
+
+def test_integrator_training_with_compiled_energies_follows_the_pytorch_one(monkeypatch):
+    """fit_integrator on a tiny cloth simulated by the solver: with the compiled elastic energy
+    (the default on the CPU) the self-supervised loss history is the PyTorch energy's to
+    rounding, epoch by epoch, and the trained weights agree."""
+    from latentsim.latent import Autoencoder, RelativeCoordinates, fit_integrator
+
+    pot, X = scene("shell")
+    solver = ImplicitEuler(pot, NewtonSettings(tolerance=1e-8))
+    D = solver.dirichlet
+    T = 14
+    xD = np.stack([X[D] + [0.0, 0.0, 0.02 * t] for t in range(T)])
+    xs = [X.copy(), X.copy()]
+    for t in range(2, T):
+        xs.append(solver.step(xs[-1], xs[-2], xD[t])[0])
+    seq = {"positions": torch.as_tensor(np.stack(xs)), "dirichlet_positions": torch.as_tensor(xD), "bc": torch.full((T, 1), 0.6)}
+    coords = RelativeCoordinates(len(X), D, "mean")
+    ae = Autoencoder(coords.dim, 3, [16], pca_dim=3)
+    ae.init_pca(coords.encode(seq["positions"], seq["dirichlet_positions"]))
+    cfg = dict(widths=[16], epochs=3, lr=1e-3, batch_size=6)
+    calls = []
+    original = kernels.batch_energy_gradient
+    monkeypatch.setattr(kernels, "batch_energy_gradient", lambda *a, **k: calls.append(1) or original(*a, **k))
+    a, ha = fit_integrator(ae.eval(), coords, pot, [seq], cfg, seed=0, compiled=True)
+    used = len(calls)
+    b, hb = fit_integrator(ae.eval(), coords, pot, [seq], cfg, seed=0, compiled=False)
+    assert used == 3 * 2 and len(calls) == used  # one call per batch (12 triplets, 2 batches) and epoch; none without
+    assert np.allclose(ha["loss"], hb["loss"], rtol=1e-9, atol=0)
+    assert all(torch.allclose(pa, pb, rtol=1e-6, atol=1e-9) for pa, pb in zip(a.parameters(), b.parameters()))

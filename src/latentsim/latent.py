@@ -36,6 +36,8 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from .energy.kernels import with_compiled_elastic
+
 __all__ = [
     "AE_DEFAULTS",
     "INTEGRATOR_DEFAULTS",
@@ -792,6 +794,7 @@ def fit_integrator(
     device="cpu",
     progress: bool = False,
     checkpoint_path: str | os.PathLike | None = None,
+    compiled: bool = True,
 ):
     """Train a :class:`LatentIntegrator` on ground-truth triplets.
 
@@ -812,6 +815,10 @@ def fit_integrator(
         ``os.replace``; if the file exists at start, training resumes from
         it (same seed and architecture required).  On CPU a resumed run is
         bitwise identical to an uninterrupted one.
+    compiled : on the CPU, the loss's elastic energy runs the simulator's compiled
+        kernels (``energy.kernels.with_compiled_elastic``: the same formulas, 5-8x
+        faster than the batched PyTorch energy under autograd); False: the terms'
+        PyTorch energies.
 
     Returns
     -------
@@ -834,6 +841,8 @@ def fit_integrator(
     ae_f = copy.deepcopy(ae).to(device).eval()
     ae_f.requires_grad_(False)
     pot = _move_potential(potential, device)
+    if compiled and device.type == "cpu":
+        pot = with_compiled_elastic(pot)
     data = build_triplets(ae_f, coords, sequences)
     N = data["z"].shape[0]
     r, k = data["z"].shape[1], data["p"].shape[1]

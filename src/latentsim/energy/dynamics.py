@@ -63,6 +63,7 @@ class IncrementalPotential:
     g: torch.Tensor
     dirichlet: torch.Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.long))
     w_bc: float = 1e5
+    kernels: list | None = None
 
     @property
     def n_vertices(self) -> int:
@@ -70,6 +71,10 @@ class IncrementalPotential:
 
     def elastic(self, x: torch.Tensor) -> torch.Tensor:
         """Elastic energy, x (..., n, 3) -> (...)."""
+        if self.kernels is not None and x.device.type == "cpu" and x.dtype == torch.float64:
+            from .kernels import compiled_energy
+
+            return compiled_energy(self.kernels, x)
         total = torch.zeros(x.shape[:-2], dtype=x.dtype, device=x.device)
         for term in self.terms:
             total = total + term.energy(x)
