@@ -8,14 +8,19 @@ the floor: the bare sparse factorisation + solve of the same matrix (for the
 banded solver, of the banded storage: no CSR -> band conversion counted).
 
 The split and ms/iteration are medians over the timed frames of (the frame's
-time in each part / its Newton iterations); the energy part includes the
-frame's initial-guess evaluations.  Each row runs with the compiled
+time in each part / its Newton iterations): energy (the line search's
+energy + gradient evaluations), grad+Hess+proj, assembly and solve.  The
+frame's initial guess (the energies of three candidate states and the
+gradient of the best, once per frame, before any iteration) is reported per
+frame beside them, not in the iteration.  Each row runs with the compiled
 per-stencil kernels (``energy.kernels``, the solver's default; they add
 straight into the matrix, so their scatter counts as grad+Hess+proj and
-assembly is what remains: inertia, gravity, the matrix wrapper) and with the
-reference path (the terms' NumPy closed forms and PyTorch energies, as before
-the kernels); the last column is how far the two paths' final states lie
-apart after the same frames.  The untimed warm-up frames also absorb the
+assembly is what remains: inertia, gravity, the matrix wrapper), on one and
+on two threads (``--kernel-threads``: two vertex-disjoint halves of each
+term's stencils at once), and with the reference path (the terms' NumPy
+closed forms and PyTorch energies, as before the kernels); the last column
+is how far each path's final state lies from the reference path's after the
+same frames.  The untimed warm-up frames also absorb the
 kernels' JIT compile (or cache load).
 
     python benchmarks/bench_simulator.py [--frames 20] [--scenes armadillo hair_rotation] [--repeats 3]
@@ -50,6 +55,7 @@ from latentsim.sparse import BandedUpper
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_MS = {"hair_rotation": 268.0, "hair_translation": 208.0, "cloth": 18.83, "armadillo": 136.8, "bunny_ears": 112.6}
 TARGET_MS = {"armadillo": 300.0, "hair_rotation": 100.0}
+PARTS = ("energy", "local", "assembly", "solve")  # of one Newton iteration (the initial guess is per frame)
 
 
 def prepare_scene(name, sc, meshes):
@@ -61,20 +67,21 @@ def prepare_scene(name, sc, meshes):
     return arrays, pot
 
 
-def bench_scene(name, sc, arrays, pot, frames, warmup, hessian, path="kernels"):
+def bench_scene(name, sc, arrays, pot, frames, warmup, hessian, path="kernels", threads=1):
     """Simulate the first frames of the scene's first sequence; time them and the floor.
 
-    ``path``: 'kernels' (compiled per-stencil kernels) or 'reference' (the
-    terms' NumPy closed forms and PyTorch energies, as before the kernels).
+    ``path``: 'kernels' (compiled per-stencil kernels, on ``threads`` threads) or
+    'reference' (the terms' NumPy closed forms and PyTorch energies, as before the kernels).
     """
-    solver = ImplicitEuler(pot, NewtonSettings(**dict(sc["newton"], hessian=hessian)), kernels=path == "kernels")
+    settings = NewtonSettings(**dict(sc["newton"], hessian=hessian))
+    solver = ImplicitEuler(pot, settings, kernels=path == "kernels", threads=threads)
     seq = sc["sequences"][0]
     T = min(int(seq["frames"]), frames + warmup + 1)
     p = bc_parameters(seq, T)
     rest = np.asarray(arrays["rest_positions"], dtype=np.float64)
     xD = dirichlet_trajectory(rest[solver.dirichlet], p, sc["dt"])
     x2 = x1 = rest.copy()
-    frame_ms, iters, fallbacks, per_it = [], [], [], []
+    frame_ms, iters, fallbacks, per_it, guess = [], [], [], [], []
     for t in range(1, T):
         t0 = time.perf_counter()
         x, info = solver.step(x1, x2, xD[t])
@@ -83,8 +90,9 @@ def bench_scene(name, sc, arrays, pot, frames, warmup, hessian, path="kernels"):
             frame_ms.append(1e3 * dt)
             iters.append(info.iterations)
             fallbacks.append(info.projected)
+            guess.append(1e3 * info.timings["guess"])
             if info.iterations:  # this frame's split of one Newton iteration [ms]
-                per_it.append({k: 1e3 * v / info.iterations for k, v in info.timings.items()})
+                per_it.append({k: 1e3 * v / info.iterations for k, v in info.timings.items() if k != "guess"})
         x2, x1 = x1, x
     # floor: the bare factorisation + solve of the same matrix (for 'banded', of the banded
     # storage, so a CSR -> band conversion is not counted), repeated
@@ -100,17 +108,18 @@ def bench_scene(name, sc, arrays, pot, frames, warmup, hessian, path="kernels"):
         floor.append(time.perf_counter() - t0)
     # medians over frames: a busy shared machine pre-empts some iterations for whole scheduler
     # ticks, and the floor is a median too
-    split = {f"{k}_ms": float(np.median([f[k] for f in per_it])) if per_it else float("nan") for k in info.timings}
+    split = {f"{k}_ms": float(np.median([f[k] for f in per_it])) if per_it else float("nan") for k in PARTS}
     ms_iteration = float(np.median([sum(f.values()) for f in per_it])) if per_it else float("nan")
     solvers = compare_solvers(solver.pattern, U_csr, g)
     return dict(
         scene=name,
         hessian=hessian,
-        path=path,
+        path=path if path == "reference" else f"kernels, {threads} thread{'s' if threads > 1 else ''}",
         dof=int(rest.size),
         solver=solver.linear.method,
         ms_frame=float(np.mean(frame_ms)),
         iterations=float(np.mean(iters)),
+        guess_ms=float(np.median(guess)),
         fallbacks=float(np.mean(fallbacks)),
         ms_iteration=ms_iteration,
         **split,
@@ -180,7 +189,7 @@ def against_artefact(path, frames):
 def median_row(runs):
     """Median over repeated runs of every figure of one (scene, Hessian, path)."""
     r = dict(runs[0])
-    for k in ("ms_frame", "iterations", "fallbacks", "ms_iteration", "energy_ms", "local_ms", "assembly_ms",
+    for k in ("ms_frame", "iterations", "guess_ms", "fallbacks", "ms_iteration", "energy_ms", "local_ms", "assembly_ms",
               "solve_ms", "floor_ms", "ratio"):  # fmt: skip
         r[k] = float(np.median([u[k] for u in runs]))
     r["solvers"] = {k: float(np.median([u["solvers"][k] for u in runs])) for k in runs[0]["solvers"]}
@@ -197,7 +206,8 @@ def main(argv=None):
                     help="reference: the terms' NumPy closed forms + PyTorch energies; kernels: compiled (numba)")
     ap.add_argument("--repeats", type=int, default=1, help="runs of each row, interleaved; medians are reported")
     ap.add_argument("--scenes", nargs="*")
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=2, help="torch and linear-solver threads")
+    ap.add_argument("--kernel-threads", type=int, nargs="+", default=[1, 2], help="threads of the compiled kernels, a row each")
     ap.add_argument("--markdown", help="also write the table to this file")
     ap.add_argument("--against", nargs="*", metavar="SCENE",
                     help="only re-simulate the first --frames frames of these scenes' stored sequences "
@@ -219,35 +229,36 @@ def main(argv=None):
         sc = cfg["scenes"][name]
         arrays, pot = prepare_scene(name, sc, cfg["meshes"])
         for hessian in args.hessian:
-            runs = {path: [] for path in args.paths}
+            variants = [(p, t) for p in args.paths for t in (args.kernel_threads if p == "kernels" else [1])]
+            runs = {v: [] for v in variants}
             for _ in range(args.repeats):
-                for path in args.paths:
-                    r = bench_scene(name, sc, arrays, pot, args.frames, args.warmup, hessian, path)
+                for path, threads in variants:
+                    r = bench_scene(name, sc, arrays, pot, args.frames, args.warmup, hessian, path, threads)
                     r["ratio"] = r["ms_iteration"] / max(r["floor_ms"], 1e-9)
-                    runs[path].append(r)
-            ref = runs["reference"][0]["final"] if "reference" in runs else None
-            for path in args.paths:
-                row = median_row(runs[path])
+                    runs[path, threads].append(r)
+            ref = runs["reference", 1][0]["final"] if "reference" in args.paths else None
+            for v in variants:
+                row = median_row(runs[v])
                 # same frames from the same start: how far the two paths' final states are apart
                 row["deviation"] = float(np.abs(row["final"] - ref).max() / row["size"]) if ref is not None else float("nan")
                 rows.append(row)
             print(f"  {name} ({hessian}): done", file=sys.stderr, flush=True)
     head = ["scene", "DoF", "Hessian", "path", "solver", "ms/frame", "paper ms/frame", "target", "Newton it/frame",
-            "fallbacks/frame", "ms/iteration", "energy", "grad+Hess+proj", "assembly", "solve", "floor (factor+solve)",
+            "initial guess ms/frame", "fallbacks/frame", "ms/iteration", "energy", "grad+Hess+proj", "assembly", "solve", "floor (factor+solve)",
             "iteration/floor", "max abs(x - x_ref)/size"]  # fmt: skip
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         lines.append(
             f"| {r['scene']} | {r['dof']:,} | {r['hessian']} | {r['path']} | {r['solver']} | {r['ms_frame']:.1f} | "
             f"{PAPER_MS.get(r['scene'], float('nan')):.1f} | {TARGET_MS.get(r['scene'], '')} | {r['iterations']:.2f} | "
-            f"{r['fallbacks']:.2f} | {r['ms_iteration']:.2f} | {r['energy_ms']:.2f} | {r['local_ms']:.2f} | "
+            f"{r['guess_ms']:.2f} | {r['fallbacks']:.2f} | {r['ms_iteration']:.2f} | {r['energy_ms']:.2f} | {r['local_ms']:.2f} | "
             f"{r['assembly_ms']:.2f} | {r['solve_ms']:.2f} | {r['floor_ms']:.2f} | {r['ratio']:.2f} | {r['deviation']:.1e} |"
         )
     names = sorted({k for r in rows for k in r["solvers"]})
     lines += ["", "Linear solvers, factorisation + solve of the same matrix [ms]:", "",
               "| scene | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]  # fmt: skip
     for r in rows:
-        if r["hessian"] == args.hessian[0] and r["path"] == args.paths[0]:
+        if r is next(u for u in rows if u["scene"] == r["scene"]):
             lines.append(f"| {r['scene']} | " + " | ".join(f"{r['solvers'].get(k, float('nan')):.1f}" for k in names) + " |")
     load = os.getloadavg()
     loads = ", ".join(f"{v:.1f}" for v in load)

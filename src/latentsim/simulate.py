@@ -23,7 +23,7 @@ import numpy as np
 from .io import atomic_h5, atomic_path, write_dataset
 from .prepare import cells_for
 from .scene import bc_parameters, build_potential, dirichlet_trajectory
-from .solver import ImplicitEuler, NewtonFailed, NewtonSettings
+from .solver import ImplicitEuler, NewtonFailed, NewtonSettings, StepInfo
 from .utils import progress_bar, working_directory
 
 log = logging.getLogger(__name__)
@@ -53,7 +53,7 @@ def simulate_sequence(solver: ImplicitEuler, rest, seq: dict, dt: float, label: 
     ms = np.zeros(T)
     pos[0] = rest
     x_prev2 = x_prev = rest.copy()
-    timings = dict(energy=0.0, local=0.0, assembly=0.0, solve=0.0)
+    timings = dict.fromkeys(StepInfo().timings, 0.0)
     for t in progress_bar(range(1, T), enabled=progress, desc=label, unit="frame"):
         t0 = time.perf_counter()
         try:

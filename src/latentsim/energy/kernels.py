@@ -40,9 +40,14 @@ Projection of rods, membranes and hinges: the exact eigenvalue clamp of the
 stencil Hessian, computed on its translation-free (3k-3)-square block (these
 energies are translation invariant) with a cyclic Jacobi eigensolver.
 
-All kernels run in float64 on the CPU, serially (the scatter into shared
-slots would race; the machine has 2 cores that the linear solver uses), and
-are compiled once and cached on disk (``cache=True``).
+All kernels run in float64 on the CPU and are compiled once and cached on
+disk (``cache=True``).  Each loops over an ``order`` of stencil indices: the
+solver gives every term two halves whose stencils share no vertex (a median
+cut of a reverse Cuthill-McKee vertex order) and the separator between them
+(``split_stencils``); on two threads the halves run at once, since no
+gradient entry or Hessian slot is written by both, then the separator.  Many
+states at once (the self-supervised losses) split the states over threads
+instead (``batch_energy_gradient``).
 """
 
 from __future__ import annotations
@@ -257,11 +262,12 @@ def _tet_F(e, x, st, D, F):
 
 
 @njit(**_JIT)
-def tet_energy(x, st, D, vol, mu, lam):
+def tet_energy(x, st, order, D, vol, mu, lam):
     """sum_e W_e (mu ||E||^2 + lam/2 tr(E)^2)."""
     F = np.empty((3, 3))
     total = 0.0
-    for e in range(st.shape[0]):
+    for ii in range(order.shape[0]):
+        e = order[ii]
         _tet_F(e, x, st, D, F)
         nE2 = 0.0
         tr = 0.0
@@ -437,7 +443,7 @@ def _tet_gh(e, x, st, D, vol, mu, lam, project, hess, g, H, F, S, P, q, FF, U, V
 
 
 @njit(**_JIT)
-def _tet_run(x, st, D, vol, mu, lam, project, grad, data, slots, g_out, H_out, mode):
+def _tet_run(x, st, order, D, vol, mu, lam, project, grad, data, slots, g_out, H_out, mode):
     F, S, P, FF = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     U, V, Lf, A, b = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     q = np.empty((4, 3))
@@ -446,7 +452,8 @@ def _tet_run(x, st, D, vol, mu, lam, project, grad, data, slots, g_out, H_out, m
     g = np.empty(12)
     H = np.empty((12, 12))
     total = 0.0
-    for e in range(st.shape[0]):
+    for ii in range(order.shape[0]):
+        e = order[ii]
         total += _tet_gh(e, x, st, D, vol, mu, lam, project, mode != GRADIENT, g, H, F, S, P, q, FF, U, V, Lf, A, b,
                          sig, w3, N)  # fmt: skip
         if mode == GRADIENT:
@@ -466,10 +473,11 @@ def _tet_run(x, st, D, vol, mu, lam, project, grad, data, slots, g_out, H_out, m
 # rods
 # ---------------------------------------------------------------------------
 @njit(**_JIT)
-def stretch_energy(x, st, rest_length, ks):
+def stretch_energy(x, st, order, rest_length, ks):
     """sum_e 1/2 ks (|e|/|ebar| - 1)^2 |ebar|."""
     total = 0.0
-    for e in range(st.shape[0]):
+    for ii in range(order.shape[0]):
+        e = order[ii]
         i0, i1 = st[e, 0], st[e, 1]
         d0, d1, d2 = x[i1, 0] - x[i0, 0], x[i1, 1] - x[i0, 1], x[i1, 2] - x[i0, 2]
         lb = rest_length[e]
@@ -479,12 +487,13 @@ def stretch_energy(x, st, rest_length, ks):
 
 
 @njit(**_JIT)
-def _stretch_run(x, st, rest_length, ks, project, grad, data, slots, g_out, H_out, mode):
+def _stretch_run(x, st, order, rest_length, ks, project, grad, data, slots, g_out, H_out, mode):
     total = 0.0
     g = np.empty(6)
     H = np.empty((6, 6))
     u = np.empty(3)
-    for e in range(st.shape[0]):
+    for ii in range(order.shape[0]):
+        e = order[ii]
         i0, i1 = st[e, 0], st[e, 1]
         ln = 0.0
         for i in range(3):
@@ -517,10 +526,11 @@ def _stretch_run(x, st, rest_length, ks, project, grad, data, slots, g_out, H_ou
 
 
 @njit(**_JIT)
-def bend_energy(x, st, alpha, c0):
+def bend_energy(x, st, order, alpha, c0):
     """sum_e alpha |a x b|^2 / (c0 + a.b)^2, a = x1 - x0, b = x2 - x1."""
     total = 0.0
-    for e in range(st.shape[0]):
+    for ii in range(order.shape[0]):
+        e = order[ii]
         i0, i1, i2 = st[e, 0], st[e, 1], st[e, 2]
         a0, a1, a2 = x[i1, 0] - x[i0, 0], x[i1, 1] - x[i0, 1], x[i1, 2] - x[i0, 2]
         b0, b1, b2 = x[i2, 0] - x[i1, 0], x[i2, 1] - x[i1, 1], x[i2, 2] - x[i1, 2]
@@ -560,7 +570,7 @@ def _rod_frame(a, b, frame):
 
 
 @njit(**_JIT)
-def _bend_run(x, st, alpha, c0, project, B, grad, data, slots, g_out, H_out, mode):
+def _bend_run(x, st, order, alpha, c0, project, B, grad, data, slots, g_out, H_out, mode):
     total = 0.0
     g = np.empty(9)
     H = np.empty((9, 9))
@@ -577,7 +587,8 @@ def _bend_run(x, st, alpha, c0, project, B, grad, data, slots, g_out, H_out, mod
     BH = np.empty((9, 6))
     wv = np.empty(6)
     frame = np.empty((3, 3))
-    for e in range(st.shape[0]):
+    for ii in range(order.shape[0]):
+        e = order[ii]
         i0, i1, i2 = st[e, 0], st[e, 1], st[e, 2]
         for i in range(3):
             a[i] = x[i1, i] - x[i0, i]
@@ -656,11 +667,12 @@ def _bend_run(x, st, alpha, c0, project, B, grad, data, slots, g_out, H_out, mod
 # shells
 # ---------------------------------------------------------------------------
 @njit(**_JIT)
-def membrane_energy(x, st, G, K, mu, lam):
+def membrane_energy(x, st, order, G, K, mu, lam):
     """sum_t Abar h (mu ||E||^2 + lam/2 tr(E)^2), F = sum_a x_a G_a^T (3, 2)."""
     F = np.empty((3, 2))
     total = 0.0
-    for e in range(st.shape[0]):
+    for ii in range(order.shape[0]):
+        e = order[ii]
         for i in range(3):
             for q in range(2):
                 F[i, q] = x[st[e, 0], i] * G[e, 0, q] + x[st[e, 1], i] * G[e, 1, q] + x[st[e, 2], i] * G[e, 2, q]
@@ -673,7 +685,7 @@ def membrane_energy(x, st, G, K, mu, lam):
 
 
 @njit(**_JIT)
-def _membrane_run(x, st, G, K, mu, lam, project, B, grad, data, slots, g_out, H_out, mode):
+def _membrane_run(x, st, order, G, K, mu, lam, project, B, grad, data, slots, g_out, H_out, mode):
     total = 0.0
     F = np.empty((3, 2))
     S = np.empty((2, 2))
@@ -683,7 +695,8 @@ def _membrane_run(x, st, G, K, mu, lam, project, B, grad, data, slots, g_out, H_
     H = np.empty((9, 9))
     M, V, BV, BH = np.empty((6, 6)), np.empty((6, 6)), np.empty((9, 6)), np.empty((9, 6))
     wv = np.empty(6)
-    for e in range(st.shape[0]):
+    for ii in range(order.shape[0]):
+        e = order[ii]
         for i in range(3):
             for r in range(2):
                 F[i, r] = x[st[e, 0], i] * G[e, 0, r] + x[st[e, 1], i] * G[e, 1, r] + x[st[e, 2], i] * G[e, 2, r]
@@ -763,11 +776,12 @@ def _hinge_theta(e, x, st, ev, da, db, N1, N2):
 
 
 @njit(**_JIT)
-def hinge_energy(x, st, k, rest_angle):
+def hinge_energy(x, st, order, k, rest_angle):
     """sum_h k (theta - thetabar)^2, the difference wrapped to (-pi, pi]."""
     ev, da, db, N1, N2 = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
     total = 0.0
-    for e in range(st.shape[0]):
+    for ii in range(order.shape[0]):
+        e = order[ii]
         d = _wrap(_hinge_theta(e, x, st, ev, da, db, N1, N2) - rest_angle[e])
         total += k[e] * d * d
     return total
@@ -788,7 +802,7 @@ def _matmul3(A, B, out, scale):
 
 
 @njit(**_JIT)
-def _hinge_run(x, st, kk, rest_angle, project, B, grad, data, slots, g_out, H_out, mode):
+def _hinge_run(x, st, order, kk, rest_angle, project, B, grad, data, slots, g_out, H_out, mode):
     total = 0.0
     ev, da, db, N1, N2 = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
     gr = np.empty((4, 3))  # grad theta per vertex
@@ -802,7 +816,8 @@ def _hinge_run(x, st, kk, rest_angle, project, B, grad, data, slots, g_out, H_ou
     J = np.empty((4, 4, 3, 3))  # J[r, c] = d grad_r theta / d x_c
     M, V, BV, BH = np.empty((9, 9)), np.empty((9, 9)), np.empty((12, 9)), np.empty((12, 9))
     wv = np.empty(9)
-    for e in range(st.shape[0]):
+    for ii in range(order.shape[0]):
+        e = order[ii]
         theta = _hinge_theta(e, x, st, ev, da, db, N1, N2)
         d = _wrap(theta - rest_angle[e])
         L2 = ev[0] ** 2 + ev[1] ** 2 + ev[2] ** 2
@@ -899,8 +914,16 @@ class TermKernel:
     """Compiled energy, gradient and Hessian of one ``EnergyTerm`` (see the module docstring).
 
     Built by ``term_kernel(term)``; holds float64 NumPy copies of the term's
-    stencils and rest data.
+    stencils and rest data.  The stencils are visited group by group
+    (``groups``: all of them, or the two halves and the separator that
+    :func:`split_stencils` makes); with ``threads = 2`` the two halves run
+    concurrently (the kernels release the GIL; halves share no vertex, so no
+    gradient entry or Hessian slot is written by both), then the separator.
+    Every path visits the groups in the same order, so the result does not
+    depend on ``threads``.
     """
+
+    MIN_PARALLEL = 2000  # fewer stencils than this: a thread hand-off costs more than it saves
 
     def __init__(self, term, energy_fn, run_fn, args, k, basis=None):
         self.name = term.name
@@ -910,16 +933,30 @@ class TermKernel:
         self._run = run_fn
         self._args = args
         self._basis = basis  # translation-free basis (projection), None for tets / stretch
+        self._all = np.arange(len(self.stencils), dtype=np.int64)
+        self.groups = (self._all,)
+        self.threads = 1
+
+    def _visit(self, fn) -> float:
+        """sum of fn(order) over the groups, the two halves concurrently when threaded."""
+        g = self.groups
+        if len(g) == 3 and self.threads > 1 and len(self._all) >= self.MIN_PARALLEL:
+            other = _pool().submit(fn, g[0])
+            second = fn(g[1])
+            return other.result() + second + fn(g[2])
+        return sum(fn(order) for order in g)
 
     def _call(self, x, project, grad, data, slots, g_out, H_out, mode) -> float:
         x = np.ascontiguousarray(x, dtype=np.float64)
-        if self._basis is None:
-            return self._run(x, self.stencils, *self._args, project, grad, data, slots, g_out, H_out, mode)
-        return self._run(x, self.stencils, *self._args, project, self._basis, grad, data, slots, g_out, H_out, mode)
+        extra = () if self._basis is None else (self._basis,)
+        run, st, args = self._run, self.stencils, self._args
+        return self._visit(lambda order: run(x, st, order, *args, project, *extra, grad, data, slots, g_out, H_out, mode))
 
     def energy(self, x: np.ndarray) -> float:
         """The term's energy at x (n, 3)."""
-        return float(self._energy(np.ascontiguousarray(x, dtype=np.float64), self.stencils, *self._args))
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        fn, st, args = self._energy, self.stencils, self._args
+        return float(self._visit(lambda order: fn(x, st, order, *args)))
 
     def accumulate(self, x, grad, data, slots, project: bool) -> None:
         """grad (3n,) += gradient; data[slots] += upper triangles of the stencil Hessians.
@@ -939,6 +976,53 @@ class TermKernel:
         g, H = np.zeros((E, n3)), np.zeros((E, n3, n3))
         self._call(x, bool(project), _EMPTY_F, _EMPTY_F, _EMPTY_S, g, H, STORE)
         return g, H
+
+
+_POOL = None
+
+
+def _pool():
+    """One worker thread, shared by every kernel (the caller's thread runs the other half)."""
+    global _POOL
+    if _POOL is None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _POOL = ThreadPoolExecutor(1, thread_name_prefix="latentsim-kernels")
+    return _POOL
+
+
+def split_stencils(kernels, n_vertices: int, threads: int = 2) -> None:
+    """Give each kernel two vertex-disjoint halves of its stencils and the separator.
+
+    The vertices are ordered by reverse Cuthill-McKee on the graph of all the
+    kernels' stencils (neighbours end up close in the order) and cut at the
+    median: stencils wholly below the cut form the first half, wholly above
+    the second, the rest (a layer about one stencil thick) the separator.
+    ``threads`` (1 or 2) sets whether the halves run concurrently; the result
+    is the same either way.
+    """
+    import scipy.sparse
+    from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+    rows, cols = [], []
+    for k in kernels:
+        st = k.stencils
+        for a in range(st.shape[1]):
+            for b in range(st.shape[1]):
+                if a != b:
+                    rows.append(st[:, a])
+                    cols.append(st[:, b])
+    rank = np.arange(n_vertices)
+    if rows:
+        r, c = np.concatenate(rows), np.concatenate(cols)
+        graph = scipy.sparse.csr_matrix((np.ones(len(r), dtype=np.int8), (r, c)), shape=(n_vertices, n_vertices))
+        rank[reverse_cuthill_mckee(graph, symmetric_mode=True)] = np.arange(n_vertices)
+    low = rank < n_vertices // 2
+    for k in kernels:
+        inside = low[k.stencils]
+        first, second = inside.all(1), ~inside.any(1)
+        k.groups = tuple(np.flatnonzero(m).astype(np.int64) for m in (first, second, ~(first | second)))
+        k.threads = int(threads)
 
 
 def _np(t, E=None):
@@ -1066,6 +1150,7 @@ __all__ = [
     "available",
     "batch_energy_gradient",
     "compiled_energy",
+    "split_stencils",
     "term_kernel",
     "translation_free_basis",
     "with_compiled_elastic",
