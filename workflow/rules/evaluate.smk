@@ -22,6 +22,8 @@ rule evaluate:
         ),
     log:
         "logs/evaluation/{scene}.log",
+    benchmark:
+        "results/benchmarks/evaluate/{scene}.tsv"
     conda:
         "../../envs/latentsim.yaml"
     resources:
@@ -53,6 +55,8 @@ rule render:
         paraview=directory("results/evaluation/{scene}/paraview"),
     log:
         "logs/evaluation/{scene}_render.log",
+    benchmark:
+        "results/benchmarks/render/{scene}.tsv"
     conda:
         "../../envs/latentsim.yaml"
     resources:
@@ -105,6 +109,8 @@ rule summary:
         ),
     log:
         "logs/evaluation/summary.log",
+    benchmark:
+        "results/benchmarks/summary/summary.tsv"
     conda:
         "../../envs/latentsim.yaml"
     script:

@@ -1,0 +1,53 @@
+"""Wall time of every stage of a pipeline run, per scene, from Snakemake's benchmark files.
+
+    python benchmarks/stage_times.py [results/benchmarks]
+
+Every rule that simulates, trains, rolls out, sweeps or evaluates writes
+``results/benchmarks/<stage>/<scene>[/<method or point>].tsv`` (Snakemake's ``benchmark:``: the
+job's wall seconds and CPU seconds).  Prints one Markdown row per stage: the number of jobs, the
+wall seconds of each scene's jobs summed, and the stage total; then the grand total.  Jobs run two
+at a time on 2 cores, so the sum of job times exceeds the run's elapsed time.
+"""
+
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import pandas as pd
+
+
+def stage_times(root) -> pd.DataFrame:
+    """(stage, scene) -> jobs, wall s, CPU s, from every ``<stage>/<scene>[/...].tsv`` under root."""
+    root = Path(root)
+    rows = defaultdict(lambda: [0, 0.0, 0.0])
+    for path in sorted(root.rglob("*.tsv")):
+        parts = path.relative_to(root).with_suffix("").parts
+        stage, scene = parts[0], parts[1] if len(parts) > 1 else "-"
+        t = pd.read_csv(path, sep="\t")
+        r = rows[stage, scene]
+        r[0] += len(t)
+        r[1] += float(t["s"].sum())
+        r[2] += float(t["cpu_time"].sum())
+    return pd.DataFrame([(st, sc, *v) for (st, sc), v in rows.items()], columns=["stage", "scene", "jobs", "wall_s", "cpu_s"])
+
+
+def main(root="results/benchmarks"):
+    df = stage_times(root)
+    if df.empty:
+        sys.exit(f"no benchmark files under {root}")
+    scenes = sorted(df["scene"].unique())
+    print("Wall time per stage (minutes; sum of the stage's jobs per scene):\n")
+    print("| stage | jobs | " + " | ".join(scenes) + " | total |")
+    print("|---|---|" + "---|" * len(scenes) + "---|")
+    for stage, g in df.groupby("stage", sort=False):
+        by = dict(zip(g["scene"], g["wall_s"] / 60))
+        cells = " | ".join(f"{by[s]:.1f}" if s in by else "" for s in scenes)
+        print(f"| {stage} | {int(g['jobs'].sum())} | {cells} | {g['wall_s'].sum() / 60:.1f} |")
+    per_scene = df.groupby("scene")["wall_s"].sum() / 60
+    print("| all stages | " + f"{int(df['jobs'].sum())} | " + " | ".join(f"{per_scene[s]:.1f}" for s in scenes)
+          + f" | {df['wall_s'].sum() / 60:.1f} |")  # fmt: skip
+    print(f"\nCPU time of every job: {df['cpu_s'].sum() / 3600:.2f} h; wall time summed over jobs: {df['wall_s'].sum() / 3600:.2f} h.")
+
+
+if __name__ == "__main__":
+    main(*sys.argv[1:])
