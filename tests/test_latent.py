@@ -393,8 +393,40 @@ def test_checkpoint_resume_equals_uninterrupted(chain_setup, tmp_path):
     save_module(tmp_path / "integ.pt", resumed)
     again = load_integrator(tmp_path / "integ.pt")
     assert all(torch.equal(again.state_dict()[k], sr[k]) for k in sr)
-    with pytest.raises(ValueError, match="different"):
-        fit_integrator(ae, coords, ch.pot, seqs, {**cfg, "widths": [8]}, seed=3, checkpoint_path=path)
+
+
+
+@pytest.mark.parametrize(
+    "change",
+    ["widths", "lr", "noise", "seed", "data", "fewer_epochs"],
+)
+def test_a_checkpoint_of_another_training_is_not_resumed(chain_setup, tmp_path, change, caplog):
+    """After a config edit (or new data) the pipeline reruns the training with the old checkpoint on
+    disk: it must start over, giving exactly a fresh run's result, never continue the old weights."""
+    ch, seqs, coords, ae = chain_setup
+    cfg = dict(widths=[16], epochs=4, lr=1e-3, batch_size=40, checkpoint_every=1)
+    path = tmp_path / "ckpt.pt"
+    fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=3, checkpoint_path=path)
+    new_cfg, new_seed, new_seqs = dict(cfg), 3, seqs
+    if change == "widths":
+        new_cfg["widths"] = [8]
+    elif change == "lr":
+        new_cfg["lr"] = 3e-3
+    elif change == "noise":
+        new_cfg["noise_scale"] = 0.0
+    elif change == "seed":
+        new_seed = 4
+    elif change == "data":
+        new_seqs = seqs[:2]
+    else:
+        new_cfg["epochs"] = 2
+    fresh, hf = fit_integrator(ae, coords, ch.pot, new_seqs, new_cfg, seed=new_seed)
+    with caplog.at_level("WARNING", logger="latentsim.latent"):
+        again, ha = fit_integrator(ae, coords, ch.pot, new_seqs, new_cfg, seed=new_seed, checkpoint_path=path)
+    assert "starting over" in caplog.text
+    assert ha["start_epoch"] == 0 and ha["loss"] == hf["loss"]
+    assert all(torch.equal(a, b) for a, b in zip(fresh.state_dict().values(), again.state_dict().values()))
+    assert torch.load(path, weights_only=True)["epoch"] == new_cfg["epochs"]  # overwritten by the new training
 
 
 def test_cosine_learning_rate_decay(chain_setup, tmp_path):

@@ -27,6 +27,9 @@ float32; decoded states are cast to float64 before the potential is evaluated.
 from __future__ import annotations
 
 import copy
+import hashlib
+import json
+import logging
 import math
 import os
 import warnings
@@ -37,6 +40,8 @@ from torch import nn
 from tqdm import tqdm
 
 from .energy.kernels import with_compiled_elastic
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "AE_DEFAULTS",
@@ -733,6 +738,19 @@ def integrator_loss(
 # ---------------------------------------------------------------------------
 # training the integrator
 # ---------------------------------------------------------------------------
+def training_fingerprint(cfg: dict, seed: int, hparams: dict, data: dict, ae: nn.Module) -> str:
+    """sha256 of what determines an integrator's training: its settings (without the checkpoint
+    path and interval, and without ``epochs`` at a constant learning rate, where a longer run
+    continues a shorter one exactly), the seed, the architecture, the training triplets and the
+    autoencoder's weights.  A checkpoint resumes only a training with the same fingerprint."""
+    drop = {"checkpoint_path", "checkpoint_every"} | ({"epochs"} if cfg.get("lr_final") is None else set())
+    h = hashlib.sha256(json.dumps({"cfg": {k: v for k, v in cfg.items() if k not in drop}, "seed": seed, "hparams": hparams}, sort_keys=True, default=str).encode())
+    for name, t in [*sorted(data.items()), *ae.state_dict().items()]:
+        h.update(name.encode())
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
 def build_triplets(ae: Autoencoder, coords: RelativeCoordinates, sequences: Sequence[dict]) -> dict:
     """Ground-truth training triplets of all sequences.
 
@@ -812,9 +830,12 @@ def fit_integrator(
     checkpoint_path : overrides ``config['checkpoint_path']``.  When set, the
         integrator, optimiser, RNG state and history are saved every
         ``checkpoint_every`` epochs (and after the last) via a temp file and
-        ``os.replace``; if the file exists at start, training resumes from
-        it (same seed and architecture required).  On CPU a resumed run is
-        bitwise identical to an uninterrupted one.
+        ``os.replace``; if the file exists at start and belongs to this
+        training (:func:`training_fingerprint`: same settings, seed,
+        architecture, training triplets and autoencoder; a run with more
+        epochs may extend a shorter one at a constant learning rate), training
+        resumes from it, else it starts over (logged) and overwrites it.  On
+        CPU a resumed run is bitwise identical to an uninterrupted one.
     compiled : on the CPU, the loss's elastic energy runs the simulator's compiled
         kernels (``energy.kernels.with_compiled_elastic``: the same formulas, 5-8x
         faster than the batched PyTorch energy under autograd); False: the terms'
@@ -859,10 +880,14 @@ def fit_integrator(
     start = 0
 
     ckpt = cfg["checkpoint_path"]
+    fingerprint = training_fingerprint(cfg, seed, integ.hparams, data, ae_f)
+    state = None
     if ckpt is not None and os.path.exists(ckpt):
         state = torch.load(os.fspath(ckpt), map_location="cpu", weights_only=True)
-        if state.get("hparams") != integ.hparams or state.get("seed") != seed:
-            raise ValueError(f"checkpoint {ckpt} was written with a different architecture or seed")
+        if state.get("fingerprint") != fingerprint or int(state["epoch"]) > int(cfg["epochs"]):
+            log.warning("checkpoint %s belongs to another training (settings, seed, architecture, data or a longer run): starting over", ckpt)
+            state = None
+    if state is not None:
         integ.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         gen.set_state(state["generator"])
@@ -875,6 +900,7 @@ def fit_integrator(
         _atomic_save(
             {
                 "epoch": epoch_done,
+                "fingerprint": fingerprint,
                 "seed": seed,
                 "hparams": integ.hparams,
                 "model": integ.state_dict(),
