@@ -100,7 +100,9 @@ def test_sheet_tables_report_the_early_stopped_checkpoints(sheet_study):
 
 def test_neural_modes_keep_the_origin_and_the_half_turn(sheet_study):
     """Fig. 3's numbers: n(0) = X to round-off; the free sheet's two lowest modes are even under the
-    half turn, and a correction that starts at zero stays in the even subspace (its gradient does)."""
+    half turn, and a correction that starts at zero stays in the even subspace (its gradient does; on
+    this small sheet round-off does not grow in six epochs, on the paper's sheet it does, see
+    workflow/report/nm_structure.rst)."""
     study, gt, V = sheet_study
     for slug in ("nm_stochastic", "nm_grid"):
         r = study["methods"][slug]
