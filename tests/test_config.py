@@ -55,3 +55,21 @@ def test_defaults_do_not_leak_between_scenes(tiny):
     cfg = validate_config(copy.deepcopy(tiny))
     cfg["scenes"]["tiny_rods"]["newton"]["tolerance"] = 1.0
     assert cfg["scenes"]["tiny_cloth"]["newton"]["tolerance"] != 1.0
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda sc: sc.update(paper="none"), r"'scenes\.tiny_nm\.nm_study\.\w+\.enabled'.*paper wang2024.*'none'"),
+        (lambda sc: sc.update(model="tets"), r"'scenes\.tiny_nm\.nm_study\.sheet\.enabled'.*needs a shell.*'tets'"),
+        (lambda sc: sc["nm_study"]["energy"].update(train=15), r"'scenes\.tiny_nm\.nm_study\.energy'.*20 samples leave 1 test samples"),
+        (lambda sc: sc["nm_study"]["keyframes"].update(poses=[[0, 0], [1, 0, 0]]), r"'scenes\.tiny_nm\.nm_study\.keyframes\.poses'.*2 modal coordinates"),
+        (lambda sc: sc["neural_modes"].update(boundary="free"), r"'scenes\.tiny_nm\.nm_study\.dynamics\.enabled'.*boundary to dirichlet"),
+        (lambda sc: sc["nm_study"]["sheet"].update(curve_points=0), r"'scenes\.tiny_nm\.nm_study\.sheet\.curve_points'.*0 is out of range"),
+        (lambda sc: sc["nm_study"].update(table6={}), r"'scenes\.tiny_nm\.nm_study'.*unknown key.*table6"),
+    ],
+)
+def test_neural_modes_studies_that_do_not_fit_the_scene_are_named(tiny, edit, message):
+    edit(tiny["scenes"]["tiny_nm"])
+    with pytest.raises(ConfigError, match=message):
+        validate_config(tiny)

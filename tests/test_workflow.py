@@ -24,12 +24,26 @@ from latentsim.config import scene_methods, validate_config
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "config" / "tiny.yaml"
-SCENES_TINY = ["tiny_cloth", "tiny_rods"]
+SCENES_TINY = ["tiny_cloth", "tiny_nm", "tiny_rods"]
 STAGES = ["prepare_mesh", "simulate", "train_autoencoder", "train_integrator", "rollout", "evaluate"]
-# values that measure wall time, the only things allowed to differ between two identical runs
+# values that measure wall time, the only things allowed to differ between two identical runs: these, and
+# every dataset or attribute whose name ends in _ms or _seconds, or is "seconds" (is_timing)
 TIMING_DATASETS = {"frame_ms", "step_ms"}
 TIMING_ATTRS = {"train_seconds", "rollout_seconds", "step_ms", "integrate_ms", "decode_ms", "autoencoder_train_seconds", "integrator_train_seconds",
                 "full_ms", "runtime", "jvp_torch_ms", "jvp_forward_ms"} | {f"{r}_{k}_ms" for r in ("numpy", "torchscript", "eager") for k in ("step", "integrate", "decode")}  # fmt: skip
+# the Neural Modes stages of the default config: (rule, scene) of every job, beside those of every scene (STAGES)
+NM_JOBS_DEFAULT = (
+    [(r, s) for r in ("nm_linear_modes", "nm_train") for s in ("nm_armadillo", "nm_bunny", "nm_giraffe", "nm_sheet")]
+    + [("nm_ground_truth", "nm_sheet"), ("nm_sheet_study", "nm_sheet"), ("nm_sheet_tables", "nm_sheet")]
+    + [("nm_ground_truth", "nm_armadillo"), ("nm_energy_table", "nm_armadillo")]
+    + [("nm_dynamics", s) for s in ("nm_armadillo", "nm_bunny", "nm_giraffe")]
+    + [("nm_keyframes", "nm_giraffe"), ("nm_summary", None)]
+)
+
+
+def is_timing(name: str, explicit: set) -> bool:
+    """A wall-time field: named in ``explicit`` or by its suffix."""
+    return name in explicit or name == "seconds" or name.endswith(("_ms", "_seconds"))
 
 
 def snakemake(*args, cwd=ROOT, check=True, timeout=600):
@@ -75,6 +89,7 @@ def test_dry_run_of_default_config_lists_every_stage_for_every_scene(tmp_path):
         for scene in scenes:
             assert sorted(m for r, s, m in jobs if r == stage and s == scene) == sorted(scene_methods(cfg, scene)), (stage, scene)
     assert ("summary", None, None) in jobs
+    assert sorted(((r, s) for r, s, _ in jobs if r.startswith("nm_")), key=str) == sorted(NM_JOBS_DEFAULT, key=str)
 
 
 def test_slurm_profile_dry_run(tmp_path):
@@ -196,6 +211,8 @@ def test_report_holds_tables_and_figures(tiny_run, tmp_path):
     assert any(n.endswith("summary.csv") for n in names)
     assert any(n.endswith("speed_accuracy.png") for n in names)
     assert any(n.endswith("errors.png") for n in names)
+    for name in ("table2.csv", "table3.csv", "learning_curves.png", "latent_walk.png", "correlation.png", "table5.csv", "dynamics.csv", "keyframes.png"):
+        assert any(n.endswith(name) for n in names), name
 
 
 def test_artefacts_record_config_version_and_seed(tiny_run):
@@ -226,6 +243,87 @@ def test_editing_one_scenes_integrator_reruns_only_its_downstream_jobs(tiny_run,
     )
 
 
+def test_tiny_neural_modes_studies_write_tables_and_figures(tiny_run):
+    """tiny_nm switches on every Neural Modes study: each writes its tables beside the paper's and its figures."""
+    import meshio
+    import pandas as pd
+
+    from latentsim.neural_modes import load_neural_modes
+    from latentsim.nm_sheet import SHEET_METHODS
+    from latentsim.utils import working_directory
+
+    work, _ = tiny_run
+    res = work / "results/neural_modes/tiny_nm"
+    cfg = yaml.safe_load(TINY.read_text())["scenes"]["tiny_nm"]
+    st = cfg["nm_study"]
+    with h5py.File(res / "sheet/ground_truth.h5") as f:  # the configured set sizes, 2 modes
+        sizes = {k: len(f[f"sets/{k}/z"]) for k in ("train_grid", "train_random", "val", "test")}
+    assert sizes == {"train_grid": 3**2, "train_random": 9, "val": 2**2, "test": 3**2}
+    with h5py.File(res / "energy/ground_truth.h5") as f:
+        assert [len(f[f"sets/{k}/x"]) for k in ("train", "val", "test")] == [10, 4, 6]
+    t2 = pd.read_csv(res / "sheet/table2.csv")
+    assert t2["method"].tolist() == list(SHEET_METHODS.values())
+    assert t2["test_dE_avg_paper"].tolist() == [386, 245, 2074, 2259, 2649]
+    assert np.isfinite(t2[["val_dE_avg", "test_dE_avg", "test_E_avg"]].to_numpy()).all()
+    assert len(pd.read_csv(res / "sheet/table3.csv")) == 3
+    structure = pd.read_csv(res / "sheet/structure.csv").set_index("method")
+    assert structure.loc["Neural Modes (grid)", "origin |n(0) - X| / |X|"] < 1e-6  # the issue's target
+    assert np.isfinite(structure["symmetry error max"]).all()  # the clamped sheet has the half-turn symmetry
+    md = (res / "sheet/tables.md").read_text()
+    assert all(f"## {h}" in md for h in ("Table 2", "Table 3", "Table 4", "Table A1", "Fig. 4", "Fig. 3"))
+    for png in ("sheet/learning_curves.png", "sheet/latent_walk.png", "sheet/correlation.png", "keyframes/keyframes.png"):
+        assert (res / png).stat().st_size > 1000, png
+    t5 = pd.read_csv(res / "energy/table5.csv").set_index("method")
+    assert t5.index.tolist() == ["Ground truth", "PCA+AE", "Neural Modes"] and t5.loc["Ground truth", "paper all (x1e4)"] == 11.3
+    dyn = pd.read_csv(res / "dynamics/dynamics.csv").set_index("method")
+    assert len(dyn) == 7 and dyn.loc["full space, Newton", "error max"] == 0
+    assert (dyn["diverged frame"] == -1).all() and np.isfinite(dyn["error mean"]).all()
+    with h5py.File(res / "dynamics/nm_newton.h5") as f:
+        pos = f["sequences/bounce/positions"][()]
+    with h5py.File(work / "results/sim/tiny_nm/trajectories.h5") as f:
+        ref = f["sequences/bounce/positions"][()]
+    with working_directory(res / "dynamics/paraview"), meshio.xdmf.TimeSeriesReader("nm_newton.xdmf") as r:
+        points, _ = r.read_points_cells()
+        assert r.num_steps == len(pos)
+        _, data, _ = r.read_data(len(pos) - 1)
+    assert np.allclose(points + data["displacement"], pos[-1]) and np.allclose(data["error"], np.linalg.norm(pos[-1] - ref[-1], axis=1))
+    model = load_neural_modes(res / "neural_modes.pt")
+    with h5py.File(res / "keyframes/keyframes.h5") as f:
+        g = f["sequences/neural_modes"]
+        keys, kx = g.attrs["keyframes"], g["positions"][()]
+    with torch.no_grad():
+        want = model(torch.as_tensor(np.asarray(st["keyframes"]["poses"], dtype=np.float64) * cfg["neural_modes"]["box"])).numpy()
+    assert np.allclose(kx[keys], want, atol=1e-14)
+    for stage in ("sheet_ground_truth", "sheet_study", "energy_table", "dynamics"):
+        assert (work / f"results/benchmarks/neural_modes/tiny_nm_{stage}.tsv").exists(), stage
+        assert (work / f"logs/neural_modes/tiny_nm_{stage}.log").read_text(), stage
+
+
+def test_editing_one_study_reruns_only_that_study(tiny_run, tmp_path):
+    """Study settings rerun their own study; Neural Modes training settings rerun what uses the trained
+    model, never the linear modes or the ground truth; the sample sets rerun their ground truth."""
+    work, _ = tiny_run
+
+    def jobs_after(edit):
+        cfg = yaml.safe_load(TINY.read_text())
+        edit(cfg["scenes"]["tiny_nm"])
+        path = tmp_path / "edited.yaml"
+        path.write_text(yaml.safe_dump(cfg))
+        return sorted(planned_jobs(snakemake("-n", "all", "--configfile", str(path), "--directory", str(work)).stdout), key=str)
+
+    def studies(sc):
+        sc["nm_study"]["sheet"]["epochs"] += 1
+        sc["nm_study"]["energy"]["ae_epochs"] += 1
+
+    assert jobs_after(studies) == sorted([("nm_sheet_study", "tiny_nm"), ("nm_sheet_tables", "tiny_nm"), ("nm_energy_table", "tiny_nm"), ("all", None)], key=str)
+    assert jobs_after(lambda sc: sc["neural_modes"].update(epochs=sc["neural_modes"]["epochs"] + 1)) == sorted(
+        [(r, "tiny_nm") for r in ("nm_train", "nm_energy_table", "nm_dynamics", "nm_keyframes")] + [("nm_summary", None), ("all", None)], key=str
+    )
+    assert jobs_after(lambda sc: sc["nm_study"]["sheet"].update(test_grid=4)) == sorted(
+        [(r, "tiny_nm") for r in ("nm_ground_truth", "nm_sheet_study", "nm_sheet_tables")] + [("all", None)], key=str
+    )
+
+
 def test_editing_a_variant_reruns_only_that_methods_jobs(tiny_run, tmp_path):
     work, _ = tiny_run
     cfg = yaml.safe_load(TINY.read_text())
@@ -245,9 +343,9 @@ def _h5_contents(path):
 
     def visit(name, obj):
         for k, v in obj.attrs.items():
-            if k not in TIMING_ATTRS:
+            if not is_timing(k, TIMING_ATTRS):
                 out[f"{name}@{k}"] = v
-        if isinstance(obj, h5py.Dataset) and name.split("/")[-1] not in TIMING_DATASETS:
+        if isinstance(obj, h5py.Dataset) and not is_timing(name.split("/")[-1], TIMING_DATASETS):
             out[name] = obj[()]
 
     with h5py.File(path) as f:

@@ -67,6 +67,7 @@ def validate_config(config: dict, schema_path=SCHEMA) -> dict:
         error = max(errors, key=lambda e: len(list(e.absolute_path)))
         raise ConfigError(_describe(error))
     _check_variants(config)
+    _check_nm_study(config)
     return config
 
 
@@ -77,6 +78,32 @@ def _check_variants(config: dict) -> None:
         for v in scene.get("variants", []):
             if v not in known:
                 raise ConfigError(f"config key 'scenes.{name}.variants': unknown variant {v!r}; defined in integrator_variants: {sorted(known)}")
+
+
+def _check_nm_study(config: dict) -> None:
+    """The Neural Modes studies a scene switches on must fit the scene (the schema cannot say so)."""
+    for name, scene in config.get("scenes", {}).items():
+        study, key = scene.get("nm_study", {}), f"scenes.{name}.nm_study"
+        on = [s for s, block in study.items() if block.get("enabled")]
+        if on and scene.get("paper") != "wang2024":
+            raise ConfigError(f"config key '{key}.{on[0]}.enabled': the Neural Modes studies run for scenes with paper wang2024; this one has paper {scene.get('paper')!r}")
+        if "sheet" in on and scene.get("model") != "shell":
+            raise ConfigError(f"config key '{key}.sheet.enabled': the sheet study needs a shell (membrane stress, Table 4); model is {scene.get('model')!r}")
+        e = study.get("energy", {})
+        if "energy" in on and e["train"] + e["validation"] + e["intervals"] > e["samples"]:
+            raise ConfigError(
+                f"config key '{key}.energy': {e['samples']} samples leave {e['samples'] - e['train'] - e['validation']} test samples "
+                f"after {e['train']} training and {e['validation']} validation; need at least intervals = {e['intervals']}"
+            )
+        if "dynamics" in on:
+            if scene.get("neural_modes", {}).get("boundary") != "dirichlet":
+                raise ConfigError(f"config key '{key}.dynamics.enabled': subspace dynamics carry Dirichlet modes with the prescribed set; set neural_modes.boundary to dirichlet")
+            if not any(q.get("split") == "test" for q in scene.get("sequences", [])):
+                raise ConfigError(f"config key '{key}.dynamics.enabled': the scene has no sequence of split test to replay")
+        if "keyframes" in on:
+            poses, m = study["keyframes"]["poses"], scene.get("neural_modes", {}).get("modes")
+            if len(poses) < 2 or any(len(p) != m for p in poses):
+                raise ConfigError(f"config key '{key}.keyframes.poses': need at least two keyframes of {m} modal coordinates each (neural_modes.modes); got {poses}")
 
 
 def integrator_settings(config: dict, scene: str, method: str) -> dict:

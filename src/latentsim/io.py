@@ -106,3 +106,22 @@ def require(h5obj, key, path=None):
         where = path or getattr(h5obj.file, "filename", "?")
         raise ArtefactError(f"{where}: missing '{h5obj.name.rstrip('/')}/{key}'")
     return h5obj[key]
+
+
+def write_tree(group, tree: dict):
+    """Store a nested dict: dicts as groups, arrays as datasets, numbers, strings and lists of them as attributes."""
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            write_tree(group.create_group(key, track_order=True), value)
+        elif isinstance(value, np.ndarray):
+            write_dataset(group, key, value)
+        else:
+            group.attrs[key] = value
+
+
+def read_tree(group) -> dict:
+    """Inverse of :func:`write_tree` (attributes come back as NumPy scalars and arrays, strings as str)."""
+    out = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in group.attrs.items()}
+    for key, item in group.items():
+        out[key] = read_tree(item) if isinstance(item, h5py.Group) else item[()]
+    return out

@@ -197,6 +197,7 @@ NM_DEFAULTS = {
     "eta": 1.0e7,
     "orthogonality": "paper",
     "metric": "euclidean",
+    "exact_origin": True,
 }
 
 

@@ -21,6 +21,7 @@ GELU MLP (no autograd in the step).
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -28,7 +29,9 @@ from scipy.special import erf
 
 from .neural_modes import NeuralModes
 
-__all__ = ["NeuralModesSubspace"]
+log = logging.getLogger(__name__)
+
+__all__ = ["DYNAMICS_METHODS", "NeuralModesSubspace", "keyframe_coordinates", "relative_errors", "subspace_dynamics"]
 
 
 def _gelu(s):
@@ -121,3 +124,130 @@ class NeuralModesSubspace:
         R, c = self._frame(xD)
         u = ((np.asarray(x) - c) @ R + self.c0).reshape(-1) - self.X
         return np.linalg.lstsq(self.E, u, rcond=None)[0]
+
+
+# --------------------------------------------------------------------------------------------------
+# the subspace-dynamics study (Sec. 4.5) and keyframing (Fig. 6)
+# --------------------------------------------------------------------------------------------------
+DYNAMICS_METHODS = {  # slug: (label, linear modes only, per-step minimiser, with a cubature)
+    "nm_lbfgs": ("Neural Modes, L-BFGS (the paper's solver)", False, "lbfgs", False),
+    "nm_newton": ("Neural Modes, Gauss-Newton on J^T H J", False, "newton", False),
+    "linear_newton": ("linear modes, Newton", True, "newton", False),
+    "nm_lbfgs_cubature": ("Neural Modes, L-BFGS, cubature", False, "lbfgs", True),
+    "nm_newton_cubature": ("Neural Modes, Gauss-Newton, cubature", False, "newton", True),
+    "linear_newton_cubature": ("linear modes, Newton, cubature", True, "newton", True),
+}
+
+
+def relative_errors(positions, reference, diagonal: float) -> np.ndarray:
+    """(T,) RMS vertex distance between two motions (T,n,3) per frame, over ``diagonal`` (NaN where either is)."""
+    d = np.asarray(positions, dtype=np.float64) - np.asarray(reference, dtype=np.float64)
+    return np.sqrt((d**2).sum(-1).mean(-1)) / diagonal
+
+
+def first_test_sequence(f) -> str:
+    """Name of the first sequence of split ``test`` in an open trajectories.h5."""
+    for name, g in f["sequences"].items():
+        if g.attrs.get("split") == "test":
+            return name
+    raise ValueError(f"{f.filename}: no test sequence to replay (sequences: {sorted(f['sequences'])})")
+
+
+def subspace_dynamics(f, model: NeuralModes, box: float, settings: dict, progress: bool = False) -> dict:
+    """Replay the first test sequence's Dirichlet motion in the Neural Modes and linear-modes subspaces.
+
+    Parameters
+    ----------
+    f : the scene's open trajectories.h5 (potential, rest state, the full simulation to compare with).
+    model : trained Neural Modes of the scene (Dirichlet modes).
+    box : the modal training box; the cubature's poses are drawn in it (data-free, like the modes).
+    settings : ``frames`` (0: all), ``max_iterations`` per step, ``cubature_tolerance``,
+        ``cubature_samples`` (and half as many held out), ``cubature_max_elements``, ``full_frames_timed``.
+
+    Every method of :data:`DYNAMICS_METHODS` steps the reduced implicit Euler of Eq. 15
+    (``reduced.reduced_rollout``) from rest; the full-space Newton frame of the same sequence is timed
+    in the same process (``train.time_full_space``).  Returns ``sequence``, ``reference`` (T,n,3),
+    ``dirichlet_positions``, ``full`` (timing), ``cubatures`` {neural|linear: Cubature}, ``runs`` {slug:
+    reduced_rollout's dict + ``error`` (T,)} and ``rows`` (a DataFrame, the full-space row first).
+    """
+    import pandas as pd
+    from tqdm.auto import tqdm
+
+    from .cubature import box_samples, cubature_potential, fit_cubature
+    from .reduced import ReducedSettings, reduced_rollout
+    from .scene import potential_from_artefact
+    from .train import time_full_space
+
+    pot = potential_from_artefact(f)
+    name = first_test_sequence(f)
+    g = f["sequences"][name]
+    T = int(settings["frames"]) or g["positions"].shape[0]
+    ref, xD = g["positions"][:T], g["dirichlet_positions"][:T]
+    if len(ref) < 3:
+        raise ValueError(f"{f.filename}: sequence {name!r} has {len(ref)} frames; the dynamics study needs at least 3")
+    X = f["rest_positions"][()]
+    diag = float(np.linalg.norm(X.max(0) - X.min(0)))
+    full = time_full_space(f, name, int(settings["full_frames_timed"]))
+    D = pot.dirichlet.numpy()
+    subspaces = {"neural": NeuralModesSubspace(model, D), "linear": NeuralModesSubspace(model, D, linear_only=True)}
+    cubatures, stepping = {}, {}
+    count = int(settings["cubature_samples"])
+    for kind, sub in subspaces.items():
+        c = fit_cubature(
+            pot.terms, sub, box_samples(sub.dim, box, count, seed=0), float(settings["cubature_tolerance"]),
+            int(settings["cubature_max_elements"]), validation=box_samples(sub.dim, box, max(count // 2, 1), seed=1),
+        )  # fmt: skip
+        cubatures[kind], stepping[kind] = c, cubature_potential(pot, c)
+        log.info("%s modes: cubature of %d of %d elements, force error %.4f (held out %.4f), %.1f s",
+                 kind, len(c.index), c.n_elements, c.train_error, c.validation_error, c.fit_seconds)  # fmt: skip
+    elements = sum(int(t.stencils.shape[0]) for t in pot.terms)
+    zero = relative_errors(ref, ref, diag)  # the full simulation against itself
+    rows = [{"method": "full space, Newton", "elements": elements, "steps": full["full_frames_timed"], "ms/step median": full["full_ms"],
+             "ms/step mean": full["full_ms"], "iterations/step": full["full_iterations"], "error mean": float(zero.mean()),
+             "error max": float(zero.max()), "diverged frame": -1}]  # fmt: skip
+    runs = {}
+    for slug in tqdm(DYNAMICS_METHODS, desc="subspace dynamics", disable=not progress, leave=False):
+        label, linear, method, cubature = DYNAMICS_METHODS[slug]
+        kind = "linear" if linear else "neural"
+        q0 = np.zeros(model.m)
+        rs = ReducedSettings(method=method, max_iterations=int(settings["max_iterations"]))
+        out = reduced_rollout(subspaces[kind], stepping[kind] if cubature else pot, q0, q0, xD, rs)
+        out["error"] = relative_errors(out["positions"], ref, diag)
+        runs[slug] = out
+        rows.append({"method": label, "elements": len(cubatures[kind].index) if cubature else elements, **_row(out, method)})
+        r = rows[-1]
+        log.info("%s: %.2f ms/step, error mean %.4f max %.4f, diverged at %d", label, r["ms/step median"], r["error mean"], r["error max"], r["diverged frame"])
+    return {"sequence": name, "reference": ref, "dirichlet_positions": xD, "full": full, "cubatures": cubatures, "runs": runs, "rows": pd.DataFrame(rows)}
+
+
+def _row(out: dict, method: str) -> dict:
+    """A table row of one reduced rollout: medians and means over its steps (frames 2 on), errors over its
+    frames before divergence; the split of a step only for Newton (L-BFGS does not split its step)."""
+    steps = out["step_ms"][2:]
+    ms = steps[np.isfinite(steps)]
+    ok = np.isfinite(out["error"])
+    row = {
+        "steps": len(ms), "ms/step median": float(np.median(ms)) if len(ms) else np.nan, "ms/step mean": float(ms.mean()) if len(ms) else np.nan,
+        "iterations/step": float(out["iterations"][2:].mean()), "error mean": float(out["error"][ok].mean()), "error max": float(out["error"][ok].max()),
+        "diverged frame": int(out["diverged_frame"]),
+    }  # fmt: skip
+    for part in ("map", "derivatives", "reduce", "line_search"):
+        v = out[f"{part}_ms"][2:]
+        row[f"{part.replace('_', ' ')} ms"] = float(np.nanmedian(v)) if method == "newton" and np.isfinite(v).any() else np.nan
+    return row
+
+
+def keyframe_coordinates(poses, steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """Linear interpolation of modal coordinates between keyframes (Fig. 6).
+
+    ``poses`` (K,m) keyframes, ``steps`` >= 1 frames from one keyframe to the next.  Returns z
+    ((K-1) steps + 1, m) and the frame of each keyframe (K,), where z equals the keyframe exactly.
+    """
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.ndim != 2 or len(poses) < 2 or steps < 1:
+        raise ValueError(f"keyframe_coordinates: need at least two keyframes (K,m) and steps >= 1, got shape {poses.shape}, steps {steps}")
+    t = np.arange(steps) / steps
+    z = np.concatenate([(1 - t)[:, None] * a + t[:, None] * b for a, b in zip(poses[:-1], poses[1:])] + [poses[-1:]])
+    keys = np.arange(len(poses)) * steps
+    z[keys] = poses  # exact, not 1 * a + 0 * b
+    return z, keys

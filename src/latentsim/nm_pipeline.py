@@ -1,21 +1,36 @@
-"""Pipeline stages of Neural Modes (``workflow/rules/neural_modes.smk``): linear modes, training, summary.
+"""Pipeline stages of Neural Modes (``workflow/rules/neural_modes.smk``): linear modes, training, summary,
+and the evaluation studies of Wang et al. 2024 that a scene's ``nm_study`` block switches on.
 
-Each stage reads its inputs, calls ``latentsim.neural_modes`` and writes one artefact atomically
-with provenance (``docs/artefacts.md``, section Neural Modes).
+- ``nm_linear_modes``, ``nm_train``, ``nm_summary``: the subspace itself;
+- ``nm_ground_truth``: Eq. 9 on the sample sets of a study (``sheet``: grids and random samples;
+  ``energy``: uniform samples split in order), its own artefact so retraining never re-solves it;
+- ``nm_sheet_study``, ``nm_sheet_tables``: every method of Sec. 4.1-4.4 along its training, then
+  Tables 2, 3, 4, A1 and Figs. 2, 3, 4 (``latentsim.nm_sheet``, ``latentsim.nm_figures``);
+- ``nm_energy_table``: Table 5 (``latentsim.nm_energy``);
+- ``nm_dynamics``: the subspace dynamics of Sec. 4.5 against the full simulation, with ParaView series;
+- ``nm_keyframes``: Fig. 6, linear interpolation of modal coordinates between keyframes.
+
+Each stage reads its inputs, calls the package and writes its artefacts atomically with provenance
+(``docs/artefacts.md``, section Neural Modes).  The ``*_params`` functions give each rule only the
+config it depends on, so editing one study reruns only that study of that scene.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
+import shutil
 import time
+from pathlib import Path
 
 import h5py
 import numpy as np
 import torch
 
 from . import neural_modes as nm
-from .io import atomic_h5
+from . import nm_dynamics, nm_energy, nm_sheet
+from .io import ArtefactError, atomic_h5, atomic_path, read_tree, require, write_dataset, write_tree
 from .latent import save_module
 from .scene import build_potential
 from .simulate import read_mesh_arrays
@@ -23,17 +38,71 @@ from .simulate import read_mesh_arrays
 log = logging.getLogger(__name__)
 
 
+def _canonical(obj):
+    """Plain dicts with sorted keys (as common.smk's ``canonical``): reordering YAML must not rerun a rule."""
+    return json.loads(json.dumps(obj, sort_keys=True))
+
+
 def scene_params(config: dict, scene: str) -> dict:
     """The params of the Neural Modes rules: the scene's model, material and neural_modes slice (sorted keys)."""
     sc = config["scenes"][scene]
-    return json.loads(json.dumps({"model": sc["model"], "material": sc["material"], "neural_modes": sc["neural_modes"]}, sort_keys=True))
+    return _canonical({"model": sc["model"], "material": sc["material"], "neural_modes": sc["neural_modes"]})
 
 
-def targets(scenes) -> list:
+STUDIES = ("sheet", "energy", "dynamics", "keyframes")
+MODE_KEYS = ("modes", "boundary", "normalization")  # all that the linear modes depend on
+GROUND_TRUTH_KEYS = MODE_KEYS + ("box", "metric")  # ... and the ground truth
+SET_KEYS = {"sheet": ("train_grid", "random_samples", "val_grid", "test_grid"), "energy": ("samples", "train", "validation")}
+STUDY_SETS = ("epochs", "batch_size", "sampling", "grid")  # Neural Modes settings the sheet study sets itself
+
+
+def modes_params(config: dict, scene: str) -> dict:
+    """The params of ``nm_linear_modes``: model, material and the mode keys of the neural_modes slice."""
+    sc = config["scenes"][scene]
+    return _canonical({"model": sc["model"], "material": sc["material"], "neural_modes": {k: sc["neural_modes"][k] for k in MODE_KEYS}})
+
+
+def ground_truth_params(config: dict, scene: str, study: str) -> dict:
+    """The params of ``nm_ground_truth``: what the sample sets and Eq. 9 depend on, nothing of any training."""
+    sc = config["scenes"][scene]
+    st = sc["nm_study"][study]
+    return _canonical(
+        {
+            "model": sc["model"], "material": sc["material"], "neural_modes": {k: sc["neural_modes"][k] for k in GROUND_TRUTH_KEYS},
+            "sets": {k: st[k] for k in SET_KEYS[study]}, "max_iterations": st["gt_max_iterations"], "seed": config["seed"],
+        }
+    )  # fmt: skip
+
+
+def study_params(config: dict, scene: str, study: str) -> dict:
+    """The params of a study's rule: its ``nm_study`` block, the seed, and what else it reads of the scene."""
+    sc = config["scenes"][scene]
+    nmc = sc["neural_modes"]
+    out = {"study": sc["nm_study"][study], "seed": config["seed"]}
+    if study == "sheet":
+        out.update(model=sc["model"], material=sc["material"], neural_modes={k: v for k, v in nmc.items() if k not in STUDY_SETS})
+    elif study == "energy":
+        out.update(model=sc["model"], material=sc["material"], widths=nmc["widths"])
+    else:
+        out.update(box=nmc["box"])
+    return _canonical(out)
+
+
+def study_scenes(config: dict, scenes, study: str) -> list:
+    """The scenes among ``scenes`` whose ``nm_study.<study>`` is enabled."""
+    return [s for s in scenes if config["scenes"][s]["nm_study"][study]["enabled"]]
+
+
+def targets(config: dict, scenes) -> list:
     """Every Neural Modes artefact of the given (wang2024) scenes; none when there are none."""
     if not scenes:
         return []
-    return [f"results/neural_modes/{s}/neural_modes.pt" for s in scenes] + ["results/neural_modes/summary.csv", "results/neural_modes/summary.md"]
+    out = [f"results/neural_modes/{s}/neural_modes.pt" for s in scenes] + ["results/neural_modes/summary.csv", "results/neural_modes/summary.md"]
+    out += [f"results/neural_modes/{s}/sheet/tables.md" for s in study_scenes(config, scenes, "sheet")]
+    out += [f"results/neural_modes/{s}/energy/table5.md" for s in study_scenes(config, scenes, "energy")]
+    out += [f"results/neural_modes/{s}/dynamics/dynamics.md" for s in study_scenes(config, scenes, "dynamics")]
+    out += [f"results/neural_modes/{s}/keyframes/keyframes.png" for s in study_scenes(config, scenes, "keyframes")]
+    return out
 
 
 def scene_potential(mesh_h5, model: str, material: dict):
@@ -50,7 +119,9 @@ def _fixed_dofs(arrays, boundary):
 
 
 def linear_modes_stage(mesh_h5, params: dict, out_h5):
-    """Stage ``nm_linear_modes``: the scene's lowest m modes (sparse shift-invert) to ``linear_modes.h5``."""
+    """Stage ``nm_linear_modes``: the scene's lowest m modes (sparse shift-invert) to ``linear_modes.h5``.
+
+    ``params``: :func:`modes_params` (or :func:`scene_params`: only the mode keys are read)."""
     cfg = {**nm.NM_DEFAULTS, **params["neural_modes"]}
     pot, arrays = scene_potential(mesh_h5, params["model"], params["material"])
     X = np.asarray(arrays["rest_positions"], dtype=np.float64)
@@ -74,14 +145,12 @@ def train_stage(mesh_h5, modes_h5, params: dict, seed: int, out_pt, out_h5):
     """Stage ``nm_train``: self-supervised Neural Modes (Eq. 13), its history and latent-direction correlation."""
     cfg = {**nm.NM_DEFAULTS, **params["neural_modes"]}
     pot, _ = scene_potential(mesh_h5, params["model"], params["material"])
-    with h5py.File(modes_h5, "r") as f:
-        X = f["rest_positions"][()]
-        modes = f["modes"][()]
-        fixed = f["fixed_dofs"][()]
-        rigid = f["rigid_modes"][()] if "rigid_modes" in f else None
+    basis = read_linear_modes(modes_h5)
     masses = pot.masses.numpy()
     torch.manual_seed(seed)
-    model = nm.NeuralModes(X, modes, cfg["widths"], fixed_dofs=fixed, rigid=rigid, masses=masses, exact_origin=cfg["exact_origin"])
+    model = nm.NeuralModes(
+        basis["X"], basis["modes"], cfg["widths"], fixed_dofs=basis["fixed_dofs"], rigid=basis["rigid"], masses=masses, exact_origin=cfg["exact_origin"]
+    )
     hist = nm.train_neural_modes(model, pot, cfg, seed=seed)
     log.info("trained %d epochs in %.0f s; final energy %.4g, constraint %.3g", cfg["epochs"], hist["seconds"], hist["energy"][-1], hist["constraint"][-1])
     # evaluation on a fixed set of uniform samples: energy of Neural Modes vs linear modes at the same z
@@ -132,6 +201,279 @@ def summary_stage(history_files: dict, out_csv, out_md):
                 }
             )
     df = pd.DataFrame(rows)
-    df.to_csv(out_csv, index=False)
-    with open(out_md, "w") as fh:
-        fh.write(df.to_markdown(index=False, floatfmt=".4g") + "\n")
+    write_table(df, out_csv)
+    write_markdown(out_md, {None: df})
+
+
+# --------------------------------------------------------------------------------------------------
+# shared readers and writers
+# --------------------------------------------------------------------------------------------------
+def read_linear_modes(path) -> dict:
+    """``linear_modes.h5`` as a dict: X (n,3), masses, modes (3n,m), free_dofs, fixed_dofs, rigid (3n,6) or None."""
+    with h5py.File(path, "r") as f:
+        names = {"X": "rest_positions", "masses": "masses", "modes": "modes", "free_dofs": "free_dofs", "fixed_dofs": "fixed_dofs"}
+        out = {k: require(f, name, path=path)[()] for k, name in names.items()}
+        out["rigid"] = f["rigid_modes"][()] if "rigid_modes" in f else None
+    return out
+
+
+def write_table(df, path):
+    """A DataFrame as CSV, atomically (``evaluate.write_table``)."""
+    from .evaluate import write_table as write_csv
+
+    write_csv(df, path)
+
+
+def write_markdown(path, sections: dict, preamble: str = ""):
+    """Markdown tables, atomically: ``sections`` {heading (or None): DataFrame}."""
+    parts = [preamble] if preamble else []
+    for heading, df in sections.items():
+        parts += ([f"## {heading}", ""] if heading else []) + [df.to_markdown(index=False, floatfmt=".4g"), ""]
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text("\n".join(parts) + "\n")
+
+
+def read_ground_truth(path) -> dict:
+    """``ground_truth.h5``: {set name: {z, x, energy, residual, iterations}}."""
+    with h5py.File(path, "r") as f:
+        sets = read_tree(require(f, "sets", path=path))
+    if not sets:
+        raise ArtefactError(f"{path}: no ground-truth sets under /sets")
+    return sets
+
+
+@contextlib.contextmanager
+def _new_folder(folder):
+    """Write a folder under a temporary name; it replaces ``folder`` once complete (as ``simulate.write_paraview``)."""
+    folder = Path(folder)
+    with atomic_path(folder) as tmp:
+        tmp.mkdir(parents=True)
+        yield tmp
+        if folder.exists():
+            shutil.rmtree(folder)
+
+
+# --------------------------------------------------------------------------------------------------
+# ground truth (Eq. 9) of a study's sample sets
+# --------------------------------------------------------------------------------------------------
+def study_sets(study: str, m: int, box: float, sets: dict, seed: int) -> dict:
+    """The modal coordinates of a study's sets: ``sheet`` (train_grid, train_random, val, test) or
+    ``energy`` (train, val, test: uniform samples split in order)."""
+    if study == "sheet":
+        return nm_sheet.sample_sets(m, box, sets["train_grid"], sets["val_grid"], sets["test_grid"], sets["random_samples"], seed)
+    if study == "energy":
+        return nm_energy.energy_sets(m, box, sets["samples"], sets["train"], sets["validation"], seed)
+    raise ValueError(f"study {study!r} has no ground truth; studies with one: {sorted(SET_KEYS)}")
+
+
+def ground_truth_stage(mesh_h5, modes_h5, study: str, params: dict, out_h5, progress: bool = False):
+    """Stage ``nm_ground_truth``: Eq. 9 for every sample of a study's sets (``ground_truth.h5``)."""
+    pot, _ = scene_potential(mesh_h5, params["model"], params["material"])
+    basis = read_linear_modes(modes_h5)
+    nmc = params["neural_modes"]
+    sets = study_sets(study, basis["modes"].shape[1], float(nmc["box"]), params["sets"], params["seed"])
+    gt = nm_sheet.solve_sets(
+        pot, basis["X"], basis["modes"], sets, free_dofs=basis["free_dofs"], rigid=basis["rigid"], metric=nmc["metric"],
+        max_iter=int(params["max_iterations"]), progress=progress,
+    )  # fmt: skip
+    tree = {name: {k: (float(v) if k == "seconds" else np.asarray(v)) for k, v in s.items()} for name, s in gt.items()}
+    with atomic_h5(out_h5, config=params, seed=params["seed"]) as f:
+        write_tree(f.create_group("sets", track_order=True), tree)
+
+
+# --------------------------------------------------------------------------------------------------
+# the sheet study: Tables 2, 3, 4, A1, Figs. 2, 3, 4
+# --------------------------------------------------------------------------------------------------
+def sheet_study_stage(mesh_h5, modes_h5, gt_h5, params: dict, out_h5, progress: bool = False):
+    """Stage ``nm_sheet_study``: every method trained and evaluated along its training (``study.h5``)."""
+    pot, arrays = scene_potential(mesh_h5, params["model"], params["material"])
+    if "triangles" not in arrays:
+        raise ValueError(f"{mesh_h5}: the sheet study needs a shell (membrane stress, Table 4); this mesh has no triangles")
+    basis = read_linear_modes(modes_h5)
+    gt = read_ground_truth(gt_h5)
+    missing = sorted({"train_grid", "train_random", "val", "test"} - set(gt))
+    if missing:
+        raise ArtefactError(f"{gt_h5}: missing the ground-truth set(s) {missing} of the sheet study")
+    study = nm_sheet.run_sheet_study(pot, basis, gt, params["neural_modes"], params["study"], arrays["triangles"], params["seed"], progress)
+    with atomic_h5(out_h5, config=params, seed=params["seed"]) as f:
+        f.attrs["model"] = params["model"]
+        write_dataset(f, "rest_positions", basis["X"])
+        write_dataset(f, "triangles", arrays["triangles"])
+        write_tree(f, study)
+
+
+SHEET_TABLES = ("table2", "table3", "table4", "tableA1", "correlation", "structure")
+SHEET_HEADINGS = {
+    "table2": "Table 2: elastic energy error against the ground truth (validation and test)",
+    "table3": "Table 3: early stopping of the supervised methods by validation L2 and by validation energy",
+    "table4": "Table 4: membrane stress |S| (first Piola-Kirchhoff, Frobenius) on the test set",
+    "tableA1": "Table A1: nodal forces on the test set",
+    "correlation": "Fig. 4: eigenvalues of the latent directions' correlation matrix at the origin",
+    "structure": "Fig. 3: the origin and the half-turn symmetry (test set)",
+}
+
+
+def sheet_tables_stage(study_h5, out: dict):
+    """Stage ``nm_sheet_tables``: the tables (CSV each, all in one Markdown) and Figs. 2, 3, 4 of ``study.h5``.
+
+    ``out``: paths by name: the keys of :data:`SHEET_TABLES`, ``markdown``, ``learning_curves``,
+    ``latent_walk``, ``correlation_figure``.
+    """
+    from . import nm_figures
+
+    with h5py.File(study_h5, "r") as f:
+        study = read_tree(f)
+    for key in ("methods", "walk", "correlation", "rest_positions", "triangles"):
+        if key not in study:
+            raise ArtefactError(f"{study_h5}: missing '{key}'; rerun nm_sheet_study")
+    tabs = nm_sheet.tables(study)
+    for name in SHEET_TABLES:
+        write_table(tabs[name], out[name])
+    st, g = json.loads(study["config"])["study"], study["ground_truth"]
+    preamble = (
+        f"# Neural Modes sheet study (Wang et al. 2024, Sec. 4.1-4.4)\n\nOurs beside the paper's numbers (columns `*_paper*`). "
+        f"Sets: train {st['train_grid']}^m grid and {st['random_samples']} random samples, validation {st['val_grid']}^m, "
+        f"test {st['test_grid']}^m grid (the paper: 9^3, 729, 7^3, 11^3). Neural Modes {st['epochs']} L-BFGS epochs, "
+        f"L2 supervised {st['l2_epochs']}, PCA+AE {st['ae_epochs']} Adam epochs. The paper's sheet material is not published: "
+        "compare ratios between methods, not absolute values. Ground truth on the test set (constrained Newton, at most "
+        f"{st['gt_max_iterations']} iterations): KKT residual relative to the force at X + l, median {g['residual_median']:.1e}, "
+        f"90th percentile {g['residual_p90']:.1e}; {g['iterations_mean']:.1f} iterations on average.\n"
+    )
+    write_markdown(out["markdown"], {SHEET_HEADINGS[k]: tabs[k] for k in SHEET_TABLES}, preamble)
+    nm_figures.learning_curves(study, out["learning_curves"])
+    nm_figures.correlation_heatmaps(study["correlation"], out["correlation_figure"])
+    columns = {}
+    for w in study["walk"].values():
+        for i, pos in enumerate(w["positions"]):
+            columns[f"{w['label']} z{i + 1}"] = pos
+    steps = next(iter(study["walk"].values()))["positions"].shape[1]
+    nm_figures.shape_strips(
+        columns, study["rest_positions"], study["triangles"], "shell", out["latent_walk"],
+        f"Latent walks (Fig. 3): frame k = coordinate z_i at k/{steps - 1} of its range, the others 0",
+    )  # fmt: skip
+
+
+# --------------------------------------------------------------------------------------------------
+# Table 5
+# --------------------------------------------------------------------------------------------------
+def energy_table_stage(mesh_h5, gt_h5, model_pt, params: dict, out_csv, out_md, out_h5, progress: bool = False):
+    """Stage ``nm_energy_table``: Table 5 (CSV, Markdown) and PCA+AE's validation curve (``history.h5``)."""
+    pot, arrays = scene_potential(mesh_h5, params["model"], params["material"])
+    gt = read_ground_truth(gt_h5)
+    missing = sorted({"train", "val", "test"} - set(gt))
+    if missing:
+        raise ArtefactError(f"{gt_h5}: missing the ground-truth set(s) {missing} of the energy study")
+    model = nm.load_neural_modes(model_pt)
+    st = params["study"]
+    table, hist = nm_energy.energy_table(pot, arrays["rest_positions"], gt, model, {**st, "widths": params["widths"]}, params["seed"], progress)
+    write_table(table, out_csv)
+    sizes = {s: len(gt[s]["z"]) for s in ("train", "val", "test")}
+    write_markdown(
+        out_md, {None: table},
+        f"# Table 5 (Wang et al. 2024): mean elastic energy [J] on the test set, per interval and overall\n\n"
+        f"{sizes['train']} / {sizes['val']} / {sizes['test']} uniform modal samples (train / validation / test; the paper: 900 / 100 / 300); "
+        f"PCA+AE kept at its least validation L2 (epoch {int(hist['epochs'][hist['stop']])} of {st['ae_epochs']}); "
+        "`l2`: mean squared position error against the ground truth. The paper's row is x1e4 J in its own material units: compare ratios.\n",
+    )  # fmt: skip
+    with atomic_h5(out_h5, config=params, seed=params["seed"]) as f:
+        write_tree(f, {k: (np.asarray(v) if np.ndim(v) else v) for k, v in hist.items()})
+
+
+# --------------------------------------------------------------------------------------------------
+# subspace dynamics and keyframing
+# --------------------------------------------------------------------------------------------------
+def _copy_root(src, dst):
+    """The rest state, masses, elements and scene attributes of a trajectories.h5 (not its sequences)."""
+    for k, item in src.items():
+        if isinstance(item, h5py.Dataset):
+            write_dataset(dst, k, item[()])
+    for k, v in src.attrs.items():
+        if k not in ("config", "seed", "latentsim_version"):
+            dst.attrs[k] = v
+
+
+def dynamics_stage(trajectories_h5, model_pt, params: dict, out: dict, progress: bool = False):
+    """Stage ``nm_dynamics``: every row of ``nm_dynamics.DYNAMICS_METHODS`` against the full simulation.
+
+    ``out``: ``csv``, ``markdown``, ``paraview`` (folder), and one path per method slug (trajectory
+    layout, the scene's test sequence: positions, latents, step_ms, iterations, error).
+    """
+    from .render import write_xdmf_series
+
+    model = nm.load_neural_modes(model_pt)
+    st = params["study"]
+    with h5py.File(trajectories_h5, "r") as f:
+        res = nm_dynamics.subspace_dynamics(f, model, float(params["box"]), st, progress)
+        name = res["sequence"]
+        for slug, run in res["runs"].items():
+            label, linear, method, cubature = nm_dynamics.DYNAMICS_METHODS[slug]
+            kind = "linear" if linear else "neural"
+            with atomic_h5(out[slug], config=params, seed=-1) as g:
+                _copy_root(f, g)
+                g.attrs.update(method=slug, label=label, mode="reduced", subspace_dim=model.m, solver=method, **res["full"])
+                if cubature:
+                    c = res["cubatures"][kind]
+                    write_dataset(g, "cubature_index", c.index)
+                    write_dataset(g, "cubature_weights", c.weights)
+                    g.attrs.update(cubature_elements=len(c.index), cubature_force_error=c.train_error, cubature_validation_error=c.validation_error,
+                                   cubature_fit_seconds=c.fit_seconds)  # fmt: skip
+                h = g.create_group("sequences", track_order=True).create_group(name)
+                h.attrs.update(split="test", method=slug, diverged_frame=int(run["diverged_frame"]))
+                for k in ("positions", "latents", "step_ms", "iterations", "error", "map_ms", "derivatives_ms", "reduce_ms", "line_search_ms"):
+                    write_dataset(h, k, run[k])
+                write_dataset(h, "dirichlet_positions", res["dirichlet_positions"])
+    rows = res["rows"]
+    write_table(rows, out["csv"])
+    T = len(res["reference"])
+    write_markdown(
+        out["markdown"], {None: rows},
+        f"# Subspace dynamics (Wang et al. 2024, Eq. 15, Sec. 4.5): sequence `{name}`, {T} frames\n\n"
+        "The prescribed Dirichlet motion replayed in each subspace by reduced implicit Euler; error: RMS vertex distance to the "
+        "full simulation / rest bounding-box diagonal (mean and max over frames). The full-space Newton frame of the same "
+        f"sequence is timed in the same process ({res['full']['full_frames_timed']} frames). Cubature: fitted to "
+        f"{st['cubature_tolerance']:.0%} of the reduced elastic forces at {st['cubature_samples']} poses drawn in the modal box.\n",
+    )  # fmt: skip
+    with _new_folder(out["paraview"]) as tmp:
+        for slug in res["runs"]:
+            write_xdmf_series(out[slug], name, Path(tmp) / f"{slug}.xdmf", reference=trajectories_h5)
+
+
+def keyframes_stage(mesh_h5, model_pt, params: dict, out_h5, out_png, out_paraview):
+    """Stage ``nm_keyframes`` (Fig. 6): keyframe poses interpolated linearly in modal coordinates, decoded by
+    Neural Modes and by the linear modes alone; a trajectory-layout file, a figure and ParaView series."""
+    from . import nm_figures
+    from .render import write_xdmf_series
+
+    model = nm.load_neural_modes(model_pt)
+    arrays = read_mesh_arrays(mesh_h5)
+    st = params["study"]
+    poses = np.asarray(st["poses"], dtype=np.float64) * float(params["box"])
+    if poses.ndim != 2 or poses.shape[1] != model.m:
+        raise ValueError(f"nm_study.keyframes.poses: each pose needs {model.m} modal coordinates (the scene's modes), got shape {poses.shape}")
+    z, keys = nm_dynamics.keyframe_coordinates(poses, int(st["steps"]))
+    with torch.no_grad():
+        zt = torch.as_tensor(z)
+        shapes = {"neural_modes": model(zt).numpy(), "linear_modes": (model.X + model.linear(zt)).reshape(len(z), -1, 3).numpy()}
+    model_kind = arrays["model"]
+    with atomic_h5(out_h5, config=params, seed=-1) as f:
+        f.attrs.update(model=model_kind, dt=1.0 / int(st["steps"]))
+        for k in ("rest_positions", "dirichlet", "triangles", "tets", "surface"):
+            if k in arrays:
+                write_dataset(f, k, arrays[k])
+        grp = f.create_group("sequences", track_order=True)
+        for name, pos in shapes.items():
+            g = grp.create_group(name)
+            g.attrs.update(split="test", method=name, keyframes=keys)
+            write_dataset(g, "positions", pos)
+            write_dataset(g, "z", z)
+    cells = arrays["triangles"] if model_kind == "shell" else arrays["surface"]
+    half = max(int(st["steps"]) // 2, 1)
+    rows = np.arange(0, len(z), half)
+    nm_figures.shape_strips(
+        {"Neural Modes": shapes["neural_modes"], "linear modes": shapes["linear_modes"]}, arrays["rest_positions"], cells, model_kind, out_png,
+        f"keyframes {', '.join(map(str, keys))}",
+        rows=rows, panel_size=3.0, dirichlet=arrays.get("dirichlet"),
+    )  # fmt: skip
+    with _new_folder(out_paraview) as tmp:
+        for name in shapes:
+            write_xdmf_series(out_h5, name, Path(tmp) / f"{name}.xdmf")

@@ -3,6 +3,7 @@ import json
 
 from snakemake.exceptions import WorkflowError
 
+from latentsim import nm_pipeline
 from latentsim.baselines import BASELINES
 from latentsim.sweep import parse_label, point_label
 from latentsim.config import (
@@ -136,3 +137,28 @@ def all_targets():
     ]
     out += ["results/evaluation/summary.csv", "results/evaluation/summary.md"]
     return out
+
+
+# --- Neural Modes (workflow/rules/neural_modes.smk) ---
+def nm_modes_params(wildcards):
+    """Input function: what the linear modes depend on (model, material, modes, boundary, normalization)."""
+    return nm_pipeline.modes_params(config, wildcards.scene)
+
+
+def nm_train_params(wildcards):
+    """Input function: the scene's model, material and whole neural_modes block."""
+    return nm_pipeline.scene_params(config, wildcards.scene)
+
+
+def nm_ground_truth_params(wildcards):
+    """Input function: what a study's ground truth depends on (its sample sets, the modes, the box)."""
+    return nm_pipeline.ground_truth_params(config, wildcards.scene, wildcards.study)
+
+
+def nm_study_params(study):
+    """Input function: a study's nm_study block, the seed and what else it reads of the scene."""
+
+    def get(wildcards):
+        return nm_pipeline.study_params(config, wildcards.scene, study)
+
+    return get

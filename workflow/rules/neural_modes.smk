@@ -1,13 +1,15 @@
-# Neural Modes (Wang et al. 2024): linear modes, self-supervised training, summary, for wang2024 scenes.
+# Neural Modes (Wang et al. 2024) for wang2024 scenes: linear modes, self-supervised training, summary,
+# and the paper's evaluation studies that a scene's nm_study block switches on.
 from functools import partial
 
 from latentsim import nm_pipeline
+from latentsim.nm_dynamics import DYNAMICS_METHODS
 
 NM_SCENES = sorted(s for s in SCENES if config["scenes"][s].get("paper") == "wang2024")
 
 
 # Every Neural Modes artefact of the configured wang2024 scenes (rule all's input).
-neural_modes_targets = partial(nm_pipeline.targets, NM_SCENES)
+neural_modes_targets = partial(nm_pipeline.targets, config, NM_SCENES)
 
 
 # Lowest vibration modes of the rest state (sparse shift-invert), Dirichlet or rigid-free.
@@ -25,7 +27,7 @@ rule nm_linear_modes:
         mem_mb=4000,
         runtime=30,
     params:
-        nm=lambda wildcards: nm_pipeline.scene_params(config, wildcards.scene),
+        nm=nm_modes_params,
     script:
         "../scripts/nm_linear_modes.py"
 
@@ -49,7 +51,7 @@ rule nm_train:
         mem_mb=8000,
         runtime=240,
     params:
-        nm=lambda wildcards: nm_pipeline.scene_params(config, wildcards.scene),
+        nm=nm_train_params,
         seed=config["seed"],
     script:
         "../scripts/nm_train.py"
@@ -77,3 +79,216 @@ rule nm_summary:
         scenes=NM_SCENES,
     script:
         "../scripts/nm_summary.py"
+
+
+# Ground truth of Eq. 9 on a study's sample sets (constrained Newton per sample); retraining never re-solves it.
+rule nm_ground_truth:
+    input:
+        mesh="results/mesh/{scene}/mesh.h5",
+        modes="results/neural_modes/{scene}/linear_modes.h5",
+    output:
+        ground_truth="results/neural_modes/{scene}/{study}/ground_truth.h5",
+    log:
+        "logs/neural_modes/{scene}_{study}_ground_truth.log",
+    benchmark:
+        "results/benchmarks/neural_modes/{scene}_{study}_ground_truth.tsv"
+    wildcard_constraints:
+        study="sheet|energy",
+    conda:
+        "../../envs/latentsim.yaml"
+    threads: 1
+    resources:
+        mem_mb=8000,
+        runtime=240,
+    params:
+        gt=nm_ground_truth_params,
+        study="{study}",
+    script:
+        "../scripts/nm_ground_truth.py"
+
+
+# Sheet study (Sec. 4.1-4.4): every method trained, and evaluated on validation and test along its training.
+rule nm_sheet_study:
+    input:
+        mesh="results/mesh/{scene}/mesh.h5",
+        modes="results/neural_modes/{scene}/linear_modes.h5",
+        ground_truth="results/neural_modes/{scene}/sheet/ground_truth.h5",
+    output:
+        study="results/neural_modes/{scene}/sheet/study.h5",
+    log:
+        "logs/neural_modes/{scene}_sheet_study.log",
+    benchmark:
+        "results/benchmarks/neural_modes/{scene}_sheet_study.tsv"
+    conda:
+        "../../envs/latentsim.yaml"
+    threads: 1
+    resources:
+        mem_mb=8000,
+        runtime=240,
+    params:
+        nm=nm_study_params("sheet"),
+    script:
+        "../scripts/nm_sheet_study.py"
+
+
+# Tables 2, 3, 4, A1 (ours beside the paper's) and Figs. 2, 3, 4 of the sheet study.
+rule nm_sheet_tables:
+    input:
+        study="results/neural_modes/{scene}/sheet/study.h5",
+    output:
+        markdown="results/neural_modes/{scene}/sheet/tables.md",
+        table2=report(
+            "results/neural_modes/{scene}/sheet/table2.csv",
+            caption="../report/nm_table2.rst",
+            category="Neural Modes",
+            subcategory="{scene}",
+        ),
+        table3=report(
+            "results/neural_modes/{scene}/sheet/table3.csv",
+            caption="../report/nm_table3.rst",
+            category="Neural Modes",
+            subcategory="{scene}",
+        ),
+        table4=report(
+            "results/neural_modes/{scene}/sheet/table4.csv",
+            caption="../report/nm_table4.rst",
+            category="Neural Modes",
+            subcategory="{scene}",
+        ),
+        tableA1=report(
+            "results/neural_modes/{scene}/sheet/tableA1.csv",
+            caption="../report/nm_tableA1.rst",
+            category="Neural Modes",
+            subcategory="{scene}",
+        ),
+        correlation=report(
+            "results/neural_modes/{scene}/sheet/correlation.csv",
+            caption="../report/nm_correlation.rst",
+            category="Neural Modes",
+            subcategory="{scene}",
+        ),
+        structure=report(
+            "results/neural_modes/{scene}/sheet/structure.csv",
+            caption="../report/nm_structure.rst",
+            category="Neural Modes",
+            subcategory="{scene}",
+        ),
+        learning_curves=report(
+            "results/neural_modes/{scene}/sheet/learning_curves.png",
+            caption="../report/nm_learning_curves.rst",
+            category="Neural Modes",
+            subcategory="{scene}",
+        ),
+        latent_walk=report(
+            "results/neural_modes/{scene}/sheet/latent_walk.png",
+            caption="../report/nm_latent_walk.rst",
+            category="Neural Modes",
+            subcategory="{scene}",
+        ),
+        correlation_figure=report(
+            "results/neural_modes/{scene}/sheet/correlation.png",
+            caption="../report/nm_correlation.rst",
+            category="Neural Modes",
+            subcategory="{scene}",
+        ),
+    log:
+        "logs/neural_modes/{scene}_sheet_tables.log",
+    conda:
+        "../../envs/latentsim.yaml"
+    resources:
+        mem_mb=2000,
+        runtime=10,
+    script:
+        "../scripts/nm_sheet_tables.py"
+
+
+# Table 5: PCA+AE (early-stopped on the validation L2) against the trained Neural Modes on uniform samples.
+rule nm_energy_table:
+    input:
+        mesh="results/mesh/{scene}/mesh.h5",
+        ground_truth="results/neural_modes/{scene}/energy/ground_truth.h5",
+        model="results/neural_modes/{scene}/neural_modes.pt",
+    output:
+        csv=report(
+            "results/neural_modes/{scene}/energy/table5.csv",
+            caption="../report/nm_table5.rst",
+            category="Neural Modes",
+            subcategory="{scene}",
+        ),
+        markdown="results/neural_modes/{scene}/energy/table5.md",
+        history="results/neural_modes/{scene}/energy/history.h5",
+    log:
+        "logs/neural_modes/{scene}_energy_table.log",
+    benchmark:
+        "results/benchmarks/neural_modes/{scene}_energy_table.tsv"
+    conda:
+        "../../envs/latentsim.yaml"
+    threads: 1
+    resources:
+        mem_mb=8000,
+        runtime=120,
+    params:
+        nm=nm_study_params("energy"),
+    script:
+        "../scripts/nm_energy_table.py"
+
+
+# Subspace dynamics (Eq. 15): Neural Modes and linear modes, with and without a cubature, against the full simulation.
+rule nm_dynamics:
+    input:
+        trajectories="results/sim/{scene}/trajectories.h5",
+        model="results/neural_modes/{scene}/neural_modes.pt",
+    output:
+        **{
+            slug: f"results/neural_modes/{{scene}}/dynamics/{slug}.h5"
+            for slug in DYNAMICS_METHODS
+        },
+        csv=report(
+            "results/neural_modes/{scene}/dynamics/dynamics.csv",
+            caption="../report/nm_dynamics.rst",
+            category="Neural Modes",
+            subcategory="{scene}",
+        ),
+        markdown="results/neural_modes/{scene}/dynamics/dynamics.md",
+        paraview=directory("results/neural_modes/{scene}/dynamics/paraview"),
+    log:
+        "logs/neural_modes/{scene}_dynamics.log",
+    benchmark:
+        "results/benchmarks/neural_modes/{scene}_dynamics.tsv"
+    conda:
+        "../../envs/latentsim.yaml"
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=60,
+    params:
+        nm=nm_study_params("dynamics"),
+    script:
+        "../scripts/nm_dynamics.py"
+
+
+# Keyframing (Fig. 6): modal coordinates interpolated linearly, decoded by Neural Modes and by linear modes.
+rule nm_keyframes:
+    input:
+        mesh="results/mesh/{scene}/mesh.h5",
+        model="results/neural_modes/{scene}/neural_modes.pt",
+    output:
+        figure=report(
+            "results/neural_modes/{scene}/keyframes/keyframes.png",
+            caption="../report/nm_keyframes.rst",
+            category="Neural Modes",
+            subcategory="{scene}",
+        ),
+        motion="results/neural_modes/{scene}/keyframes/keyframes.h5",
+        paraview=directory("results/neural_modes/{scene}/keyframes/paraview"),
+    log:
+        "logs/neural_modes/{scene}_keyframes.log",
+    conda:
+        "../../envs/latentsim.yaml"
+    resources:
+        mem_mb=2000,
+        runtime=10,
+    params:
+        nm=nm_study_params("keyframes"),
+    script:
+        "../scripts/nm_keyframes.py"

@@ -1,0 +1,17 @@
+"""Stage: ground truth (Eq. 9) of a Neural Modes study's sample sets (see latentsim.nm_pipeline.ground_truth_stage)."""
+from latentsim.nm_pipeline import ground_truth_stage
+from latentsim.utils import progress_enabled, run_stage
+
+
+def main(smk):
+    ground_truth_stage(
+        smk.input.mesh,
+        smk.input.modes,
+        smk.params.study,
+        smk.params.gt,
+        smk.output.ground_truth,
+        progress=progress_enabled(smk.config.get("progress", True)),
+    )
+
+
+run_stage(snakemake, main)  # noqa: F821 (injected by Snakemake)
