@@ -37,6 +37,7 @@ from torch import nn
 from tqdm.auto import tqdm
 
 from . import neural_modes as nm
+from .energy.kernels import with_compiled_elastic
 
 log = logging.getLogger(__name__)
 
@@ -153,7 +154,9 @@ def train_data_free(model: DataFree, potential, box, scale, w_iso=1.0, epochs=10
 
     The isometry term is weighted by the energy of a unit-z linear displacement
     scale (``w_iso`` times the mean energy at the start) so that neither term dominates by units.
+    The energy runs the compiled kernels (``energy.kernels.with_compiled_elastic``).
     """
+    potential = with_compiled_elastic(potential)
     gen = torch.Generator().manual_seed(seed)
     m3 = potential.masses.repeat_interleave(3)
     opt = torch.optim.LBFGS(model.parameters(), lr=1.0, max_iter=lbfgs_max_iter, line_search_fn="strong_wolfe")

@@ -91,6 +91,60 @@ def rigidly_carried(x, D, targets):
     return np.einsum("ij,kj->ik", x - cs, R) + ct
 
 
+class CompiledAssembly:
+    """The compiled kernels of a potential's elastic terms (``energy.kernels``), scattering each
+    stencil's gradient and Hessian straight into the gradient and into the data of a
+    ``HessianPattern``'s upper-triangular CSR (or, for ``banded=True``, the banded storage of
+    ``sparse.BandedUpper``): no per-stencil blocks, no COO->CSR conversion.
+
+    Parameters
+    ----------
+    kernels : one ``TermKernel`` per term (``term_kernel``); their stencils are split for
+        ``threads`` (``energy.kernels.split_stencils``).
+    pattern : the free-DoF Hessian pattern of those stencils.
+    """
+
+    def __init__(self, kernels, pattern: HessianPattern, n_vertices: int, banded: bool = False, threads: int = 1):
+        self.kernels, self.pattern, self.n, self.banded = kernels, pattern, int(n_vertices), bool(banded)
+        split_stencils(kernels, self.n, threads)
+        self.slots = [pattern.stencil_slots(k.stencils) for k in kernels]
+        self._diag_slots = pattern.diagonal_slots
+        self._target_size = pattern.nnz
+        if banded:
+            pos = pattern.band_positions()
+            self.slots = [np.where(s >= 0, pos[s], -1).astype(np.int32) for s in self.slots]
+            self._diag_slots = pos[self._diag_slots]
+            self._target_size = (pattern.bandwidth + 1) * pattern.shape[0]
+
+    @classmethod
+    def of(cls, terms, pattern: HessianPattern, n_vertices: int, banded: bool = False, threads: int = 1):
+        """For the terms' kernels, or None when numba is missing or a term has none."""
+        ks = [term_kernel(t) for t in terms]
+        return cls(ks, pattern, n_vertices, banded, threads) if ks and all(k is not None for k in ks) else None
+
+    def energy(self, x) -> float:
+        """Elastic energy at x (n,3)."""
+        return sum(k.energy(x) for k in self.kernels)
+
+    def energy_gradient(self, x):
+        """Elastic energy and its full gradient (3n,) in one pass."""
+        grad = np.zeros(3 * self.n)
+        return sum(k.energy_gradient(x, grad) for k in self.kernels), grad
+
+    def gradient_hessian(self, x, diagonal, project: bool):
+        """Elastic gradient (3n,) and the free-DoF Hessian plus ``diagonal`` (3n,) on its diagonal,
+        as upper-triangular CSR or ``BandedUpper``; per-stencil PSD-projected or exact."""
+        grad = np.zeros(3 * self.n)
+        data = np.zeros(self._target_size)
+        for k, slots in zip(self.kernels, self.slots):
+            k.accumulate(x, grad, data, slots, project)
+        data[self._diag_slots] += np.asarray(diagonal)[self.pattern.free_dofs]
+        p = self.pattern
+        if self.banded:
+            return grad, BandedUpper(data, p)
+        return grad, scipy.sparse.csr_matrix((data, p.indices, p.indptr), shape=p.shape)
+
+
 class ImplicitEuler:
     """Newton solver for one scene's incremental potential.
 
@@ -127,21 +181,14 @@ class ImplicitEuler:
         self.f_ref = float(np.linalg.norm(m_free) * max(np.linalg.norm(self.g), 1.0))
         self.m3 = np.repeat(self.masses, 3)
         # compiled per-stencil kernels (energy.kernels) when every term has one, unless kernels=False
-        ks = [term_kernel(t) for t in potential.terms] if kernels is not False else [None]
-        self.kernels = ks if all(k is not None for k in ks) else None
+        self.assembly = None
+        if kernels is not False:
+            self.assembly = CompiledAssembly.of(
+                potential.terms, self.pattern, n, self.linear.method == "banded", min(2, int(threads or torch.get_num_threads()))
+            )
+        self.kernels = None if self.assembly is None else self.assembly.kernels
         if kernels and self.kernels is None:
             raise ValueError("compiled kernels requested, but numba is missing or a term has none")
-        if self.kernels is not None:
-            split_stencils(self.kernels, n, min(2, int(threads or torch.get_num_threads())))
-            # targets of the kernels' scatter: the CSR data array, or the banded storage
-            self.slots = [self.pattern.stencil_slots(st) for st in self.stencils]
-            self._diag_slots = self.pattern.diagonal_slots
-            self._target_size = self.pattern.nnz
-            if self.linear.method == "banded":
-                pos = self.pattern.band_positions()
-                self.slots = [np.where(s >= 0, pos[s], -1).astype(np.int32) for s in self.slots]
-                self._diag_slots = pos[self._diag_slots]
-                self._target_size = (self.pattern.bandwidth + 1) * self.pattern.shape[0]
 
     # -- pieces of one Newton iteration --------------------------------------
     def energy(self, x, x_prev, x_prev2) -> float:
@@ -150,7 +197,7 @@ class ImplicitEuler:
             a = x - 2.0 * x_prev + x_prev2
             e = 0.5 / self.potential.dt**2 * float(np.einsum("i,ij,ij->", self.masses, a, a))
             e -= float(np.einsum("i,ij,j->", self.masses, x, self.g))
-            return e + sum(k.energy(x) for k in self.kernels)
+            return e + self.assembly.energy(x)
         with torch.no_grad():
             e = self.potential(torch.from_numpy(x), torch.from_numpy(x_prev), torch.from_numpy(x_prev2), penalty=False)
         return float(e)
@@ -160,8 +207,7 @@ class ImplicitEuler:
         pass (else None: the reference path gets it with the Hessian)."""
         if self.kernels is None:
             return self.energy(x, x_prev, x_prev2), None
-        grad = np.zeros(3 * self.n)
-        e = sum(k.energy_gradient(x, grad) for k in self.kernels)
+        e, grad = self.assembly.energy_gradient(x)
         a = x - 2.0 * x_prev + x_prev2
         h2 = self.potential.dt**2
         e += 0.5 / h2 * float(np.einsum("i,ij,ij->", self.masses, a, a))
@@ -197,22 +243,13 @@ class ImplicitEuler:
 
     def _gradient_hessian_kernels(self, x, x_prev, x_prev2, timings, project):
         """``gradient_hessian`` by the compiled kernels, which add each stencil's gradient and
-        Hessian straight into the gradient and the CSR data (timed as 'local'; 'assembly' is
-        the inertia/gravity part and the matrix wrapper)."""
+        Hessian straight into the gradient and the CSR data (timed as 'local', with the mass
+        diagonal and the matrix wrapper; 'assembly' is the inertia/gravity gradient)."""
         t0 = time.perf_counter()
-        grad = np.zeros(3 * self.n)
-        data = np.zeros(self._target_size)
-        for k, slots in zip(self.kernels, self.slots):
-            k.accumulate(x, grad, data, slots, project)
-        t1 = time.perf_counter()
         h2 = self.potential.dt**2
+        grad, U = self.assembly.gradient_hessian(x, self.m3 / h2, project)
+        t1 = time.perf_counter()
         grad += (self.masses[:, None] / h2 * (x - 2 * x_prev + x_prev2) - self.masses[:, None] * self.g).reshape(-1)
-        data[self._diag_slots] += self.m3[self.free_dofs] / h2
-        p = self.pattern
-        if self.linear.method == "banded":
-            U = BandedUpper(data, p)
-        else:
-            U = scipy.sparse.csr_matrix((data, p.indices, p.indptr), shape=p.shape)
         t2 = time.perf_counter()
         if timings is not None:
             timings["local"] += t1 - t0
