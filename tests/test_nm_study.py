@@ -43,20 +43,21 @@ def test_stopping_index_is_the_least_validation_criterion_after_training_starts(
     assert nm_sheet.stopping_index(epochs, [9.0, 5.0, np.nan, 4.0, 4.5]) == 3  # NaN never chosen
 
 
-def test_autoencoder_checkpoints_are_one_run_seen_along_its_training():
-    """fit_autoencoder has no callback: the model after epoch k comes from training k epochs, which is
-    only right while its first k epochs do not depend on the total; the loss histories say whether."""
+def test_autoencoder_checkpoints_are_what_a_run_stopped_there_returns():
+    """The model after epoch k of one run (fit_autoencoder's snapshots) is the model a run of k epochs
+    returns, the PCA start included (epoch 0, and any epoch that ended above its error)."""
     gen = torch.Generator().manual_seed(0)
     U = torch.randn(40, 30, generator=gen, dtype=torch.float64) @ torch.randn(30, 30, generator=gen, dtype=torch.float64) * 0.01
     cfg = {"latent_dim": 2, "widths": [8], "lr": 1e-3, "batch_size": 16}
-    _, short = fit_autoencoder(U, {**cfg, "epochs": 3}, seed=0)
-    _, long = fit_autoencoder(U, {**cfg, "epochs": 7}, seed=0)
-    assert short["loss"] == long["loss"][:3]
     got = list(nm_sheet.autoencoder_along_training(U, cfg, [0, 3, 7], seed=0))
     assert [k for k, _, _ in got] == [0, 3, 7]
-    again, _ = fit_autoencoder(U, {**cfg, "epochs": 7}, seed=0)
-    sd, sd7 = again.double().state_dict(), got[-1][1].state_dict()
-    assert all(torch.equal(sd[k], sd7[k]) for k in sd)
+    assert got[0][2] <= got[1][2] <= got[2][2]  # training time so far
+    for k, model, _ in got:
+        alone, hist = fit_autoencoder(U, {**cfg, "epochs": k}, seed=0)
+        sd, sk = alone.double().state_dict(), model.state_dict()
+        assert all(torch.equal(sd[name], sk[name]) for name in sd), k
+    with pytest.raises(ValueError, match="outside"):
+        fit_autoencoder(U, {**cfg, "epochs": 3}, seed=0, snapshots=[4])
 
 
 @pytest.fixture(scope="module")

@@ -32,6 +32,7 @@ import json
 import logging
 import math
 import os
+import time
 import warnings
 from typing import Any, Callable, Sequence
 
@@ -417,7 +418,7 @@ def _batches(N: int, batch_size: int, gen: torch.Generator, min_size: int = 1):
     return out
 
 
-def fit_autoencoder(U: torch.Tensor, config: dict | None = None, seed: int = 0, device="cpu", progress: bool = False):
+def fit_autoencoder(U: torch.Tensor, config: dict | None = None, seed: int = 0, device="cpu", progress: bool = False, snapshots=()):
     """Train an :class:`Autoencoder` on encoded frames (paper Eq. 2).
 
     Parameters
@@ -428,6 +429,8 @@ def fit_autoencoder(U: torch.Tensor, config: dict | None = None, seed: int = 0, 
     seed : seeds weight init and minibatch order (bitwise reproducible on CPU).
     device : anything :func:`resolve_device` accepts.
     progress : show a tqdm bar over epochs.
+    snapshots : epochs (0 = the PCA initialisation) after which to keep the weights this call
+        would have returned had it stopped there (learning curves, early stopping).
 
     Returns
     -------
@@ -437,7 +440,8 @@ def fit_autoencoder(U: torch.Tensor, config: dict | None = None, seed: int = 0, 
         PCA-initialised model, in data units^2), ``mse_final`` (of the model
         returned), ``kept`` ('trained', or 'pca' when training ended worse than
         the PCA initialisation, whose weights are then returned), ``pca_scale``
-        s, ``pca_dim``, ``epochs``.
+        s, ``pca_dim``, ``epochs``; with ``snapshots``, ``snapshots`` {epoch: {"state"
+        (state dict, on the CPU), "mse", "kept", "seconds" (training time so far)}}.
     """
     cfg = _merge(AE_DEFAULTS, config, "fit_autoencoder")
     device = resolve_device(device)
@@ -469,6 +473,25 @@ def fit_autoencoder(U: torch.Tensor, config: dict | None = None, seed: int = 0, 
 
     history = {"loss": [], "mse_initial": eval_mse(), "pca_scale": s, "pca_dim": model.pca_dim, "epochs": int(cfg["epochs"])}
     pca_state = copy.deepcopy(model.state_dict())
+    wanted = {int(k) for k in snapshots}
+    if any(k < 0 or k > int(cfg["epochs"]) for k in wanted):
+        raise ValueError(f"snapshots {sorted(wanted)} outside epochs 0..{cfg['epochs']}")
+    t_start = time.perf_counter()
+
+    def snapshot(epoch: int) -> None:
+        # what this call returns had it stopped here: the PCA start when training made it worse
+        mse = eval_mse()
+        kept = "trained" if mse <= history["mse_initial"] else "pca"
+        state = model.state_dict() if kept == "trained" else pca_state
+        history.setdefault("snapshots", {})[epoch] = {
+            "state": {k: v.detach().cpu().clone() for k, v in state.items()},
+            "mse": mse if kept == "trained" else history["mse_initial"],
+            "kept": kept,
+            "seconds": time.perf_counter() - t_start,
+        }
+
+    if 0 in wanted:
+        snapshot(0)
     bar = tqdm(range(int(cfg["epochs"])), desc="autoencoder", disable=not progress, leave=False)
     for epoch in bar:
         model.train()
@@ -486,6 +509,8 @@ def fit_autoencoder(U: torch.Tensor, config: dict | None = None, seed: int = 0, 
             cnt += idx.numel()
         history["loss"].append(tot / max(cnt, 1))
         bar.set_postfix(loss=f"{history['loss'][-1]:.3e}")
+        if epoch + 1 in wanted:
+            snapshot(epoch + 1)
     history["mse_final"] = eval_mse()
     # Never return a model worse than its own PCA initialisation (small data sets whose PCA is
     # already near exact can get worse under SGD noise): keep the PCA start instead, and say so.

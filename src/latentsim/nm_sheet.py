@@ -263,19 +263,18 @@ def stopping_index(epochs, values) -> int:
 def autoencoder_along_training(U, config: dict, epochs, seed: int = 0, progress: bool = False):
     """PCA+AE (``latent.fit_autoencoder``) after each of ``epochs``: yields (epoch, model (float64, eval), seconds).
 
-    ``fit_autoencoder`` has no per-epoch callback, so the model after epoch k is obtained by training k
-    epochs from the same seed: its first k epochs do not depend on the total (same initialisation and
-    minibatch order, no schedule; tests/test_nm_study.py checks that the loss histories agree), so each
-    is the model of one long run seen at epoch k, at the cost of sum(epochs) epochs.  Like
-    ``fit_autoencoder``, a model that ends above its PCA initialisation's training error is that
-    initialisation.  ``seconds`` is the wall time of that fit.
+    One run of max(epochs) epochs with ``snapshots``: each model is the one ``fit_autoencoder`` would
+    return had it stopped at that epoch (a model above its PCA initialisation's training error is that
+    initialisation); ``seconds`` is the training time up to it.
     """
     from .latent import fit_autoencoder
 
-    for k in tqdm(list(epochs), desc="PCA+AE checkpoints", disable=not progress, file=sys.stderr, leave=False):
-        t0 = time.perf_counter()
-        ae, _ = fit_autoencoder(U, {**config, "epochs": int(k)}, seed=seed)
-        yield int(k), ae.double().eval(), time.perf_counter() - t0
+    epochs = [int(k) for k in epochs]
+    ae, hist = fit_autoencoder(U, {**config, "epochs": max(epochs)}, seed=seed, progress=progress, snapshots=epochs)
+    for k in epochs:
+        model = copy.deepcopy(ae)
+        model.load_state_dict(hist["snapshots"][k]["state"])
+        yield k, model.double().eval(), hist["snapshots"][k]["seconds"]
 
 
 # --------------------------------------------------------------------------------------------------
