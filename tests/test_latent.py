@@ -214,6 +214,26 @@ def test_relative_coordinates_mean_round_trip_and_translation_invariance():
     assert torch.allclose(c.encode(x + shift, xD + shift), u, atol=1e-13)
 
 
+def test_relative_coordinates_hard_mean_leaves_out_and_reapplies_the_prescribed_vertices():
+    g = torch.Generator().manual_seed(2)
+    n, dirichlet = 7, torch.tensor([0, 3, 5])
+    c = RelativeCoordinates(n, dirichlet, "hard_mean")
+    free = torch.tensor([1, 2, 4, 6])
+    assert c.dim == 3 * 4 and c.hard_dirichlet and torch.equal(c.encoded_vertices, free)
+    x = torch.randn(4, n, 3, generator=g, dtype=F64)
+    xD = x[:, dirichlet, :]
+    u = c.encode(x, xD)
+    assert torch.allclose(u.reshape(4, 4, 3), x[:, free] - xD.mean(1, keepdim=True), atol=1e-15)
+    assert torch.allclose(c.decode(u, xD), x, atol=1e-14, rtol=0)
+    # any u: the prescribed vertices come back exactly at their targets
+    y = c.decode(torch.randn(4, 12, generator=g, dtype=F64), xD + 0.3)
+    assert torch.equal(y[:, dirichlet], xD + 0.3)
+    shift = torch.tensor([1.0, -2.0, 0.5], dtype=F64)
+    assert torch.allclose(c.encode(x + shift, xD + shift), u, atol=1e-13)
+    with pytest.raises(ValueError, match="needs Dirichlet"):
+        RelativeCoordinates(n, [], "hard_mean")
+
+
 # ---------------------------------------------------------------------------
 # autoencoder
 # ---------------------------------------------------------------------------

@@ -38,7 +38,7 @@ def _coords(mode: str) -> RelativeCoordinates:
     n = 12
     if mode == "roots":  # two rods of 6 vertices, roots 0 and 6
         return RelativeCoordinates(n, [0, 6], "roots", root_of=[0] * 6 + [6] * 6)
-    return RelativeCoordinates(n, [0, 1, 2], "mean")
+    return RelativeCoordinates(n, [0, 1, 2], mode)  # mean, hard_mean
 
 
 def _trained_modules(mode: str, seed: int = 0):
@@ -92,7 +92,7 @@ def _reference(ae, integ, coords, args):
     return z[0].double().numpy(), x[0].numpy()
 
 
-@pytest.mark.parametrize("mode", ["roots", "mean"])
+@pytest.mark.parametrize("mode", ["roots", "mean", "hard_mean"])
 def test_runtimes_match_modules_float64(mode):
     ae, integ, coords = _trained_modules(mode)
     ae64, integ64 = copy.deepcopy(ae).double(), copy.deepcopy(integ).double()
@@ -107,8 +107,9 @@ def test_runtimes_match_modules_float64(mode):
     zt, xt = ts.step(*args)
     assert np.allclose(zt.numpy(), z_ref, rtol=0, atol=1e-12)
     assert np.allclose(xt.numpy(), x_ref, rtol=0, atol=1e-12)
-    if mode == "roots":  # rod roots re-applied exactly
+    if mode != "mean":  # prescribed vertices re-applied exactly
         assert np.array_equal(x[coords.dirichlet.numpy()], args[-1].numpy())
+        assert np.array_equal(xt.numpy()[coords.dirichlet.numpy()], args[-1].numpy())
     # the folding is not an identity: the decoded frame differs from plain PCA
     assert np.abs(x_ref).max() > 0.1
 
@@ -139,7 +140,7 @@ def test_narrow_and_wide_pca_layers(pca_dim):
     assert np.allclose(st.jvp_vertex(args[0].numpy(), v, 7)[1], du_ref.detach().numpy(), rtol=0, atol=1e-12)
 
 
-@pytest.mark.parametrize("mode", ["roots", "mean"])
+@pytest.mark.parametrize("mode", ["roots", "mean", "hard_mean"])
 def test_runtimes_match_modules_float32(mode):
     ae, integ, coords = _trained_modules(mode, seed=3)
     args = _inputs(coords, seed=4)
@@ -155,7 +156,7 @@ def test_runtimes_match_modules_float32(mode):
     assert np.abs(xt.numpy() - x_ref).max() < 1e-5 * scale
 
 
-@pytest.mark.parametrize("mode", ["roots", "mean"])
+@pytest.mark.parametrize("mode", ["roots", "mean", "hard_mean"])
 def test_export_load_round_trip_and_rollout(mode, tmp_path):
     ae, integ, coords = _trained_modules(mode, seed=5)
     T = 12
@@ -206,7 +207,7 @@ def test_numpy_step_does_not_allocate():
     assert peak < 4096, peak
 
 
-@pytest.mark.parametrize("mode", ["roots", "mean"])
+@pytest.mark.parametrize("mode", ["roots", "mean", "hard_mean"])
 def test_forward_mode_jvp_equals_torch_func_jvp(mode):
     ae, integ, coords = _trained_modules(mode, seed=7)
     ae64 = copy.deepcopy(ae).double()

@@ -42,7 +42,7 @@ from .cubature import check_supported, cubature_potential, fit_cubature
 from .io import atomic_h5, write_dataset
 from .scene import potential_from_artefact
 from .solver import ImplicitEuler, NewtonFailed, NewtonSettings, lowest_modes
-from .train import coordinates_for, load_sequences, time_full_space
+from .train import autoencoder_coordinates, load_sequences, time_full_space
 
 log = logging.getLogger(__name__)
 
@@ -132,7 +132,7 @@ def baseline_rollouts(trajectories, ae_path, method: str, settings: dict, out, p
     """
     ae = latent.load_autoencoder(ae_path)
     with h5py.File(trajectories, "r") as f:
-        coords = coordinates_for(f)
+        coords = autoencoder_coordinates(f, ae_path)
         train = load_sequences(f, "train")
         tests = load_sequences(f, "test")
         potential = potential_from_artefact(f)

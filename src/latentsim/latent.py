@@ -169,6 +169,12 @@ class RelativeCoordinates:
         ``u_i = x_i - mean_j x*_j``.  Decoded Dirichlet vertices are *not*
         overwritten (``hard_dirichlet = False``): the loss enforces them by the
         quadratic penalty.  With no Dirichlet vertex the origin is 0.
+    ``"hard_mean"`` (solids mostly prescribed, e.g. ears on a rigid head): the
+        free vertices relative to the mean prescribed position, the Dirichlet
+        vertices left out of ``u`` and re-applied on decode
+        (``hard_dirichlet = True``).  With the paper's ``"mean"`` encoding such a
+        scene's latent must carry the prescribed majority, held only by the
+        stiff penalty, and its loss is dominated by it.
 
     The origin is always taken from the prescribed positions ``xD`` (m, 3) of
     the Dirichlet vertices (which the simulator imposes exactly), so
@@ -191,8 +197,8 @@ class RelativeCoordinates:
     def __init__(self, n_vertices: int, dirichlet, mode: str = "mean", root_of=None):
         self.n = int(n_vertices)
         self.dirichlet = torch.as_tensor(dirichlet, dtype=torch.long).reshape(-1).cpu()
-        if mode not in ("roots", "mean"):
-            raise ValueError(f"RelativeCoordinates mode must be 'roots' or 'mean', got {mode!r}")
+        if mode not in ("roots", "mean", "hard_mean"):
+            raise ValueError(f"RelativeCoordinates mode must be 'roots', 'mean' or 'hard_mean', got {mode!r}")
         self.mode = mode
         m = self.dirichlet.numel()
         if m and (self.dirichlet.min() < 0 or self.dirichlet.max() >= self.n):
@@ -213,6 +219,15 @@ class RelativeCoordinates:
             is_d[self.dirichlet] = True
             self.free = torch.nonzero(~is_d).reshape(-1)
             self.root_slot = root_slot[self.free]  # (n_free,)
+            self.encoded_vertices = self.free
+            self.hard_dirichlet = True
+        elif mode == "hard_mean":
+            if not m:
+                raise ValueError("mode 'hard_mean' needs Dirichlet vertices")
+            is_d = torch.zeros(self.n, dtype=torch.bool)
+            is_d[self.dirichlet] = True
+            self.free = torch.nonzero(~is_d).reshape(-1)
+            self.root_slot = None
             self.encoded_vertices = self.free
             self.hard_dirichlet = True
         else:
@@ -245,7 +260,7 @@ class RelativeCoordinates:
         lead = torch.broadcast_shapes(u.shape[:-1], xD.shape[:-2])
         dtype = torch.promote_types(u.dtype, xD.dtype)
         xe = u.reshape(u.shape[:-1] + (-1, 3)).to(dtype) + self._origin(xD.to(dtype))
-        if self.mode == "mean":
+        if not self.hard_dirichlet:
             return xe.expand(lead + xe.shape[-2:])
         x = torch.empty(lead + (self.n, 3), dtype=dtype, device=u.device)
         x[..., self.free.to(u.device), :] = xe

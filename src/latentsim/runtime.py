@@ -66,6 +66,7 @@ __all__ = [
 ]
 
 FORMAT = "latentsim-latent-runtime"
+HARD_MODES = ("roots", "hard_mean")  # relative-coordinate modes that re-apply the Dirichlet vertices
 VERSION = 1
 
 
@@ -247,20 +248,21 @@ class NumpyStepper:
         self.root_slot = np.asarray(folded["root_slot"], dtype=np.int64)
         m = len(self.dirichlet)
         self._x = np.empty((self.n, 3))
-        if self.mode == "roots":
+        self.hard = self.mode in HARD_MODES
+        if self.hard:
             nf = len(self.free)
             # x = ext[perm] with ext = [free vertices; Dirichlet vertices]
             perm = np.empty(self.n, dtype=np.int64)
             perm[self.free] = np.arange(nf)
             perm[self.dirichlet] = nf + np.arange(m)
             self._perm_flat = (3 * perm[:, None] + np.arange(3)).reshape(-1)
-            self._root_flat = (3 * self.root_slot[:, None] + np.arange(3)).reshape(-1)
-            if len(self.root_slot) and (self.root_slot.min() < 0 or self.root_slot.max() >= m):
-                raise ValueError("root_slot out of range of the Dirichlet list")
+            if self.mode == "roots":
+                self._root_flat = (3 * self.root_slot[:, None] + np.arange(3)).reshape(-1)
+                if len(self.root_slot) and (self.root_slot.min() < 0 or self.root_slot.max() >= m):
+                    raise ValueError("root_slot out of range of the Dirichlet list")
+                self._orig = np.empty(3 * nf)
             self._ext = np.empty(3 * (nf + m))
-            self._orig = np.empty(3 * nf)
-        else:
-            self._origin = np.zeros(3)
+        self._origin = np.zeros(3)
         # forward-mode Jvp buffers: rows (h, dh) of each layer
         self._S = [np.empty((2, w), dtype=dt) for w in widths]
         self._A2 = [np.empty((2, w), dtype=dt) for w in widths]
@@ -331,12 +333,18 @@ class NumpyStepper:
         xf = x.reshape(-1)
         # index gathers use mode="clip" (indices were checked at construction):
         # np.take with the default mode="raise" buffers its output
-        if self.mode == "roots":
+        if self.hard:
             nf3 = 3 * len(self.free)
             head = self._ext[:nf3]
             np.copyto(head, u)
-            np.take(xD.reshape(-1), self._root_flat, out=self._orig, mode="clip")
-            head += self._orig
+            if self.mode == "roots":
+                np.take(xD.reshape(-1), self._root_flat, out=self._orig, mode="clip")
+                head += self._orig
+            else:  # hard_mean: the mean prescribed position
+                np.mean(xD, axis=0, out=self._origin)
+                head3 = head.reshape(-1, 3)
+                for j in range(3):
+                    head3[:, j] += self._origin[j]
             self._ext[nf3:] = xD.reshape(-1)
             np.take(self._ext, self._perm_flat, out=xf, mode="clip")
         else:
@@ -354,7 +362,7 @@ class NumpyStepper:
 
     # -- derivatives -------------------------------------------------------------
     def _row_of_vertex(self, vertex: int) -> int:
-        if self.mode == "roots":
+        if self.hard:
             hits = np.flatnonzero(self.free == vertex)
             return int(hits[0]) if len(hits) else -1
         return int(vertex)
@@ -442,7 +450,7 @@ class NumpyStepper:
         x = self.decode_from_u(u, xD)
         J = np.zeros((self.n, 3, r))
         Ju = Y[1:].T.reshape(-1, 3, r)
-        if self.mode == "roots":
+        if self.hard:
             J[self.free] = Ju
         else:
             J[:] = Ju
@@ -485,9 +493,9 @@ class NumpyStepper:
         """Positions (n, 3) from an encoded vector u (d,) (allocates)."""
         u = np.asarray(u, dtype=np.float64).reshape(-1, 3)
         xD = np.asarray(xD, dtype=np.float64)
-        if self.mode == "roots":
+        if self.hard:
             x = np.empty((self.n, 3))
-            x[self.free] = u + xD[self.root_slot]
+            x[self.free] = u + (xD[self.root_slot] if self.mode == "roots" else xD.mean(0))
             x[self.dirichlet] = xD
             return x
         return u + (xD.mean(0) if len(xD) else 0.0)
@@ -571,9 +579,10 @@ class _ScriptedStep(nn.Module):
             h = self.dec_mid(h)
         u = self.dec_out(h).to(torch.float64).reshape(-1, 3)
         xD = xD.to(torch.float64)
-        if self.mode == "roots":
+        if self.mode == "roots" or self.mode == "hard_mean":
+            origin = xD.index_select(0, self.root_slot) if self.mode == "roots" else xD.mean(0, keepdim=True)
             x = torch.empty((self.n, 3), dtype=torch.float64, device=u.device)
-            x.index_copy_(0, self.free, u + xD.index_select(0, self.root_slot))
+            x.index_copy_(0, self.free, u + origin)
             x.index_copy_(0, self.dirichlet, xD)
             return x
         if xD.shape[0] > 0:

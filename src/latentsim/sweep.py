@@ -52,15 +52,15 @@ def sweep_point(trajectories, autoencoder: dict, integrator: dict, rollout: dict
         latent_dim and widths replaced).
     rollout : the scene's rollout settings (``max_extent``, ``timing_repeats``).
     """
+    ae_cfg = dict(autoencoder)
     with h5py.File(trajectories, "r") as f:
-        coords = coordinates_for(f)
+        coords = coordinates_for(f, ae_cfg.pop("coordinates", None))
         train = load_sequences(f, "train")
         tests = load_sequences(f, "test")
         potential = potential_from_artefact(f)
         rest = f["rest_positions"][()]
     diag = bbox_diagonal(rest)
     U = torch.cat([coords.encode(torch.as_tensor(s["positions"]), torch.as_tensor(s["dirichlet_positions"])) for s in train.values()])
-    ae_cfg = dict(autoencoder)
     ae_cfg["pca_dim"] = ae_cfg.get("pca_dim") or None
     t0 = time.perf_counter()
     ae, _ = latent.fit_autoencoder(U.to(torch.float32), ae_cfg, seed=seed, device=device)

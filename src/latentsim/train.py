@@ -35,12 +35,26 @@ def load_sequences(f, split=None) -> dict:
     return out
 
 
-def coordinates_for(f) -> latent.RelativeCoordinates:
-    """Root-relative coordinates for rods, Dirichlet-mean-relative otherwise (Li et al. 3.2)."""
+def coordinates_for(f, mode: str | None = None) -> latent.RelativeCoordinates:
+    """The relative coordinates of a scene's trajectories ``f`` (Li et al. 3.2).
+
+    ``mode`` None (the config's autoencoder ``coordinates`` unset): root-relative for rods,
+    Dirichlet-mean-relative otherwise; or any mode of ``latent.RelativeCoordinates``.
+    """
     n = f["rest_positions"].shape[0]
-    if str(f.attrs["model"]) == "rods":
+    if mode is None:
+        mode = "roots" if str(f.attrs["model"]) == "rods" else "mean"
+    if mode == "roots":
+        if "root_of" not in f:
+            raise ValueError(f"{f.filename}: 'roots' coordinates need the rods' root_of array")
         return latent.RelativeCoordinates(n, f["dirichlet"][()], mode="roots", root_of=f["root_of"][()])
-    return latent.RelativeCoordinates(n, f["dirichlet"][()], mode="mean")
+    return latent.RelativeCoordinates(n, f["dirichlet"][()], mode=mode)
+
+
+def autoencoder_coordinates(f, ae_path) -> latent.RelativeCoordinates:
+    """The coordinates the autoencoder saved at ``ae_path`` was trained in (its file records them)."""
+    extra = torch.load(ae_path, map_location="cpu", weights_only=True).get("extra", {})
+    return coordinates_for(f, extra.get("coordinates"))
 
 
 def reconstruction_errors(ae, coords, seq: dict, diag: float) -> tuple[float, float]:
@@ -56,13 +70,13 @@ def reconstruction_errors(ae, coords, seq: dict, diag: float) -> tuple[float, fl
 
 def train_autoencoder(trajectories, settings: dict, seed: int, device: str, out_model, out_latents, progress=False):
     """Fit the autoencoder on every training frame; encode every sequence."""
+    cfg = dict(settings)
     with h5py.File(trajectories, "r") as f:
-        coords = coordinates_for(f)
+        coords = coordinates_for(f, cfg.pop("coordinates", None))
         train = load_sequences(f, "train")
         every = load_sequences(f)
         diag = bbox_diagonal(f["rest_positions"][()])
     U = torch.cat([coords.encode(torch.as_tensor(s["positions"]), torch.as_tensor(s["dirichlet_positions"])) for s in train.values()])
-    cfg = dict(settings)
     cfg["pca_dim"] = cfg.get("pca_dim") or None
     t0 = time.perf_counter()
     ae, history = latent.fit_autoencoder(U.to(torch.float32), cfg, seed=seed, device=device, progress=progress)
@@ -91,7 +105,7 @@ def train_autoencoder(trajectories, settings: dict, seed: int, device: str, out_
 def train_integrator(trajectories, ae_path, settings: dict, seed: int, device: str, out_model, out_history, checkpoint=None, progress=False):
     """Fit the latent integrator (self-supervised or supervised) on the training sequences."""
     with h5py.File(trajectories, "r") as f:
-        coords = coordinates_for(f)
+        coords = autoencoder_coordinates(f, ae_path)
         train = load_sequences(f, "train")
         potential = potential_from_artefact(f)
     ae = latent.load_autoencoder(ae_path)
@@ -196,7 +210,7 @@ def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out, m
     mode = extra.get("mode", "self_supervised")
     ae_extra = torch.load(ae_path, map_location="cpu", weights_only=True)["extra"]
     with h5py.File(trajectories, "r") as f:
-        coords = coordinates_for(f)
+        coords = coordinates_for(f, ae_extra.get("coordinates"))
         tests = load_sequences(f, "test")
         train_frames = max(len(s["positions"]) for s in load_sequences(f, "train").values())
         rest = f["rest_positions"][()]
