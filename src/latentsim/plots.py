@@ -29,6 +29,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 from matplotlib.lines import Line2D
+from matplotlib.ticker import NullFormatter
 
 from .io import ArtefactError, atomic_path, require
 
@@ -166,6 +167,12 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, error: str, colours: dict, annot
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_ylim(floor, ceil)
+    # whole decades: at least two labelled major ticks, and no labels on the minor ones (on a range
+    # under two decades matplotlib labels its minor ticks, which overlap)
+    ms = t[np.isfinite(t) & (t > 0)]
+    if len(ms):
+        ax.set_xlim(10.0 ** np.floor(np.log10(ms.min())), 10.0 ** np.ceil(np.log10(ms.max()) + 1e-9))
+    ax.xaxis.set_minor_formatter(NullFormatter())
     ax.grid(True, which="both", alpha=0.25)
     return pts
 
