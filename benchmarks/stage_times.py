@@ -4,7 +4,8 @@
 
 Every rule that simulates, trains, rolls out, sweeps or evaluates writes
 ``results/benchmarks/<stage>/<scene>[/<method or point>].tsv`` (Snakemake's ``benchmark:``: the
-job's wall seconds and CPU seconds).  Prints one Markdown row per stage: the number of jobs, the
+job's wall seconds and CPU seconds); the Neural Modes rules write ``neural_modes/<scene>[_<job>].tsv``
+and are split back into their stages here.  Prints one Markdown row per stage: the number of jobs, the
 wall seconds of each scene's jobs summed, and the stage total; then the grand total.  Jobs run two
 at a time on 2 cores, so the sum of job times exceeds the run's elapsed time.
 """
@@ -16,13 +17,36 @@ from pathlib import Path
 import pandas as pd
 
 
+# Neural Modes benchmark names, neural_modes/<scene>[_<study>]<suffix>.tsv, by suffix (nm_train has none).
+NM_SUFFIXES = {
+    "_dynamics": "nm_dynamics",
+    "_energy_table": "nm_energy_table",
+    "_sheet_study": "nm_sheet_study",
+    "_ground_truth": "nm_ground_truth",
+}
+
+
+def split_stage(parts) -> tuple[str, str]:
+    """(stage, scene) of a benchmark file's path parts relative to the benchmark folder."""
+    stage, scene = parts[0], parts[1] if len(parts) > 1 else "-"
+    if stage != "neural_modes" or len(parts) != 2:
+        return stage, scene
+    for suffix, nm_stage in NM_SUFFIXES.items():
+        if scene.endswith(suffix):
+            scene = scene[: -len(suffix)]
+            if nm_stage == "nm_ground_truth":  # <scene>_<study>: study names hold no underscore
+                scene = scene.rsplit("_", 1)[0]
+            return nm_stage, scene
+    return "nm_train", scene
+
+
 def stage_times(root) -> pd.DataFrame:
     """(stage, scene) -> jobs, wall s, CPU s, from every ``<stage>/<scene>[/...].tsv`` under root."""
     root = Path(root)
     rows = defaultdict(lambda: [0, 0.0, 0.0])
     for path in sorted(root.rglob("*.tsv")):
         parts = path.relative_to(root).with_suffix("").parts
-        stage, scene = parts[0], parts[1] if len(parts) > 1 else "-"
+        stage, scene = split_stage(parts)
         t = pd.read_csv(path, sep="\t")
         r = rows[stage, scene]
         r[0] += len(t)

@@ -1,0 +1,41 @@
+"""The benchmark scripts' own bookkeeping (their figures come from runs, not tests)."""
+
+import importlib.util
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def load(name):
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_stage_times_put_every_benchmark_file_under_its_stage_and_scene(tmp_path):
+    """The Li rules write <stage>/<scene>[/<method>].tsv, the Neural Modes rules neural_modes/<scene>[_<job>].tsv
+    (scene names hold underscores): each lands in its own stage and scene, wall and CPU seconds summed."""
+    files = {
+        "integrator/hair_rotation/self_supervised.tsv": (100.0, 90.0),
+        "integrator/hair_rotation/no_noise.tsv": (50.0, 40.0),
+        "sim/bunny_ears.tsv": (30.0, 29.0),
+        "neural_modes/nm_armadillo.tsv": (600.0, 590.0),
+        "neural_modes/nm_armadillo_energy_ground_truth.tsv": (2000.0, 1990.0),
+        "neural_modes/nm_armadillo_energy_table.tsv": (500.0, 495.0),
+        "neural_modes/nm_armadillo_dynamics.tsv": (120.0, 118.0),
+        "neural_modes/nm_sheet_sheet_ground_truth.tsv": (300.0, 299.0),
+        "neural_modes/nm_sheet_sheet_study.tsv": (400.0, 398.0),
+    }
+    for rel, (wall, cpu) in files.items():
+        path = tmp_path / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(f"s\th:m:s\tcpu_time\n{wall}\t0:00:00\t{cpu}\n")
+    df = load("stage_times").stage_times(tmp_path).set_index(["stage", "scene"])
+    assert sorted(df.index) == sorted([
+        ("integrator", "hair_rotation"), ("sim", "bunny_ears"), ("nm_train", "nm_armadillo"),
+        ("nm_ground_truth", "nm_armadillo"), ("nm_energy_table", "nm_armadillo"), ("nm_dynamics", "nm_armadillo"),
+        ("nm_ground_truth", "nm_sheet"), ("nm_sheet_study", "nm_sheet"),
+    ])  # fmt: skip
+    assert df.loc[("integrator", "hair_rotation")].tolist() == [2, 150.0, 130.0]
+    assert df.loc[("nm_ground_truth", "nm_armadillo"), "wall_s"] == 2000.0
