@@ -99,6 +99,26 @@ def test_speed_accuracy_chart_aggregates_sequences(tmp_path):
     assert pts["on_front"].to_dict() == {"a": True, "b": False}
 
 
+def test_speed_accuracy_labels_of_nearby_divergences_do_not_overlap():
+    """Two methods that diverged at nearly the same speed and error get their labels a line apart;
+    a far one keeps the first line."""
+    import matplotlib.pyplot as plt
+
+    pts = pd.DataFrame(
+        [
+            {"scene": "s", "method": "a", "ms_per_frame": 0.12, "mean_error": 0.80, "diverged_frame": 335},
+            {"scene": "s", "method": "b", "ms_per_frame": 0.13, "mean_error": 0.76, "diverged_frame": 687},
+            {"scene": "s", "method": "c", "ms_per_frame": 50.0, "mean_error": 0.01, "diverged_frame": 40},
+        ]
+    )
+    fig, ax = plt.subplots()
+    plots._draw_speed_accuracy(ax, pts, "mean_error", {"a": "r", "b": "g", "c": "b"}, annotate=False)
+    offsets = {t.get_text(): t.xyann for t in ax.texts}
+    plt.close(fig)
+    assert offsets["diverged @ 335"] == (5, 4) and offsets["diverged @ 687"] == (5, 13)
+    assert offsets["diverged @ 40"] == (5, 4)
+
+
 def test_speed_accuracy_chart_bad_input_names_the_problem(tmp_path):
     df = _speed_df()
     with pytest.raises(KeyError, match="ms_per_frame"):

@@ -139,6 +139,7 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, error: str, colours: dict, annot
     ceil = top.max() * 3 if len(top) else 1.0
     # exact (zero-error) rows sit on the bottom edge, failed (NaN) rows on the top edge
     y = np.where(positive, e, np.where(e == 0, floor, ceil))
+    placed = []  # (log10 ms, log10 error) of the labels so far: a label near one moves up a line
     for i, r in enumerate(pts.itertuples(index=False)):
         c = colours[str(r.method)]
         marker = "o" if positive[i] else ("v" if e[i] == 0 else "X")
@@ -157,7 +158,10 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, error: str, colours: dict, annot
         elif e[i] == 0 and annotate:
             label += " (exact)"
         if label:
-            ax.annotate(label, (t[i], y[i]), xytext=(5, 4), textcoords="offset points", fontsize=7)
+            at = (np.log10(max(t[i], 1e-300)), np.log10(max(y[i], 1e-300)))
+            near = sum(abs(at[0] - p[0]) < 0.5 and abs(at[1] - p[1]) < 0.25 for p in placed)
+            placed.append(at)
+            ax.annotate(label, (t[i], y[i]), xytext=(5, 4 + 9 * near), textcoords="offset points", fontsize=7)
     front = pts["on_front"].to_numpy()
     if front.any():
         order = np.argsort(t[front], kind="stable")
