@@ -40,3 +40,31 @@ def test_point_labels_round_trip():
     assert parse_label(point_label(12, 3)) == (12, 3)
     with pytest.raises(ValueError, match="sweep point label"):
         parse_label("12_3")
+
+
+def test_sizes_table_sets_ours_beside_the_papers_and_the_sweeps_choice(tmp_path):
+    from latentsim.evaluate import layers_text, sizes_table
+
+    df = _rows([(2, "8 8", 100, [0.001, 0.004], False), (4, "32 32", 900, [0.0005, 0.001], False)])
+    path = tmp_path / "choice.csv"
+    choose(df, tolerance=0.01).to_csv(path, index=False)
+    sizes = {
+        "cloth": {"latent_dim": 2, "decoder_layers": layers_text([8, 8], 50), "integrator_layers": layers_text([8, 8]), "tolerance": 0.01},
+        "cantilever": {"latent_dim": 4, "decoder_layers": layers_text([200], 50), "integrator_layers": layers_text([64])},
+    }
+    t = sizes_table(sizes, {"cloth": path}).set_index("scene")
+    assert t.loc["cloth", "decoder_layers"] == "8, 8, 50" and t.loc["cloth", "paper_decoder_layers"] == "200, 200, 200, 50"
+    assert t.loc["cloth", "paper_latent"] == 4 and t.loc["cloth", "sweep_points"] == 2 and t.loc["cloth", "sweep_passing"] == 2
+    assert t.loc["cloth", "chosen_latent"] == 2 and t.loc["cloth", "chosen_decoder"] == "8, 8"
+    assert t.loc["cloth", "chosen_error"] == pytest.approx(0.004)  # the chosen point's worst sequence
+    assert t.loc["cloth", "largest_error"] == pytest.approx(0.001) and "32 32" in t.loc["cloth", "largest_point"]
+    assert pd.isna(t.loc["cantilever", "chosen_latent"]) and t.loc["cantilever", "paper_decoder_layers"] == ""  # no sweep, no paper row
+
+
+def test_sizes_table_names_a_choice_file_without_the_columns_it_needs(tmp_path):
+    from latentsim.evaluate import sizes_table
+
+    bad = tmp_path / "choice.csv"
+    pd.DataFrame({"latent_dim": [2]}).to_csv(bad, index=False)
+    with pytest.raises(ValueError, match="choice.csv.*lacks columns"):
+        sizes_table({"cloth": {"latent_dim": 2, "decoder_layers": "8", "integrator_layers": "8"}}, {"cloth": bad})

@@ -149,6 +149,12 @@ def test_tiny_run_writes_tables_and_figures(tiny_run):
     choice = pd.read_csv(work / "results/sweep/tiny_cloth/choice.csv")
     assert sorted(choice["latent_dim"]) == [2, 4] and choice["chosen"].sum() <= 1
     assert (work / "results/sweep/tiny_cloth/sweep.png").stat().st_size > 1000
+    sizes = pd.read_csv(work / "results/evaluation/sizes.csv").set_index("scene")
+    assert sorted(sizes.index) == SCENES_TINY
+    assert sizes.loc["tiny_cloth", "sweep_points"] == len(choice)
+    tiny_ae = yaml.safe_load(TINY.read_text())["scenes"]["tiny_cloth"]["autoencoder"]
+    assert sizes.loc["tiny_cloth", "latent_dim"] == tiny_ae["latent_dim"]
+    assert "Model size per scene" in (work / "results/evaluation/summary.md").read_text()
 
 
 def test_reduced_baselines_step_with_a_cubature(tiny_run):

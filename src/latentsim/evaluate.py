@@ -259,6 +259,54 @@ def table2(df: pd.DataFrame, layers: dict | None = None) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def layers_text(widths, pca_dim=None) -> str:
+    """Layer widths as the paper's Table 2 prints them: decoder ``"200, 200, 200, 50"`` (hidden layers, then the PCA layer)."""
+    w = [int(v) for v in widths] + ([int(pca_dim)] if pca_dim else [])
+    return ", ".join(map(str, w))
+
+
+def sizes_table(sizes: dict, choices: dict | None = None) -> pd.DataFrame:
+    """Model no more than a scene needs: per scene the paper's model, ours, and the sizing sweep's choice.
+
+    Parameters
+    ----------
+    sizes : {scene: {"latent_dim", "decoder_layers", "integrator_layers"[, "tolerance"]}}, the
+        config's model of each scene (layers as :func:`layers_text` writes them) and its sweep tolerance.
+    choices : {scene: path of the sweep's ``choice.csv``} for the scenes that ran a sweep.
+
+    Returns
+    -------
+    One row per scene: ours, the paper's (Li et al. Tables 1-2; empty where the paper has no such
+    scene), and from the sweep: points trained, points within the tolerance, the chosen point
+    (latent dimension, decoder and integrator widths), its worst mean error and ms per step, and the
+    worst mean error of the largest point (the paper-size point where the sweep holds it).
+    """
+    rows = []
+    for scene, own in sizes.items():
+        row = dict(scene=scene, latent_dim=int(own["latent_dim"]), decoder_layers=own["decoder_layers"],
+                   integrator_layers=own["integrator_layers"])  # fmt: skip
+        t1, t2 = LI2025_TABLE1.get(scene), LI2025_TABLE2.get(scene)
+        row.update(paper_latent=t1[1] if t1 else np.nan, paper_decoder_layers=t2[0] if t2 else "", paper_integrator_layers=t2[1] if t2 else "")
+        path = (choices or {}).get(scene)
+        if path is not None:
+            ch = pd.read_csv(path)
+            need = {"latent_dim", "autoencoder_widths", "integrator_widths", "parameters", "mean_error", "step_ms", "passes", "chosen"}
+            if not need <= set(ch.columns):
+                raise ValueError(f"{path}: sweep choice table lacks columns {sorted(need - set(ch.columns))}")
+            pick = ch[ch["chosen"].astype(bool)]
+            big = ch.sort_values(["parameters", "latent_dim"]).iloc[-1]
+            row.update(tolerance=float(own.get("tolerance", np.nan)), sweep_points=len(ch), sweep_passing=int(ch["passes"].astype(bool).sum()))
+            if len(pick):
+                c = pick.iloc[0]
+                row.update(chosen_latent=int(c["latent_dim"]), chosen_decoder=str(c["autoencoder_widths"]).replace(" ", ", "),
+                           chosen_integrator=str(c["integrator_widths"]).replace(" ", ", "), chosen_error=float(c["mean_error"]),
+                           chosen_step_ms=float(c["step_ms"]))  # fmt: skip
+            row.update(largest_point=f"latent {int(big['latent_dim'])}; {big['autoencoder_widths']} / {big['integrator_widths']}",
+                       largest_error=float(big["mean_error"]), largest_step_ms=float(big["step_ms"]))  # fmt: skip
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
 def stability_table(df: pd.DataFrame) -> pd.DataFrame:
     """Frames survived per scene, method and test sequence (Li et al. Fig. 8), with the errors and KE ratio."""
     out = df[["scene", "method", "sequence", "frames", "diverged_frame", "mean_error", "dirichlet_error", "kinetic_ratio",
@@ -268,14 +316,19 @@ def stability_table(df: pd.DataFrame) -> pd.DataFrame:
 
 
 def summarise(tables: list, csv_path, md_path, fig_path, table1_path=None, stability_path=None, reconstruction=(), stress=(), stress_paths=None,
-              table2_path=None):  # fmt: skip
-    """Concatenate the scene tables; Table 1, the stability and reconstruction tables; Markdown copy; speed-accuracy chart."""
+              table2_path=None, sizes=None, sweep_choices=None, sizes_path=None):  # fmt: skip
+    """Concatenate the scene tables; Tables 1-2, the stability, reconstruction and model-size tables;
+    Markdown copy; speed-accuracy chart.  ``sizes`` and ``sweep_choices``: see :func:`sizes_table`."""
     df = pd.concat([pd.read_csv(t) for t in tables], ignore_index=True)
     rec = pd.concat([pd.read_csv(t) for t in reconstruction], ignore_index=True) if reconstruction else pd.DataFrame()
     if not rec.empty:  # one row per scene and split: mean of the sequence means, max of the maxima
         rec = rec.groupby(["scene", "split"], sort=False).agg(mean_error=("mean_error", "mean"), max_error=("max_error", "max")).reset_index()
     write_table(df, csv_path)
-    t1, t2, st = table1(df), table2(df), stability_table(df)
+    layers = {k: (v["decoder_layers"], v["integrator_layers"]) for k, v in (sizes or {}).items()}
+    t1, t2, st = table1(df), table2(df, layers), stability_table(df)
+    sz = sizes_table(sizes, sweep_choices) if sizes else pd.DataFrame()
+    if sizes_path is not None:
+        write_table(sz, sizes_path)
     if table1_path is not None:
         write_table(t1, table1_path)
     if table2_path is not None:
@@ -286,6 +339,8 @@ def summarise(tables: list, csv_path, md_path, fig_path, table1_path=None, stabi
             "## Li et al. Table 2: single-vertex Jvp (torch.func.jvp, forward mode), our latent step, a Fulton-style reduced step", "",
             _markdown(t2), "",
             "## Stability: frames survived per method (Li et al. Fig. 8-11)", "", _markdown(st), "",
+            "## Model size per scene: ours, the paper's, and the sizing sweep (smallest model within the tolerance)", "",
+            _markdown(sz), "",
             "## Autoencoder reconstruction error / bbox diagonal (train and test frames)", "", _markdown(rec), "",
             "## Every method and test sequence", "", _markdown(df)]  # fmt: skip
     with atomic_path(md_path) as tmp:

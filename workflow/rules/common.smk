@@ -5,6 +5,7 @@ from snakemake.exceptions import WorkflowError
 
 from latentsim import nm_pipeline
 from latentsim.baselines import BASELINES
+from latentsim.evaluate import layers_text
 from latentsim.sweep import parse_label, point_label
 from latentsim.config import (
     ConfigError,
@@ -117,6 +118,31 @@ def sweep_results(wildcards):
         f"results/sweep/{wildcards.scene}/{p}/metrics.csv"
         for p in sweep_points(wildcards.scene)
     ]
+
+
+def sweep_choices():
+    """{scene: results/sweep/<scene>/choice.csv} for the scenes with a sizing sweep."""
+    return {
+        scene: f"results/sweep/{scene}/choice.csv"
+        for scene in SCENES
+        if sweep_points(scene)
+    }
+
+
+def model_sizes():
+    """{scene: the config's latent size and layers (as Li et al. Table 2 prints them), sweep tolerance}."""
+    out = {}
+    for scene in SCENES:
+        sc = config["scenes"][scene]
+        ae, integ = sc["autoencoder"], sc["integrator"]
+        out[scene] = {
+            "latent_dim": ae["latent_dim"],
+            "decoder_layers": layers_text(ae["widths"], ae.get("pca_dim")),
+            "integrator_layers": layers_text(integ["widths"]),
+        }
+        if sweep_points(scene):
+            out[scene]["tolerance"] = sc["sweep"]["tolerance"]
+    return out
 
 
 def gpu_count(wildcards):

@@ -74,6 +74,7 @@ rule summary:
             "results/evaluation/{scene}/reconstruction.csv", scene=SCENES
         ),
         stress=expand("results/evaluation/{scene}/stress.csv", scene=SCENES),
+        sweeps=list(sweep_choices().values()),
     output:
         csv=report(
             "results/evaluation/summary.csv",
@@ -97,6 +98,11 @@ rule summary:
             category="Summary",
         ),
         stress="results/evaluation/stress.csv",
+        sizes=report(
+            "results/evaluation/sizes.csv",
+            caption="../report/sizes.rst",
+            category="Summary",
+        ),
         stress_map=report(
             "results/evaluation/stress_map.png",
             caption="../report/stress_map.rst",
@@ -107,6 +113,9 @@ rule summary:
             caption="../report/speed_accuracy.rst",
             category="Summary",
         ),
+    params:
+        sizes=model_sizes(),
+        sweep_choices=sweep_choices(),
     log:
         "logs/evaluation/summary.log",
     benchmark:

@@ -16,6 +16,9 @@ def main(smk):
         reconstruction=list(smk.input.reconstruction),
         stress=list(smk.input.stress),
         stress_paths=(out.stress, out.stress_map),
+        sizes=dict(smk.params.sizes),
+        sweep_choices=dict(smk.params.sweep_choices),
+        sizes_path=out.sizes,
     )
 
 
