@@ -26,9 +26,14 @@ NM_SUFFIXES = {
 }
 
 
+ACROSS = "across scenes"  # the column of stages that serve every scene (summary/summary.tsv)
+
+
 def split_stage(parts) -> tuple[str, str]:
     """(stage, scene) of a benchmark file's path parts relative to the benchmark folder."""
     stage, scene = parts[0], parts[1] if len(parts) > 1 else "-"
+    if len(parts) == 2 and scene == stage:  # <stage>/<stage>.tsv: one job over every scene
+        return stage, ACROSS
     if stage != "neural_modes" or len(parts) != 2:
         return stage, scene
     for suffix, nm_stage in NM_SUFFIXES.items():
@@ -59,7 +64,7 @@ def main(root="results/benchmarks"):
     df = stage_times(root)
     if df.empty:
         sys.exit(f"no benchmark files under {root}")
-    scenes = sorted(df["scene"].unique())
+    scenes = sorted(df["scene"].unique(), key=lambda s: (s == ACROSS, s))
     print("Wall time per stage (minutes; sum of the stage's jobs per scene):\n")
     print("| stage | jobs | " + " | ".join(scenes) + " | total |")
     print("|---|---|" + "---|" * len(scenes) + "---|")
