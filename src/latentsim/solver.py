@@ -23,7 +23,7 @@ import scipy.sparse
 import torch
 
 from .energy.dynamics import IncrementalPotential
-from .energy.kernels import split_stencils, term_kernel
+from .energy.kernels import add_at, inertia_gravity, split_stencils, term_kernel
 from .sparse import (
     BandedUpper,
     HessianPattern,
@@ -71,6 +71,9 @@ class StepInfo:
     projected: int = 0  # iterations that fell back to the projected Hessian (exact_first)
     # "guess": the frame's initial-guess evaluations (once per frame); the others add up over its iterations
     timings: dict = field(default_factory=lambda: {"guess": 0.0, "energy": 0.0, "local": 0.0, "assembly": 0.0, "solve": 0.0})
+
+
+_NO_GRADIENT = np.zeros(0)  # inertia_gravity without a gradient
 
 
 def _dot(a, b) -> float:
@@ -138,7 +141,7 @@ class CompiledAssembly:
         data = np.zeros(self._target_size)
         for k, slots in zip(self.kernels, self.slots):
             k.accumulate(x, grad, data, slots, project)
-        data[self._diag_slots] += np.asarray(diagonal)[self.pattern.free_dofs]
+        add_at(data, self._diag_slots, np.ascontiguousarray(diagonal, dtype=np.float64)[self.pattern.free_dofs])
         p = self.pattern
         if self.banded:
             return grad, BandedUpper(data, p)
@@ -180,6 +183,7 @@ class ImplicitEuler:
         m_free = self.masses[free_v]
         self.f_ref = float(np.linalg.norm(m_free) * max(np.linalg.norm(self.g), 1.0))
         self.m3 = np.repeat(self.masses, 3)
+        self._mass_diagonal = self.m3 / potential.dt**2  # the inertia's Hessian, M / h^2
         # compiled per-stencil kernels (energy.kernels) when every term has one, unless kernels=False
         self.assembly = None
         if kernels is not False:
@@ -194,10 +198,7 @@ class ImplicitEuler:
     def energy(self, x, x_prev, x_prev2) -> float:
         """E_total at x (n,3) numpy; Dirichlet handled by elimination, no penalty."""
         if self.kernels is not None:
-            a = x - 2.0 * x_prev + x_prev2
-            e = 0.5 / self.potential.dt**2 * float(np.einsum("i,ij,ij->", self.masses, a, a))
-            e -= float(np.einsum("i,ij,j->", self.masses, x, self.g))
-            return e + self.assembly.energy(x)
+            return self._inertia_gravity(x, x_prev, x_prev2, _NO_GRADIENT) + self.assembly.energy(x)
         with torch.no_grad():
             e = self.potential(torch.from_numpy(x), torch.from_numpy(x_prev), torch.from_numpy(x_prev2), penalty=False)
         return float(e)
@@ -208,12 +209,13 @@ class ImplicitEuler:
         if self.kernels is None:
             return self.energy(x, x_prev, x_prev2), None
         e, grad = self.assembly.energy_gradient(x)
-        a = x - 2.0 * x_prev + x_prev2
-        h2 = self.potential.dt**2
-        e += 0.5 / h2 * float(np.einsum("i,ij,ij->", self.masses, a, a))
-        e -= float(np.einsum("i,ij,j->", self.masses, x, self.g))
-        grad += (self.masses[:, None] / h2 * a - self.masses[:, None] * self.g).reshape(-1)
-        return e, grad
+        return e + self._inertia_gravity(x, x_prev, x_prev2, grad), grad
+
+    def _inertia_gravity(self, x, x_prev, x_prev2, grad) -> float:
+        """Inertia + gravity energy at x by the compiled kernel; their gradient added into grad (3n,)."""
+        c = np.ascontiguousarray
+        return float(inertia_gravity(c(x, dtype=np.float64), c(x_prev, dtype=np.float64), c(x_prev2, dtype=np.float64),
+                                     self.masses, self.g, 1.0 / self.potential.dt**2, grad))  # fmt: skip
 
     def gradient_hessian(self, x, x_prev, x_prev2, timings=None, project=True):
         """Full gradient (3n,) and the free-DoF Hessian, per-stencil PSD-projected or exact.
@@ -246,10 +248,9 @@ class ImplicitEuler:
         Hessian straight into the gradient and the CSR data (timed as 'local', with the mass
         diagonal and the matrix wrapper; 'assembly' is the inertia/gravity gradient)."""
         t0 = time.perf_counter()
-        h2 = self.potential.dt**2
-        grad, U = self.assembly.gradient_hessian(x, self.m3 / h2, project)
+        grad, U = self.assembly.gradient_hessian(x, self._mass_diagonal, project)
         t1 = time.perf_counter()
-        grad += (self.masses[:, None] / h2 * (x - 2 * x_prev + x_prev2) - self.masses[:, None] * self.g).reshape(-1)
+        self._inertia_gravity(x, x_prev, x_prev2, grad)
         t2 = time.perf_counter()
         if timings is not None:
             timings["local"] += t1 - t0

@@ -80,10 +80,16 @@ if numba is None:  # pragma: no cover
 # ---------------------------------------------------------------------------
 # shared pieces
 # ---------------------------------------------------------------------------
-@njit(**_JIT)
-def _scatter(e, st, g, H, grad, data, slots):
-    """Add stencil e's gradient g (3k,) and the upper triangle of H (3k, 3k)."""
-    k = st.shape[1]
+# The helpers below are inlined into each run kernel (numba IR inlining) with the stencil size k as
+# a literal: the loops then have fixed trip counts that LLVM unrolls.  Called, with k read from
+# st.shape[1], they made a Hessian pass 2-3x slower (the grad+Hess+proj column of
+# benchmarks/bench_simulator.py).
+_INLINE = dict(_JIT, inline="always")
+
+
+@njit(**_INLINE)
+def _scatter(e, st, g, H, grad, data, slots, k):
+    """Add stencil e's gradient g (3k,) and the upper triangle of H (3k, 3k); k = st.shape[1]."""
     n3 = 3 * k
     for a in range(k):
         v = st[e, a]
@@ -101,20 +107,20 @@ def _scatter(e, st, g, H, grad, data, slots):
 GRADIENT, SCATTER, STORE = 0, 1, 2  # modes of the run kernels
 
 
-@njit(**_JIT)
-def _scatter_gradient(e, st, g, grad):
-    """Add stencil e's gradient g (3k,)."""
-    for a in range(st.shape[1]):
+@njit(**_INLINE)
+def _scatter_gradient(e, st, g, grad, k):
+    """Add stencil e's gradient g (3k,); k = st.shape[1]."""
+    for a in range(k):
         v = st[e, a]
         for i in range(3):
             grad[3 * v + i] += g[3 * a + i]
 
 
-@njit(**_JIT)
-def _emit(e, st, g, H, grad, data, slots, g_out, H_out, mode):
+@njit(**_INLINE)
+def _emit(e, st, g, H, grad, data, slots, g_out, H_out, mode, k):
     """Stencil e's g and (symmetric) H: scattered into grad/data (SCATTER) or stored in g_out/H_out."""
     if mode == SCATTER:
-        _scatter(e, st, g, H, grad, data, slots)
+        _scatter(e, st, g, H, grad, data, slots, k)
     else:
         g_out[e] = g
         H_out[e] = H
@@ -250,7 +256,7 @@ def translation_free_basis(k: int) -> np.ndarray:
 # ---------------------------------------------------------------------------
 # StVK tetrahedra
 # ---------------------------------------------------------------------------
-@njit(**_JIT)
+@njit(**_INLINE)
 def _tet_F(e, x, st, D, F):
     """F (3, 3) = sum_a x_a D_a^T of tet e."""
     for i in range(3):
@@ -343,7 +349,7 @@ def _svd3(F, C, Vm, w, U, sig, V, b):
     sig[2] = U[0, 2] * b[0, 2] + U[1, 2] * b[1, 2] + U[2, 2] * b[2, 2]
 
 
-@njit(**_JIT)
+@njit(**_INLINE)
 def _tet_gh(e, x, st, D, vol, mu, lam, project, hess, g, H, F, S, P, q, FF, U, V, Lf, A, b, sig, w3, N):
     """Energy (returned), gradient g (12,) and, if ``hess``, Hessian H (12, 12) of tet e.
 
@@ -457,9 +463,9 @@ def _tet_run(x, st, order, D, vol, mu, lam, project, grad, data, slots, g_out, H
         total += _tet_gh(e, x, st, D, vol, mu, lam, project, mode != GRADIENT, g, H, F, S, P, q, FF, U, V, Lf, A, b,
                          sig, w3, N)  # fmt: skip
         if mode == GRADIENT:
-            _scatter_gradient(e, st, g, grad)
+            _scatter_gradient(e, st, g, grad, 4)
         elif mode == SCATTER:
-            _scatter(e, st, g, H, grad, data, slots)
+            _scatter(e, st, g, H, grad, data, slots, 4)
         else:
             g_out[e] = g
             for i in range(12):
@@ -512,7 +518,7 @@ def _stretch_run(x, st, order, rest_length, ks, project, grad, data, slots, g_ou
             g[3 + i] = f * u[i]
         if mode == GRADIENT:
             total += 0.5 * f * (ln / lb - 1.0) * lb
-            _scatter_gradient(e, st, g, grad)
+            _scatter_gradient(e, st, g, grad, 2)
             continue
         for i in range(3):
             for j in range(3):
@@ -521,7 +527,7 @@ def _stretch_run(x, st, order, rest_length, ks, project, grad, data, slots, g_ou
                 H[3 + i, 3 + j] = K
                 H[i, 3 + j] = -K
                 H[3 + i, j] = -K
-        _emit(e, st, g, H, grad, data, slots, g_out, H_out, mode)
+        _emit(e, st, g, H, grad, data, slots, g_out, H_out, mode, 2)
     return total
 
 
@@ -540,7 +546,7 @@ def bend_energy(x, st, order, alpha, c0):
     return total
 
 
-@njit(**_JIT)
+@njit(**_INLINE)
 def _rod_frame(a, b, frame):
     """Rows u1 = a/|a|, u2 (in the plane of a and b), n = u1 x u2 of a bending stencil."""
     la = math.sqrt(a[0] ** 2 + a[1] ** 2 + a[2] ** 2)
@@ -580,9 +586,6 @@ def _bend_run(x, st, order, alpha, c0, project, B, grad, data, slots, g_out, H_o
     w = np.empty(3)
     ga = np.empty(3)
     gb = np.empty(3)
-    j = np.empty((3, 6))  # gradients of (A, B, C) w.r.t. (a, b)
-    u = np.empty((3, 6))
-    Phi = np.empty((3, 3))
     M, V, BV = np.empty((6, 6)), np.empty((6, 6)), np.empty((9, 6))
     BH = np.empty((9, 6))
     wv = np.empty(6)
@@ -615,33 +618,27 @@ def _bend_run(x, st, order, alpha, c0, project, B, grad, data, slots, g_out, H_o
             g[6 + i] = gb[i]
         if mode == GRADIENT:
             total += it2 * f
-            _scatter_gradient(e, st, g, grad)
+            _scatter_gradient(e, st, g, grad, 3)
             continue
         p1 = it2 * B_
         p2 = it2 * A_
         p3 = -2.0 * (C_ * it2 + f * it3)
-        Phi[0, 0] = 0.0
-        Phi[1, 1] = 0.0
-        Phi[0, 1] = Phi[1, 0] = it2
-        Phi[0, 2] = Phi[2, 0] = -2.0 * B_ * it3
-        Phi[1, 2] = Phi[2, 1] = -2.0 * A_ * it3
-        Phi[2, 2] = -2.0 * it2 + 8.0 * C_ * it3 + 6.0 * f * it3 / tau
+        # H6 = sum_lm Phi_lm grad(A, B, C)_l grad(A, B, C)_m^T + the second derivatives of (A, B, C),
+        # with grad A = (2a, 0), grad B = (0, 2b), grad C = (b, a) and Phi_00 = Phi_11 = 0, block by block
+        P01 = it2
+        P02 = -2.0 * B_ * it3
+        P12 = -2.0 * A_ * it3
+        P22 = -2.0 * it2 + 8.0 * C_ * it3 + 6.0 * f * it3 / tau
         for i in range(3):
-            j[0, i], j[0, 3 + i] = 2.0 * a[i], 0.0
-            j[1, i], j[1, 3 + i] = 0.0, 2.0 * b[i]
-            j[2, i], j[2, 3 + i] = b[i], a[i]
-        for k in range(3):  # u_k = sum_l Phi_kl j_l
-            for r in range(6):
-                u[k, r] = Phi[k, 0] * j[0, r] + Phi[k, 1] * j[1, r] + Phi[k, 2] * j[2, r]
-        for r in range(6):
-            for s in range(r, 6):
-                acc = j[0, r] * u[0, s] + j[1, r] * u[1, s] + j[2, r] * u[2, s]
-                if r == s:
-                    acc += 2.0 * (p1 if r < 3 else p2)
-                elif s == r + 3:
-                    acc += p3
-                H6[r, s] = acc
-                H6[s, r] = acc
+            for k in range(3):
+                d = 1.0 if i == k else 0.0
+                ab = a[i] * b[k]
+                ba = b[i] * a[k]
+                H6[i, k] = 2.0 * P02 * (ab + ba) + P22 * b[i] * b[k] + 2.0 * p1 * d
+                H6[3 + i, 3 + k] = 2.0 * P12 * (ab + ba) + P22 * a[i] * a[k] + 2.0 * p2 * d
+                hab = 4.0 * P01 * ab + 2.0 * P02 * a[i] * a[k] + 2.0 * P12 * b[i] * b[k] + P22 * ba + p3 * d
+                H6[i, 3 + k] = hab
+                H6[3 + k, i] = hab
         # H9 = D^T H6 D for (a, b) = (x1 - x0, x2 - x1)
         for i in range(3):
             for jj in range(3):
@@ -659,7 +656,7 @@ def _bend_run(x, st, order, alpha, c0, project, B, grad, data, slots, g_out, H_o
         if project:
             _rod_frame(a, b, frame)
             _project_translation_free(H, B, M, BH, V, wv, BV, frame, True)
-        _emit(e, st, g, H, grad, data, slots, g_out, H_out, mode)
+        _emit(e, st, g, H, grad, data, slots, g_out, H_out, mode, 3)
     return total
 
 
@@ -721,7 +718,7 @@ def _membrane_run(x, st, order, G, K, mu, lam, project, B, grad, data, slots, g_
                 g[3 * a + i] = Ke * acc
                 q[a, i] = F[i, 0] * G[e, a, 0] + F[i, 1] * G[e, a, 1]
         if mode == GRADIENT:
-            _scatter_gradient(e, st, g, grad)
+            _scatter_gradient(e, st, g, grad, 3)
             continue
         for i in range(3):
             for jj in range(3):
@@ -742,11 +739,11 @@ def _membrane_run(x, st, order, G, K, mu, lam, project, B, grad, data, slots, g_
                         H[3 * b + jj, 3 * a + i] = Ke * h
         if project:
             _project_translation_free(H, B, M, BH, V, wv, BV, _NO_FRAME, False)
-        _emit(e, st, g, H, grad, data, slots, g_out, H_out, mode)
+        _emit(e, st, g, H, grad, data, slots, g_out, H_out, mode, 3)
     return total
 
 
-@njit(**_JIT)
+@njit(**_INLINE)
 def _wrap(d):
     """d - 2 pi round(d / 2 pi), rounding half to even like NumPy/PyTorch."""
     t = d / (2.0 * math.pi)
@@ -756,7 +753,7 @@ def _wrap(d):
     return d - 2.0 * math.pi * r
 
 
-@njit(**_JIT)
+@njit(**_INLINE)
 def _hinge_theta(e, x, st, ev, da, db, N1, N2):
     """Fills e, d_a, d_b, N1 = e x d_a, N2 = d_b x e; returns theta."""
     i0 = st[e, 0]
@@ -787,14 +784,14 @@ def hinge_energy(x, st, order, k, rest_angle):
     return total
 
 
-@njit(**_JIT)
+@njit(**_INLINE)
 def _skew(v, S):
     S[0, 0], S[0, 1], S[0, 2] = 0.0, -v[2], v[1]
     S[1, 0], S[1, 1], S[1, 2] = v[2], 0.0, -v[0]
     S[2, 0], S[2, 1], S[2, 2] = -v[1], v[0], 0.0
 
 
-@njit(**_JIT)
+@njit(**_INLINE)
 def _matmul3(A, B, out, scale):
     for i in range(3):
         for j in range(3):
@@ -837,7 +834,7 @@ def _hinge_run(x, st, order, kk, rest_angle, project, B, grad, data, slots, g_ou
                 g[3 * r + i] = k2 * d * gr[r, i]
         if mode == GRADIENT:
             total += kk[e] * d * d
-            _scatter_gradient(e, st, g, grad)
+            _scatter_gradient(e, st, g, grad, 4)
             continue
         # M_s = (I - 2 n n^T) / |N|^2, n = N / |N|
         for i in range(3):
@@ -897,8 +894,40 @@ def _hinge_run(x, st, order, kk, rest_angle, project, B, grad, data, slots, g_ou
                         H[qq, p] = h
         if project:
             _project_translation_free(H, B, M, BH, V, wv, BV, _NO_FRAME, False)
-        _emit(e, st, g, H, grad, data, slots, g_out, H_out, mode)
+        _emit(e, st, g, H, grad, data, slots, g_out, H_out, mode, 4)
     return total
+
+
+# ---------------------------------------------------------------------------
+# inertia and gravity (the solver's share of the incremental potential)
+# ---------------------------------------------------------------------------
+@njit(**_JIT)
+def inertia_gravity(x, x_prev, x_prev2, masses, g, inv_h2, grad):
+    """Inertia ``1/(2h^2) ||x - 2x_{t-1} + x_{t-2}||_M^2`` plus gravity ``-sum_i m_i x_i . g``.
+
+    The same terms as ``energy.dynamics.IncrementalPotential`` (lumped masses), in one pass
+    over the vertices; adds their gradient into ``grad`` (3n,) unless it is empty, and
+    returns the energy.
+    """
+    e_in = 0.0
+    e_g = 0.0
+    with_grad = grad.shape[0] > 0
+    for v in range(x.shape[0]):
+        m = masses[v]
+        for i in range(3):
+            a = x[v, i] - 2.0 * x_prev[v, i] + x_prev2[v, i]
+            e_in += m * a * a
+            e_g += m * x[v, i] * g[i]
+            if with_grad:
+                grad[3 * v + i] += m * (inv_h2 * a - g[i])
+    return 0.5 * inv_h2 * e_in - e_g
+
+
+@njit(**_JIT)
+def add_at(data, slots, values):
+    """data[slots[j]] += values[j] (slots distinct), without NumPy's fancy-index temporaries."""
+    for j in range(slots.shape[0]):
+        data[slots[j]] += values[j]
 
 
 # ---------------------------------------------------------------------------
@@ -923,7 +952,9 @@ class TermKernel:
     depend on ``threads``.
     """
 
-    MIN_PARALLEL = 2000  # fewer stencils than this: a thread hand-off costs more than it saves
+    # fewer stencils than this: a thread hand-off costs more than it saves (hair rotation, 3,400 rod
+    # stencils per term, ran slower on two threads; the armadillo, 12k tets, faster)
+    MIN_PARALLEL = 5000
 
     def __init__(self, term, energy_fn, run_fn, args, k, basis=None):
         self.name = term.name
@@ -936,21 +967,33 @@ class TermKernel:
         self._all = np.arange(len(self.stencils), dtype=np.int64)
         self.groups = (self._all,)
         self.threads = 1
+        self._serial, self._serial_of = None, None  # the groups concatenated, for one serial call
 
-    def _visit(self, fn) -> float:
-        """sum of fn(order) over the groups, the two halves concurrently when threaded."""
+    def _visit(self, fn, total: bool = True) -> float:
+        """sum of fn(order) over the groups, the two halves concurrently when threaded.
+
+        ``total=False`` (the caller ignores the energy): serially, one call over the groups
+        concatenated (the same visiting order, so the same scatter; a call costs ~10 us to
+        dispatch); with ``total=True`` the energy is summed group by group, as the threaded
+        path sums it, so that its last bits do not depend on the thread count either.
+        """
         g = self.groups
         if len(g) == 3 and self.threads > 1 and len(self._all) >= self.MIN_PARALLEL:
             other = _pool().submit(fn, g[0])
             second = fn(g[1])
             return other.result() + second + fn(g[2])
-        return sum(fn(order) for order in g)
+        if total or len(g) == 1:
+            return sum(fn(order) for order in g)
+        if self._serial_of is not g:
+            self._serial, self._serial_of = np.concatenate(g), g
+        return fn(self._serial)
 
     def _call(self, x, project, grad, data, slots, g_out, H_out, mode) -> float:
         x = np.ascontiguousarray(x, dtype=np.float64)
         extra = () if self._basis is None else (self._basis,)
         run, st, args = self._run, self.stencils, self._args
-        return self._visit(lambda order: run(x, st, order, *args, project, *extra, grad, data, slots, g_out, H_out, mode))
+        return self._visit(lambda order: run(x, st, order, *args, project, *extra, grad, data, slots, g_out, H_out, mode),
+                           total=mode == GRADIENT)  # fmt: skip
 
     def energy(self, x: np.ndarray) -> float:
         """The term's energy at x (n, 3)."""
