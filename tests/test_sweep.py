@@ -57,7 +57,7 @@ def test_sizes_table_sets_ours_beside_the_papers_and_the_sweeps_choice(tmp_path)
     assert t.loc["cloth", "paper_latent"] == 4 and t.loc["cloth", "sweep_points"] == 2 and t.loc["cloth", "sweep_passing"] == 2
     assert t.loc["cloth", "chosen_latent"] == 2 and t.loc["cloth", "chosen_decoder"] == "8, 8"
     assert t.loc["cloth", "chosen_error"] == pytest.approx(0.004)  # the chosen point's worst sequence
-    assert t.loc["cloth", "largest_error"] == pytest.approx(0.001) and "32 32" in t.loc["cloth", "largest_point"]
+    assert t.loc["cloth", "reference_error"] == pytest.approx(0.001) and "32 32" in t.loc["cloth", "reference_point"]  # no paper size: the largest
     assert pd.isna(t.loc["cantilever", "chosen_latent"]) and t.loc["cantilever", "paper_decoder_layers"] == ""  # no sweep, no paper row
 
 
@@ -68,3 +68,17 @@ def test_sizes_table_names_a_choice_file_without_the_columns_it_needs(tmp_path):
     pd.DataFrame({"latent_dim": [2]}).to_csv(bad, index=False)
     with pytest.raises(ValueError, match="choice.csv.*lacks columns"):
         sizes_table({"cloth": {"latent_dim": 2, "decoder_layers": "8", "integrator_layers": "8"}}, {"cloth": bad})
+
+
+def test_sizes_table_compares_with_the_papers_size_where_the_sweep_trained_it(tmp_path):
+    from latentsim.evaluate import sizes_table
+
+    df = _rows([(2, "32 32", 100, [0.010], False), (4, "200 200 200", 900, [0.004], False), (8, "200 200 200", 950, [0.5], True)])
+    df["integrator_widths"] = "32 32"
+    path = tmp_path / "choice.csv"
+    choose(df, tolerance=0.02).to_csv(path, index=False)
+    own = {"latent_dim": 2, "decoder_layers": "32, 32, 50", "integrator_layers": "32, 32", "tolerance": 0.02}
+    for scene in ("cloth", "cloth_paper"):  # <scene>_paper takes <scene>'s numbers from the paper
+        t = sizes_table({scene: own}, {scene: path}).set_index("scene")
+        assert t.loc[scene, "reference_point"] == "latent 4; 200 200 200 / 32 32"  # the paper's (Table 2), not the largest
+        assert t.loc[scene, "reference_error"] == pytest.approx(0.004) and t.loc[scene, "chosen_latent"] == 2

@@ -24,7 +24,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from .io import atomic_path, require  # noqa: E402
-from .paper import LI2025_TABLE1, LI2025_TABLE2  # noqa: E402
+from .paper import li2025_table1, li2025_table2  # noqa: E402
 from .plots import speed_accuracy_chart, stability_heatmap  # noqa: E402
 
 
@@ -217,7 +217,7 @@ def table1(df: pd.DataFrame) -> pd.DataFrame:
     rows = []
     own = df[df["method"] == "self_supervised"]
     for scene, g in own.groupby("scene", sort=False):
-        paper = LI2025_TABLE1.get(scene)
+        paper = li2025_table1(scene)
         row = dict(
             scene=scene,
             dof=int(g["dof"].iloc[0]),
@@ -252,7 +252,7 @@ def table2(df: pd.DataFrame, layers: dict | None = None) -> pd.DataFrame:
         row.update(jvp_torch_ms=own["jvp_torch_ms"].median(), jvp_forward_ms=own["jvp_forward_ms"].median(), ours_ms=own["latent_ms"].median())
         fulton = g[g["method"] == "fulton_reduced"]
         row["fulton_step_ms"] = fulton["latent_ms"].median() if not fulton.empty else np.nan
-        paper = LI2025_TABLE2.get(scene)
+        paper = li2025_table2(scene)
         if paper is not None:
             row.update(paper_decoder_layers=paper[0], paper_integrator_layers=paper[1], paper_jvp_ms=paper[2], paper_ours_ms=paper[3])
         rows.append(row)
@@ -279,13 +279,13 @@ def sizes_table(sizes: dict, choices: dict | None = None) -> pd.DataFrame:
     One row per scene: ours, the paper's (Li et al. Tables 1-2; empty where the paper has no such
     scene), and from the sweep: points trained, points within the tolerance, the chosen point
     (latent dimension, decoder and integrator widths), its worst mean error and ms per step, and the
-    worst mean error of the largest point (the paper-size point where the sweep holds it).
+    same of a reference point: the paper's size where the sweep trained it, else the largest point.
     """
     rows = []
     for scene, own in sizes.items():
         row = dict(scene=scene, latent_dim=int(own["latent_dim"]), decoder_layers=own["decoder_layers"],
                    integrator_layers=own["integrator_layers"])  # fmt: skip
-        t1, t2 = LI2025_TABLE1.get(scene), LI2025_TABLE2.get(scene)
+        t1, t2 = li2025_table1(scene), li2025_table2(scene)
         row.update(paper_latent=t1[1] if t1 else np.nan, paper_decoder_layers=t2[0] if t2 else "", paper_integrator_layers=t2[1] if t2 else "")
         path = (choices or {}).get(scene)
         if path is not None:
@@ -301,8 +301,12 @@ def sizes_table(sizes: dict, choices: dict | None = None) -> pd.DataFrame:
                 row.update(chosen_latent=int(c["latent_dim"]), chosen_decoder=str(c["autoencoder_widths"]).replace(" ", ", "),
                            chosen_integrator=str(c["integrator_widths"]).replace(" ", ", "), chosen_error=float(c["mean_error"]),
                            chosen_step_ms=float(c["step_ms"]))  # fmt: skip
-            row.update(largest_point=f"latent {int(big['latent_dim'])}; {big['autoencoder_widths']} / {big['integrator_widths']}",
-                       largest_error=float(big["mean_error"]), largest_step_ms=float(big["step_ms"]))  # fmt: skip
+            if t1 and t2:  # the paper's size, where the sweep trained it (decoder widths without the PCA layer)
+                same = ch[(ch["latent_dim"] == t1[1]) & (ch["autoencoder_widths"].astype(str) == " ".join(t2[0].split(", ")[:-1]))
+                          & (ch["integrator_widths"].astype(str) == " ".join(t2[1].split(", ")))]  # fmt: skip
+                big = same.iloc[0] if len(same) else big
+            row.update(reference_point=f"latent {int(big['latent_dim'])}; {big['autoencoder_widths']} / {big['integrator_widths']}",
+                       reference_error=float(big["mean_error"]), reference_step_ms=float(big["step_ms"]))  # fmt: skip
         rows.append(row)
     return pd.DataFrame(rows)
 

@@ -24,3 +24,19 @@ LI2025_TABLE2 = {
     "armadillo": ("200, 200, 200, 50", "256, 256, 256, 256, 256", 0.649, 0.489),
     "bunny_ears": ("200, 200, 200, 50", "256, 256, 256, 256, 256", 0.632, 0.426),
 }
+
+
+def paper_scene(scene: str) -> str:
+    """The paper scene a pipeline scene reproduces: ``<scene>_paper`` (the scene at the paper's
+    network sizes, config/config.yaml) is ``<scene>``."""
+    return scene.removesuffix("_paper")
+
+
+def li2025_table1(scene: str):
+    """Li et al. Table 1's row of a pipeline scene, or None."""
+    return LI2025_TABLE1.get(paper_scene(scene))
+
+
+def li2025_table2(scene: str):
+    """Li et al. Table 2's row of a pipeline scene, or None."""
+    return LI2025_TABLE2.get(paper_scene(scene))
