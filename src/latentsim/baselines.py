@@ -13,6 +13,11 @@ as the full-space solver) over a subspace, with :mod:`latentsim.reduced`:
   coordinates (the Dirichlet set's motion carries the modes);
 - ``fulton_reduced``: the autoencoder's decoder as the subspace map, the
   optimisation-based latent dynamics of Fulton et al. 2019;
+- ``neural_modes_reduced``: the scene's Neural Modes (Wang et al. 2024; rule
+  ``nm_train`` on the scene's ``neural_modes`` block) as the subspace map,
+  ``x = X + l(q) + y(q)`` carried by the best rigid fit of the Dirichlet set
+  (:class:`latentsim.nm_dynamics.NeuralModesSubspace`); the subspace dynamics
+  of their section 4.5 on the latent methods' test sequences;
 - ``newton_1it``: the full-space solver stopped after one Newton iteration per
   frame (the cheap variant of the ground truth).
 
@@ -46,7 +51,7 @@ from .train import autoencoder_coordinates, load_sequences, time_full_space
 
 log = logging.getLogger(__name__)
 
-BASELINES = ("pca_reduced", "modes_reduced", "fulton_reduced", "newton_1it")
+BASELINES = ("pca_reduced", "modes_reduced", "fulton_reduced", "neural_modes_reduced", "newton_1it")
 
 
 def newton_rollout(potential_free, x0, x1, dirichlet_positions, iterations: int = 1, tolerance: float = 1e-6) -> dict:
@@ -82,9 +87,10 @@ def newton_rollout(potential_free, x0, x1, dirichlet_positions, iterations: int 
     return {"positions": X, "latents": np.zeros((T, 0)), "step_ms": ms, "iterations": iters, "diverged_frame": int(diverged)}
 
 
-def make_subspace(method: str, ae, coords, train: dict, settings: dict, potential=None, rest_positions=None):
+def make_subspace(method: str, ae, coords, train: dict, settings: dict, potential=None, rest_positions=None, neural_modes=None):
     """The subspace of a baseline (see the module docstring); ``modes_reduced`` needs the
-    scene's potential and rest positions."""
+    scene's potential and rest positions, ``neural_modes_reduced`` the potential and the path
+    of the scene's trained Neural Modes."""
     r = int(settings.get("pca_dim") or ae.latent_dim)
     if method == "pca_reduced":
         X = np.concatenate([s["positions"] for s in train.values()])
@@ -94,6 +100,19 @@ def make_subspace(method: str, ae, coords, train: dict, settings: dict, potentia
         return modes_subspace(coords, potential, rest_positions, r)
     if method == "fulton_reduced":
         return reduced.DecoderSubspace(ae, coords)
+    if method == "neural_modes_reduced":
+        from .neural_modes import load_neural_modes
+        from .nm_dynamics import NeuralModesSubspace
+
+        if neural_modes is None:
+            raise ValueError("neural_modes_reduced needs the scene's trained Neural Modes (rule nm_train; a neural_modes block in the scene)")
+        model = load_neural_modes(neural_modes)
+        D = potential.dirichlet.cpu().numpy()
+        fixed = np.flatnonzero(model.mask.detach().numpy().reshape(-1, 3).min(1) == 0)
+        if not np.array_equal(np.sort(fixed), np.sort(D)):
+            raise ValueError(f"{neural_modes}: its fixed vertices ({len(fixed)}) are not the scene's Dirichlet set ({len(D)}); "
+                             "train it with neural_modes.boundary: dirichlet")  # fmt: skip
+        return NeuralModesSubspace(model, D)
     raise ValueError(f"unknown baseline {method!r}; known: {list(BASELINES)}")
 
 
@@ -118,7 +137,7 @@ def fit_subspace_cubature(potential, subspace, train: dict, settings: dict):
     return fit_cubature(potential.terms, subspace, q, float(settings["cubature_tolerance"]), int(settings.get("cubature_max_elements", 1000)), xD=XD[pick])
 
 
-def baseline_rollouts(trajectories, ae_path, method: str, settings: dict, out, progress: bool = False):
+def baseline_rollouts(trajectories, ae_path, method: str, settings: dict, out, progress: bool = False, neural_modes=None):
     """Roll out every test sequence of a scene with a reduced baseline.
 
     Parameters
@@ -129,6 +148,7 @@ def baseline_rollouts(trajectories, ae_path, method: str, settings: dict, out, p
     settings : config ``reduced`` of the scene: ``method`` (newton | lbfgs),
         ``max_iterations``, ``tolerance``, ``pca_dim``.
     out : rollout file to write.
+    neural_modes : the scene's trained Neural Modes (``neural_modes_reduced`` only).
     """
     ae = latent.load_autoencoder(ae_path)
     with h5py.File(trajectories, "r") as f:
@@ -144,7 +164,7 @@ def baseline_rollouts(trajectories, ae_path, method: str, settings: dict, out, p
     if method == "newton_1it":
         subspace, solver, cub = None, None, None
     else:
-        subspace = make_subspace(method, ae, coords, train, settings, potential, root["rest_positions"])
+        subspace = make_subspace(method, ae, coords, train, settings, potential, root["rest_positions"], neural_modes)
         rs = reduced.ReducedSettings(
             method=settings.get("method", "newton"), max_iterations=int(settings.get("max_iterations", 50)), tolerance=float(settings.get("tolerance", 1e-6))
         )

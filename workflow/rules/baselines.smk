@@ -1,8 +1,13 @@
-# Reduced-order baselines (PCA subspace, Fulton-style autoencoder latent space) by reduced implicit Euler.
+# Reduced-order baselines (PCA, linear modes, Fulton-style autoencoder latent space, Neural Modes) by reduced implicit Euler.
 rule reduced_rollout:
     input:
         trajectories="results/sim/{scene}/trajectories.h5",
         autoencoder="results/autoencoder/{scene}/autoencoder.pt",
+        neural_modes=lambda w: (
+            [f"results/neural_modes/{w.scene}/neural_modes.pt"]
+            if w.method == "neural_modes_reduced"
+            else []
+        ),
     output:
         rollout="results/rollout/{scene}/{method}/rollout.h5",
     log:

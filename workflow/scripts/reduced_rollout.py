@@ -4,7 +4,9 @@ from latentsim.utils import run_stage
 
 
 def main(smk):
-    baseline_rollouts(smk.input.trajectories, smk.input.autoencoder, smk.params.method, smk.params.reduced["reduced"], smk.output.rollout)
+    nm = list(smk.input.get("neural_modes", []))
+    baseline_rollouts(smk.input.trajectories, smk.input.autoencoder, smk.params.method, smk.params.reduced["reduced"], smk.output.rollout,
+                      neural_modes=nm[0] if nm else None)  # fmt: skip
 
 
 run_stage(snakemake, main)  # noqa: F821 (injected by Snakemake)
