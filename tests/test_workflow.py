@@ -38,6 +38,7 @@ NM_JOBS_DEFAULT = (
     + [("nm_ground_truth", "nm_armadillo"), ("nm_energy_table", "nm_armadillo")]
     + [("nm_dynamics", s) for s in ("nm_armadillo", "nm_bunny", "nm_giraffe")]
     + [("nm_keyframes", "nm_giraffe"), ("nm_summary", None)]
+    + [("nm_linear_modes", "cantilever"), ("nm_train", "cantilever")]  # for its neural_modes_reduced baseline
 )
 
 
@@ -337,8 +338,10 @@ def test_editing_one_study_reruns_only_that_study(tiny_run, tmp_path):
         sc["nm_study"]["energy"]["ae_epochs"] += 1
 
     assert jobs_after(studies) == sorted([("nm_sheet_study", "tiny_nm"), ("nm_sheet_tables", "tiny_nm"), ("nm_energy_table", "tiny_nm"), ("all", None)], key=str)
+    # the model also serves tiny_nm's neural_modes_reduced baseline: that rollout and what reads it rerun too
     assert jobs_after(lambda sc: sc["neural_modes"].update(epochs=sc["neural_modes"]["epochs"] + 1)) == sorted(
-        [(r, "tiny_nm") for r in ("nm_train", "nm_energy_table", "nm_dynamics", "nm_keyframes")] + [("nm_summary", None), ("all", None)], key=str
+        [(r, "tiny_nm") for r in ("nm_train", "nm_energy_table", "nm_dynamics", "nm_keyframes", "reduced_rollout", "evaluate", "render")]
+        + [("nm_summary", None), ("summary", None), ("all", None)], key=str
     )
     assert jobs_after(lambda sc: sc["nm_study"]["sheet"].update(test_grid=4)) == sorted(
         [(r, "tiny_nm") for r in ("nm_ground_truth", "nm_sheet_study", "nm_sheet_tables")] + [("all", None)], key=str
@@ -420,3 +423,32 @@ def test_sigkill_mid_job_leaves_no_complete_looking_output(tmp_path):
     assert not (tmp_path / "results/sim/tiny_rods/trajectories.h5").exists()
     jobs = planned_jobs(snakemake("-n", "results/sim/tiny_rods/trajectories.h5", "--configfile", str(TINY), "--directory", str(tmp_path)).stdout)
     assert ("simulate", "tiny_rods") in jobs
+
+
+def test_neural_modes_baseline_steps_in_the_scenes_neural_modes(tiny_run):
+    """tiny_nm lists neural_modes_reduced: its rollout lives in the trained Neural Modes' subspace
+    (as many coordinates as modes), keeps the held edges on their prescribed path, and is evaluated
+    beside the latent methods."""
+    import pandas as pd
+
+    work, _ = tiny_run
+    modes = yaml.safe_load(TINY.read_text())["scenes"]["tiny_nm"]["neural_modes"]["modes"]
+    with h5py.File(work / "results/rollout/tiny_nm/neural_modes_reduced/rollout.h5") as g:
+        assert g.attrs["method"] == "neural_modes_reduced" and g.attrs["subspace_dim"] == modes
+        seq = g["sequences/bounce"]
+        assert seq["latents"].shape[-1] == modes
+        D = g["dirichlet"][()]
+        last = seq.attrs["diverged_frame"] if seq.attrs["diverged_frame"] >= 0 else len(seq["positions"])
+        err = np.abs(seq["positions"][:last][:, D] - seq["dirichlet_positions"][:last]).max()
+        assert err < 1e-9  # the Dirichlet set is the subspace's rigid frame: held exactly
+        # every frame is the trained Neural Modes' map of its coordinates (not another subspace's)
+        from latentsim.neural_modes import load_neural_modes
+        from latentsim.nm_dynamics import NeuralModesSubspace
+
+        sub = NeuralModesSubspace(load_neural_modes(work / "results/neural_modes/tiny_nm/neural_modes.pt"), D)
+        q, xD, x = seq["latents"][()], seq["dirichlet_positions"][()], seq["positions"][()]
+        assert last > 2 and np.abs(q[2:last]).max() > 0
+        for t in range(2, last):
+            assert np.allclose(sub.map(q[t].astype(np.float64), xD[t]), x[t], atol=1e-5 * np.abs(x).max())
+    table = pd.read_csv(work / "results/evaluation/tiny_nm/metrics.csv")
+    assert "neural_modes_reduced" in set(table["method"])

@@ -145,8 +145,8 @@ def baseline_rollouts(trajectories, ae_path, method: str, settings: dict, out, p
     trajectories : the simulator's ``trajectories.h5``.
     ae_path : the scene's autoencoder (coordinates, PCA frames' layout, decoder).
     method : one of :data:`BASELINES`.
-    settings : config ``reduced`` of the scene: ``method`` (newton | lbfgs),
-        ``max_iterations``, ``tolerance``, ``pca_dim``.
+    settings : config ``reduced`` of the scene: ``method`` (newton | lbfgs; ``neural_modes_method``
+        for ``neural_modes_reduced``), ``max_iterations``, ``tolerance``, ``pca_dim``.
     out : rollout file to write.
     neural_modes : the scene's trained Neural Modes (``neural_modes_reduced`` only).
     """
@@ -165,9 +165,8 @@ def baseline_rollouts(trajectories, ae_path, method: str, settings: dict, out, p
         subspace, solver, cub = None, None, None
     else:
         subspace = make_subspace(method, ae, coords, train, settings, potential, root["rest_positions"], neural_modes)
-        rs = reduced.ReducedSettings(
-            method=settings.get("method", "newton"), max_iterations=int(settings.get("max_iterations", 50)), tolerance=float(settings.get("tolerance", 1e-6))
-        )
+        minimiser = settings.get("neural_modes_method", "lbfgs") if method == "neural_modes_reduced" else settings.get("method", "newton")
+        rs = reduced.ReducedSettings(method=minimiser, max_iterations=int(settings.get("max_iterations", 50)), tolerance=float(settings.get("tolerance", 1e-6)))
         step_potential, cub = potential, None
         if float(settings.get("cubature_tolerance", 0.0)) > 0:
             cub = fit_subspace_cubature(potential, subspace, train, settings)
