@@ -452,3 +452,16 @@ def test_neural_modes_baseline_steps_in_the_scenes_neural_modes(tiny_run):
             assert np.allclose(sub.map(q[t].astype(np.float64), xD[t]), x[t], atol=1e-5 * np.abs(x).max())
     table = pd.read_csv(work / "results/evaluation/tiny_nm/metrics.csv")
     assert "neural_modes_reduced" in set(table["method"])
+
+
+@pytest.mark.parametrize("caption", sorted((ROOT / "workflow" / "report").glob("*.rst")), ids=lambda p: p.name)
+def test_report_captions_are_valid_restructuredtext(caption):
+    """snakemake --report renders every caption as reStructuredText: a bare |x| is a substitution
+    reference that is never defined (an error in the report), so norms must be literals."""
+    from docutils.core import publish_doctree
+    from docutils.utils import Reporter
+
+    doctree = publish_doctree(caption.read_text(), settings_overrides={"report_level": Reporter.SEVERE_LEVEL + 1, "halt_level": 5})
+    found = [n for n in doctree.findall() if n.tagname == "system_message"] + list(doctree.transform_messages)
+    messages = [m.astext() for m in found if int(m["level"]) >= Reporter.ERROR_LEVEL]
+    assert not messages, messages
