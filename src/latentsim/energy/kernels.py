@@ -492,32 +492,68 @@ def stretch_energy(x, st, order, rest_length, ks):
     return total
 
 
+@njit(**_INLINE)
+def _stretch_local(e, x, st, rest_length, ks, project, u, g):
+    """Energy of stretching stencil e and its gradient g (6,); u (3,) left holding the unit edge.
+    Returns (energy, s, c): the Hessian is [[K, -K], [-K, K]], K = s (1 - c) u u^T + s c I
+    (c clamped at 0 when projecting)."""
+    i0, i1 = st[e, 0], st[e, 1]
+    ln = 0.0
+    for i in range(3):
+        u[i] = x[i1, i] - x[i0, i]
+        ln += u[i] * u[i]
+    ln = math.sqrt(ln)
+    lb = rest_length[e]
+    f = ks[e] * (ln / lb - 1.0)
+    c = 1.0 - lb / ln
+    if project and c < 0.0:
+        c = 0.0
+    for i in range(3):
+        u[i] /= ln
+        g[i] = -f * u[i]
+        g[3 + i] = f * u[i]
+    return 0.5 * f * (ln / lb - 1.0) * lb, ks[e] / lb, c
+
+
+@njit(**_JIT)
+def _stretch_scatter(x, st, order, rest_length, ks, project, grad, data, slots):
+    """``_stretch_run`` for SCATTER: the upper triangle of each [[K, -K], [-K, K]] straight into
+    the matrix, without the (6, 6) H that ``_scatter`` reads back (half the time of the pass; the
+    same sums; a separate function: inside ``_stretch_run`` the same loop ran 1.5x slower)."""
+    total = 0.0
+    g = np.empty(6)
+    K = np.empty((3, 3))
+    u = np.empty(3)
+    for ii in range(order.shape[0]):
+        e = order[ii]
+        en, s, c = _stretch_local(e, x, st, rest_length, ks, project, u, g)
+        total += en
+        _scatter_gradient(e, st, g, grad, 2)
+        for i in range(3):
+            for j in range(3):
+                K[i, j] = s * (1.0 - c) * u[i] * u[j] + (s * c if i == j else 0.0)
+        for p in range(6):
+            for q in range(6):
+                if q >= p:  # entry (p, q) of the row-major upper triangle
+                    sl = slots[e, 6 * p - (p * (p - 1)) // 2 + q - p]
+                    if sl >= 0:
+                        data[sl] += -K[p % 3, q % 3] if (p < 3) != (q < 3) else K[p % 3, q % 3]
+    return total
+
+
 @njit(**_JIT)
 def _stretch_run(x, st, order, rest_length, ks, project, grad, data, slots, g_out, H_out, mode):
+    if mode == SCATTER:
+        return _stretch_scatter(x, st, order, rest_length, ks, project, grad, data, slots)
     total = 0.0
     g = np.empty(6)
     H = np.empty((6, 6))
     u = np.empty(3)
     for ii in range(order.shape[0]):
         e = order[ii]
-        i0, i1 = st[e, 0], st[e, 1]
-        ln = 0.0
-        for i in range(3):
-            u[i] = x[i1, i] - x[i0, i]
-            ln += u[i] * u[i]
-        ln = math.sqrt(ln)
-        lb = rest_length[e]
-        f = ks[e] * (ln / lb - 1.0)
-        c = 1.0 - lb / ln
-        if project and c < 0.0:
-            c = 0.0
-        s = ks[e] / lb
-        for i in range(3):
-            u[i] /= ln
-            g[i] = -f * u[i]
-            g[3 + i] = f * u[i]
+        en, s, c = _stretch_local(e, x, st, rest_length, ks, project, u, g)
+        total += en
         if mode == GRADIENT:
-            total += 0.5 * f * (ln / lb - 1.0) * lb
             _scatter_gradient(e, st, g, grad, 2)
             continue
         for i in range(3):
@@ -575,70 +611,109 @@ def _rod_frame(a, b, frame):
     frame[2, 2] = frame[0, 0] * frame[1, 1] - frame[0, 1] * frame[1, 0]
 
 
+@njit(**_INLINE)
+def _bend_gradient(e, x, st, alpha, c0, a, b, w, g):
+    """Energy of bending stencil e and its gradient g (9,); a, b, w scratch (3,), left holding
+    x1 - x0, x2 - x1 and a x b.  Returns (energy, A, B, C, f, it2, it3, tau) for ``_bend_h6``."""
+    i0, i1, i2 = st[e, 0], st[e, 1], st[e, 2]
+    for i in range(3):
+        a[i] = x[i1, i] - x[i0, i]
+        b[i] = x[i2, i] - x[i1, i]
+    A_ = a[0] * a[0] + a[1] * a[1] + a[2] * a[2]
+    B_ = b[0] * b[0] + b[1] * b[1] + b[2] * b[2]
+    C_ = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+    w[0], w[1], w[2] = a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]
+    f = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]  # A B - C^2 without cancellation
+    tau = c0[e] + C_
+    it2 = alpha[e] / (tau * tau)
+    it3 = it2 / tau
+    # dE/da = 2 it2 b x w - 2 f it3 b,  dE/db = 2 it2 w x a - 2 f it3 a;  g = (-dE/da, dE/da - dE/db, dE/db)
+    for i in range(3):
+        i1_, i2_ = (i + 1) % 3, (i + 2) % 3
+        ga = 2.0 * it2 * (b[i1_] * w[i2_] - b[i2_] * w[i1_]) - 2.0 * f * it3 * b[i]
+        gb = 2.0 * it2 * (w[i1_] * a[i2_] - w[i2_] * a[i1_]) - 2.0 * f * it3 * a[i]
+        g[i] = -ga
+        g[3 + i] = ga - gb
+        g[6 + i] = gb
+    return it2 * f, A_, B_, C_, f, it2, it3, tau
+
+
+@njit(**_INLINE)
+def _bend_h6(a, b, A_, B_, C_, f, it2, it3, tau, H6):
+    """The bending Hessian H6 (6, 6) with respect to (a, b) (see ``_bend_gradient``).
+
+    H6 = sum_lm Phi_lm grad(A, B, C)_l grad(A, B, C)_m^T + the second derivatives of (A, B, C),
+    with grad A = (2a, 0), grad B = (0, 2b), grad C = (b, a) and Phi_00 = Phi_11 = 0, block by block.
+    """
+    p1 = it2 * B_
+    p2 = it2 * A_
+    p3 = -2.0 * (C_ * it2 + f * it3)
+    P01 = it2
+    P02 = -2.0 * B_ * it3
+    P12 = -2.0 * A_ * it3
+    P22 = -2.0 * it2 + 8.0 * C_ * it3 + 6.0 * f * it3 / tau
+    for i in range(3):
+        for k in range(3):
+            d = 1.0 if i == k else 0.0
+            ab = a[i] * b[k]
+            ba = b[i] * a[k]
+            H6[i, k] = 2.0 * P02 * (ab + ba) + P22 * b[i] * b[k] + 2.0 * p1 * d
+            H6[3 + i, 3 + k] = 2.0 * P12 * (ab + ba) + P22 * a[i] * a[k] + 2.0 * p2 * d
+            hab = 4.0 * P01 * ab + 2.0 * P02 * a[i] * a[k] + 2.0 * P12 * b[i] * b[k] + P22 * ba + p3 * d
+            H6[i, 3 + k] = hab
+            H6[3 + k, i] = hab
+
+
+@njit(**_JIT)
+def _bend_scatter_exact(x, st, order, alpha, c0, grad, data, slots):
+    """``_bend_run`` for SCATTER of the exact Hessian: the upper triangle of H9 = D^T H6 D goes
+    straight into the matrix, block (I, J) by block, without a (9, 9) H (a separate function:
+    inside ``_bend_run`` the same loop ran a third slower).  The same sums as ``_scatter``'s."""
+    total = 0.0
+    g = np.empty(9)
+    H6 = np.empty((6, 6))
+    a, b, w = np.empty(3), np.empty(3), np.empty(3)
+    for ii in range(order.shape[0]):
+        e = order[ii]
+        en, A_, B_, C_, f, it2, it3, tau = _bend_gradient(e, x, st, alpha, c0, a, b, w, g)
+        total += en
+        _bend_h6(a, b, A_, B_, C_, f, it2, it3, tau, H6)
+        _scatter_gradient(e, st, g, grad, 3)
+        for i in range(3):
+            for jj in range(3):
+                haa, hab = H6[i, jj], H6[i, 3 + jj]
+                hba, hbb = H6[3 + i, jj], H6[3 + i, 3 + jj]
+                for I, J, v in ((0, 0, haa), (0, 1, hab - haa), (0, 2, -hab), (1, 1, haa + hbb - hab - hba),
+                                (1, 2, hab - hbb), (2, 2, hbb)):  # fmt: skip
+                    p, q = 3 * I + i, 3 * J + jj
+                    if q >= p:  # entry (p, q) of the row-major upper triangle
+                        sl = slots[e, 9 * p - (p * (p - 1)) // 2 + q - p]
+                        if sl >= 0:
+                            data[sl] += v
+    return total
+
+
 @njit(**_JIT)
 def _bend_run(x, st, order, alpha, c0, project, B, grad, data, slots, g_out, H_out, mode):
+    if mode == SCATTER and not project:
+        return _bend_scatter_exact(x, st, order, alpha, c0, grad, data, slots)
     total = 0.0
     g = np.empty(9)
     H = np.empty((9, 9))
     H6 = np.empty((6, 6))
-    a = np.empty(3)
-    b = np.empty(3)
-    w = np.empty(3)
-    ga = np.empty(3)
-    gb = np.empty(3)
+    a, b, w = np.empty(3), np.empty(3), np.empty(3)
     M, V, BV = np.empty((6, 6)), np.empty((6, 6)), np.empty((9, 6))
     BH = np.empty((9, 6))
     wv = np.empty(6)
     frame = np.empty((3, 3))
     for ii in range(order.shape[0]):
         e = order[ii]
-        i0, i1, i2 = st[e, 0], st[e, 1], st[e, 2]
-        for i in range(3):
-            a[i] = x[i1, i] - x[i0, i]
-            b[i] = x[i2, i] - x[i1, i]
-        A_ = a[0] * a[0] + a[1] * a[1] + a[2] * a[2]
-        B_ = b[0] * b[0] + b[1] * b[1] + b[2] * b[2]
-        C_ = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-        w[0], w[1], w[2] = a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]
-        f = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]  # A B - C^2 without cancellation
-        al = alpha[e]
-        tau = c0[e] + C_
-        it2 = al / (tau * tau)
-        it3 = it2 / tau
-        # dE/da = 2 it2 b x w - 2 f it3 b,  dE/db = 2 it2 w x a - 2 f it3 a
-        ga[0] = 2.0 * it2 * (b[1] * w[2] - b[2] * w[1]) - 2.0 * f * it3 * b[0]
-        ga[1] = 2.0 * it2 * (b[2] * w[0] - b[0] * w[2]) - 2.0 * f * it3 * b[1]
-        ga[2] = 2.0 * it2 * (b[0] * w[1] - b[1] * w[0]) - 2.0 * f * it3 * b[2]
-        gb[0] = 2.0 * it2 * (w[1] * a[2] - w[2] * a[1]) - 2.0 * f * it3 * a[0]
-        gb[1] = 2.0 * it2 * (w[2] * a[0] - w[0] * a[2]) - 2.0 * f * it3 * a[1]
-        gb[2] = 2.0 * it2 * (w[0] * a[1] - w[1] * a[0]) - 2.0 * f * it3 * a[2]
-        for i in range(3):
-            g[i] = -ga[i]
-            g[3 + i] = ga[i] - gb[i]
-            g[6 + i] = gb[i]
+        en, A_, B_, C_, f, it2, it3, tau = _bend_gradient(e, x, st, alpha, c0, a, b, w, g)
+        total += en
         if mode == GRADIENT:
-            total += it2 * f
             _scatter_gradient(e, st, g, grad, 3)
             continue
-        p1 = it2 * B_
-        p2 = it2 * A_
-        p3 = -2.0 * (C_ * it2 + f * it3)
-        # H6 = sum_lm Phi_lm grad(A, B, C)_l grad(A, B, C)_m^T + the second derivatives of (A, B, C),
-        # with grad A = (2a, 0), grad B = (0, 2b), grad C = (b, a) and Phi_00 = Phi_11 = 0, block by block
-        P01 = it2
-        P02 = -2.0 * B_ * it3
-        P12 = -2.0 * A_ * it3
-        P22 = -2.0 * it2 + 8.0 * C_ * it3 + 6.0 * f * it3 / tau
-        for i in range(3):
-            for k in range(3):
-                d = 1.0 if i == k else 0.0
-                ab = a[i] * b[k]
-                ba = b[i] * a[k]
-                H6[i, k] = 2.0 * P02 * (ab + ba) + P22 * b[i] * b[k] + 2.0 * p1 * d
-                H6[3 + i, 3 + k] = 2.0 * P12 * (ab + ba) + P22 * a[i] * a[k] + 2.0 * p2 * d
-                hab = 4.0 * P01 * ab + 2.0 * P02 * a[i] * a[k] + 2.0 * P12 * b[i] * b[k] + P22 * ba + p3 * d
-                H6[i, 3 + k] = hab
-                H6[3 + k, i] = hab
+        _bend_h6(a, b, A_, B_, C_, f, it2, it3, tau, H6)
         # H9 = D^T H6 D for (a, b) = (x1 - x0, x2 - x1)
         for i in range(3):
             for jj in range(3):
@@ -708,8 +783,7 @@ def _membrane_run(x, st, order, G, K, mu, lam, project, B, grad, data, slots, g_
                 Ers = 0.5 * (S[r, s] - (1.0 if r == s else 0.0))
                 nE2 += Ers * Ers
                 S[r, s] = 2.0 * m_ * Ers + (l_ * tr if r == s else 0.0)
-        if mode == GRADIENT:
-            total += Ke * (m_ * nE2 + 0.5 * l_ * tr * tr)
+        total += Ke * (m_ * nE2 + 0.5 * l_ * tr * tr)
         for a in range(3):
             for i in range(3):
                 acc = 0.0
@@ -832,8 +906,8 @@ def _hinge_run(x, st, order, kk, rest_angle, project, B, grad, data, slots, g_ou
         for r in range(4):
             for i in range(3):
                 g[3 * r + i] = k2 * d * gr[r, i]
+        total += kk[e] * d * d
         if mode == GRADIENT:
-            total += kk[e] * d * d
             _scatter_gradient(e, st, g, grad, 4)
             continue
         # M_s = (I - 2 n n^T) / |N|^2, n = N / |N|
@@ -972,17 +1046,18 @@ class TermKernel:
     def _visit(self, fn, total: bool = True) -> float:
         """sum of fn(order) over the groups, the two halves concurrently when threaded.
 
-        ``total=False`` (the caller ignores the energy): serially, one call over the groups
-        concatenated (the same visiting order, so the same scatter; a call costs ~10 us to
-        dispatch); with ``total=True`` the energy is summed group by group, as the threaded
-        path sums it, so that its last bits do not depend on the thread count either.
+        Serially it is one call over the groups concatenated (the same visiting order, so the
+        same scatter), except for a kernel large enough to run threaded whose energy is wanted
+        (``total=True``): that energy is summed group by group, as the threaded path sums it,
+        so its last bits do not depend on the thread count.
         """
         g = self.groups
-        if len(g) == 3 and self.threads > 1 and len(self._all) >= self.MIN_PARALLEL:
+        large = len(self._all) >= self.MIN_PARALLEL
+        if len(g) == 3 and self.threads > 1 and large:
             other = _pool().submit(fn, g[0])
             second = fn(g[1])
             return other.result() + second + fn(g[2])
-        if total or len(g) == 1:
+        if (total and large) or len(g) == 1:
             return sum(fn(order) for order in g)
         if self._serial_of is not g:
             self._serial, self._serial_of = np.concatenate(g), g
@@ -993,7 +1068,7 @@ class TermKernel:
         extra = () if self._basis is None else (self._basis,)
         run, st, args = self._run, self.stencils, self._args
         return self._visit(lambda order: run(x, st, order, *args, project, *extra, grad, data, slots, g_out, H_out, mode),
-                           total=mode == GRADIENT)  # fmt: skip
+                           total=mode != STORE)  # fmt: skip
 
     def energy(self, x: np.ndarray) -> float:
         """The term's energy at x (n, 3)."""
@@ -1001,13 +1076,14 @@ class TermKernel:
         fn, st, args = self._energy, self.stencils, self._args
         return float(self._visit(lambda order: fn(x, st, order, *args)))
 
-    def accumulate(self, x, grad, data, slots, project: bool) -> None:
-        """grad (3n,) += gradient; data[slots] += upper triangles of the stencil Hessians.
+    def accumulate(self, x, grad, data, slots, project: bool) -> float:
+        """grad (3n,) += gradient; data[slots] += upper triangles of the stencil Hessians;
+        returns the energy (the same sum, to the bit, as ``energy_gradient``'s).
 
         slots : (E, 3k (3k+1) / 2) int32 target indices of the upper-triangle
         entries of each stencil Hessian (row-major), -1 for dropped entries.
         """
-        self._call(x, bool(project), grad, data, slots, _EMPTY_G, _EMPTY_H, SCATTER)
+        return self._call(x, bool(project), grad, data, slots, _EMPTY_G, _EMPTY_H, SCATTER)
 
     def energy_gradient(self, x, grad) -> float:
         """grad (3n,) += gradient; returns the energy (one pass, no Hessian)."""
