@@ -70,18 +70,20 @@ def prepare_scene(name, sc, meshes):
 def bench_scene(name, sc, arrays, pot, frames, warmup, hessian, path="kernels", threads=1):
     """Simulate the first frames of the scene's first sequence; time them and the floor.
 
-    ``path``: 'kernels' (compiled per-stencil kernels, on ``threads`` threads) or
-    'reference' (the terms' NumPy closed forms and PyTorch energies, as before the kernels).
+    ``path``: 'kernels' (compiled per-stencil kernels, on ``threads`` threads; the line search's
+    full-step trial builds the next Hessian in the same pass), 'unfused' (the same kernels, the
+    trial an energy + gradient pass and the Hessian a pass of its own) or 'reference' (the terms'
+    NumPy closed forms and PyTorch energies, as before the kernels).
     """
-    settings = NewtonSettings(**dict(sc["newton"], hessian=hessian))
-    solver = ImplicitEuler(pot, settings, kernels=path == "kernels", threads=threads)
+    settings = NewtonSettings(**dict(sc["newton"], hessian=hessian, fused_trial=path == "kernels"))
+    solver = ImplicitEuler(pot, settings, kernels=path != "reference", threads=threads)
     seq = sc["sequences"][0]
     T = min(int(seq["frames"]), frames + warmup + 1)
     p = bc_parameters(seq, T)
     rest = np.asarray(arrays["rest_positions"], dtype=np.float64)
     xD = dirichlet_trajectory(rest[solver.dirichlet], p, sc["dt"])
     x2 = x1 = rest.copy()
-    frame_ms, iters, fallbacks, per_it, guess = [], [], [], [], []
+    frame_ms, iters, fallbacks, per_it, guess, hessians = [], [], [], [], [], []
     for t in range(1, T):
         t0 = time.perf_counter()
         x, info = solver.step(x1, x2, xD[t])
@@ -90,6 +92,7 @@ def bench_scene(name, sc, arrays, pot, frames, warmup, hessian, path="kernels", 
             frame_ms.append(1e3 * dt)
             iters.append(info.iterations)
             fallbacks.append(info.projected)
+            hessians.append(info.hessians)
             guess.append(1e3 * info.timings["guess"])
             if info.iterations:  # this frame's split of one Newton iteration [ms]
                 per_it.append({k: 1e3 * v / info.iterations for k, v in info.timings.items() if k != "guess"})
@@ -114,13 +117,14 @@ def bench_scene(name, sc, arrays, pot, frames, warmup, hessian, path="kernels", 
     return dict(
         scene=name,
         hessian=hessian,
-        path=path if path == "reference" else f"kernels, {threads} thread{'s' if threads > 1 else ''}",
+        path=path if path == "reference" else f"{'kernels' if path == 'kernels' else 'kernels unfused'}, {threads} thread{'s' if threads > 1 else ''}",
         dof=int(rest.size),
         solver=solver.linear.method,
         ms_frame=float(np.mean(frame_ms)),
         iterations=float(np.mean(iters)),
         guess_ms=float(np.median(guess)),
         fallbacks=float(np.mean(fallbacks)),
+        hessians=float(np.mean(hessians)),
         ms_iteration=ms_iteration,
         **split,
         floor_ms=1e3 * float(np.median(floor)),
@@ -189,7 +193,7 @@ def against_artefact(path, frames):
 def median_row(runs):
     """Median over repeated runs of every figure of one (scene, Hessian, path)."""
     r = dict(runs[0])
-    for k in ("ms_frame", "iterations", "guess_ms", "fallbacks", "ms_iteration", "energy_ms", "local_ms", "assembly_ms",
+    for k in ("ms_frame", "iterations", "guess_ms", "fallbacks", "hessians", "ms_iteration", "energy_ms", "local_ms", "assembly_ms",
               "solve_ms", "floor_ms", "ratio"):  # fmt: skip
         r[k] = float(np.median([u[k] for u in runs]))
     r["solvers"] = {k: float(np.median([u["solvers"][k] for u in runs])) for k in runs[0]["solvers"]}
@@ -202,8 +206,9 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=30, help="frames timed, after --warmup frames")
     ap.add_argument("--warmup", type=int, default=5, help="frames from rest not timed (the initial drop)")
     ap.add_argument("--hessian", nargs="+", default=["projected", "exact_first"])
-    ap.add_argument("--paths", nargs="+", default=["reference", "kernels"], choices=["reference", "kernels"],
-                    help="reference: the terms' NumPy closed forms + PyTorch energies; kernels: compiled (numba)")
+    ap.add_argument("--paths", nargs="+", default=["reference", "kernels"], choices=["reference", "kernels", "unfused"],
+                    help="reference: the terms' NumPy closed forms + PyTorch energies; kernels: compiled (numba), "
+                         "the line search's full-step trial fused with the next Hessian; unfused: kernels, not fused")
     ap.add_argument("--repeats", type=int, default=1, help="runs of each row, interleaved; medians are reported")
     ap.add_argument("--scenes", nargs="*")
     ap.add_argument("--threads", type=int, default=2, help="torch and linear-solver threads")
@@ -229,7 +234,7 @@ def main(argv=None):
         sc = cfg["scenes"][name]
         arrays, pot = prepare_scene(name, sc, cfg["meshes"])
         for hessian in args.hessian:
-            variants = [(p, t) for p in args.paths for t in (args.kernel_threads if p == "kernels" else [1])]
+            variants = [(p, t) for p in args.paths for t in (args.kernel_threads if p != "reference" else [1])]
             runs = {v: [] for v in variants}
             for _ in range(args.repeats):
                 for path, threads in variants:
@@ -244,14 +249,14 @@ def main(argv=None):
                 rows.append(row)
             print(f"  {name} ({hessian}): done", file=sys.stderr, flush=True)
     head = ["scene", "DoF", "Hessian", "path", "solver", "ms/frame", "paper ms/frame", "target", "Newton it/frame",
-            "initial guess ms/frame", "fallbacks/frame", "ms/iteration", "energy", "grad+Hess+proj", "assembly", "solve", "floor (factor+solve)",
+            "initial guess ms/frame", "fallbacks/frame", "Hessian passes/frame", "ms/iteration", "energy", "grad+Hess+proj", "assembly", "solve", "floor (factor+solve)",
             "iteration/floor", "max abs(x - x_ref)/size"]  # fmt: skip
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         lines.append(
             f"| {r['scene']} | {r['dof']:,} | {r['hessian']} | {r['path']} | {r['solver']} | {r['ms_frame']:.1f} | "
             f"{PAPER_MS.get(r['scene'], float('nan')):.1f} | {TARGET_MS.get(r['scene'], '')} | {r['iterations']:.2f} | "
-            f"{r['guess_ms']:.2f} | {r['fallbacks']:.2f} | {r['ms_iteration']:.2f} | {r['energy_ms']:.2f} | {r['local_ms']:.2f} | "
+            f"{r['guess_ms']:.2f} | {r['fallbacks']:.2f} | {r['hessians']:.2f} | {r['ms_iteration']:.2f} | {r['energy_ms']:.2f} | {r['local_ms']:.2f} | "
             f"{r['assembly_ms']:.2f} | {r['solve_ms']:.2f} | {r['floor_ms']:.2f} | {r['ratio']:.2f} | {r['deviation']:.1e} |"
         )
     names = sorted({k for r in rows for k in r["solvers"]})

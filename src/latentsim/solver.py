@@ -55,6 +55,12 @@ class NewtonSettings:
     armijo: float = 1e-4
     energy_resolution: float = 1e-12
     hessian: str = "exact_first"
+    # with the compiled kernels, the line search's full-step trial is one pass for energy, gradient
+    # and Hessian while the step is not expected to converge (iteration k + 1 < the previous
+    # frame's iteration count); an accepted step then needs no second pass over the stencils (a
+    # rejected trial, or one that converges earlier than the previous frame did, leaves its
+    # Hessian unused)
+    fused_trial: bool = True
 
     def __post_init__(self):
         if self.hessian not in ("projected", "exact_first"):
@@ -69,6 +75,7 @@ class StepInfo:
     iterations: int = 0
     gradient_norm: float = float("nan")
     projected: int = 0  # iterations that fell back to the projected Hessian (exact_first)
+    hessians: int = 0  # Hessian passes, including fused trials whose Hessian went unused
     # "guess": the frame's initial-guess evaluations (once per frame); the others add up over its iterations
     timings: dict = field(default_factory=lambda: {"guess": 0.0, "energy": 0.0, "local": 0.0, "assembly": 0.0, "solve": 0.0})
 
@@ -137,15 +144,21 @@ class CompiledAssembly:
     def gradient_hessian(self, x, diagonal, project: bool):
         """Elastic gradient (3n,) and the free-DoF Hessian plus ``diagonal`` (3n,) on its diagonal,
         as upper-triangular CSR or ``BandedUpper``; per-stencil PSD-projected or exact."""
+        _, grad, U = self.energy_gradient_hessian(x, diagonal, project)
+        return grad, U
+
+    def energy_gradient_hessian(self, x, diagonal, project: bool):
+        """``gradient_hessian`` with the elastic energy of the same pass in front: (E, grad, U)."""
         grad = np.zeros(3 * self.n)
         data = np.zeros(self._target_size)
+        e = 0.0
         for k, slots in zip(self.kernels, self.slots):
-            k.accumulate(x, grad, data, slots, project)
+            e += k.accumulate(x, grad, data, slots, project)
         add_at(data, self._diag_slots, np.ascontiguousarray(diagonal, dtype=np.float64)[self.pattern.free_dofs])
         p = self.pattern
         if self.banded:
-            return grad, BandedUpper(data, p)
-        return grad, scipy.sparse.csr_matrix((data, p.indices, p.indptr), shape=p.shape)
+            return e, grad, BandedUpper(data, p)
+        return e, grad, scipy.sparse.csr_matrix((data, p.indices, p.indptr), shape=p.shape)
 
 
 class ImplicitEuler:
@@ -191,6 +204,7 @@ class ImplicitEuler:
                 potential.terms, self.pattern, n, self.linear.method == "banded", min(2, int(threads or torch.get_num_threads()))
             )
         self.kernels = None if self.assembly is None else self.assembly.kernels
+        self._last_iterations = 0  # the previous step's Newton iterations (NewtonSettings.fused_trial)
         if kernels and self.kernels is None:
             raise ValueError("compiled kernels requested, but numba is missing or a term has none")
 
@@ -216,6 +230,12 @@ class ImplicitEuler:
         c = np.ascontiguousarray
         return float(inertia_gravity(c(x, dtype=np.float64), c(x_prev, dtype=np.float64), c(x_prev2, dtype=np.float64),
                                      self.masses, self.g, 1.0 / self.potential.dt**2, grad))  # fmt: skip
+
+    def _evaluate_hessian(self, x, x_prev, x_prev2, project):
+        """E_total at x, its full gradient (3n,) and the free-DoF Hessian, in one pass of the
+        compiled kernels (``gradient_hessian``'s, with the energy)."""
+        e, grad, U = self.assembly.energy_gradient_hessian(x, self._mass_diagonal, project)
+        return e + self._inertia_gravity(x, x_prev, x_prev2, grad), grad, U
 
     def gradient_hessian(self, x, x_prev, x_prev2, timings=None, project=True):
         """Full gradient (3n,) and the free-DoF Hessian, per-stencil PSD-projected or exact.
@@ -271,6 +291,7 @@ class ImplicitEuler:
             tm["solve"] += time.perf_counter() - t0
         # the exact Hessian is indefinite here: fall back to per-stencil projection
         info.projected += 1
+        info.hessians += 1
         _, U = self.gradient_hessian(x, x_prev, x_prev2, tm, project=True)
         t0 = time.perf_counter()
         dx = -self.linear.solve(U, gf)
@@ -311,24 +332,28 @@ class ImplicitEuler:
         tm["guess"] += time.perf_counter() - t0
         tol = s.tolerance * self.f_ref
         project = s.hessian == "projected"
+        fused = s.fused_trial and self.kernels is not None
+        U_next = None  # the Hessian at x from a fused line-search trial
         for it in range(s.max_iterations + 1):
             # the kernels return the gradient with each energy, so the Hessian is built only
             # when the gradient test fails (the reference path builds both together)
-            U = None
+            U, U_next = U_next, None
             if grad is None:
                 grad, U = self.gradient_hessian(x, x_prev, x_prev2, tm, project=project)
+                info.hessians += 1
             gf = grad[self.free_dofs]
             gnorm = float(np.sqrt(_dot(gf, gf)))
             info.gradient_norm = gnorm
             if not np.isfinite(gnorm):
                 raise NewtonFailed(f"non-finite gradient at iteration {it}", gnorm, it)
             if gnorm <= tol:
-                info.iterations = it
+                info.iterations = self._last_iterations = it
                 return x, info
             if it == s.max_iterations:
                 break
             if U is None:
                 _, U = self.gradient_hessian(x, x_prev, x_prev2, tm, project=project)
+                info.hessians += 1
             dx_f = self._newton_direction(x, x_prev, x_prev2, U, gf, tm, info)
             slope = _dot(gf, dx_f)
             if not slope < 0:  # not a descent direction: fall back to steepest descent
@@ -342,14 +367,24 @@ class ImplicitEuler:
             # Near convergence the predicted decrease drops below what E_total can resolve in
             # float64; Armijo then compares round-off.  Take the full Newton step there.
             resolvable = -slope > s.energy_resolution * max(abs(e), 1e-300)
+            fuse = fused and it + 1 < self._last_iterations  # the next iterate is not expected to converge
+            fused_s = 0.0  # the fused trial's time, counted as 'local' (a Hessian pass)
             while resolvable:
                 x_try = x + alpha * dx
-                e_try, g_try = self._evaluate(x_try, x_prev, x_prev2)
+                if fuse and alpha == 1.0:
+                    t1 = time.perf_counter()
+                    e_try, g_try, U_try = self._evaluate_hessian(x_try, x_prev, x_prev2, project)
+                    fused_s = time.perf_counter() - t1
+                    info.hessians += 1
+                else:
+                    e_try, g_try = self._evaluate(x_try, x_prev, x_prev2)
                 if np.isfinite(e_try) and e_try <= e + s.armijo * alpha * slope:
+                    U_next = U_try if alpha == 1.0 and fuse else None
                     break
                 alpha *= 0.5
                 if alpha < s.min_step:
-                    tm["energy"] += time.perf_counter() - t0
+                    tm["energy"] += time.perf_counter() - t0 - fused_s
+                    tm["local"] += fused_s
                     raise NewtonFailed(
                         f"line search failed at iteration {it} (gradient norm {gnorm:.3e}, tolerance {tol:.3e})",
                         gnorm,
@@ -358,7 +393,8 @@ class ImplicitEuler:
             if not resolvable:
                 x_try = x + dx
                 e_try, g_try = self._evaluate(x_try, x_prev, x_prev2)
-            tm["energy"] += time.perf_counter() - t0
+            tm["energy"] += time.perf_counter() - t0 - fused_s
+            tm["local"] += fused_s
             x, e, grad = x_try, e_try, g_try
         info.iterations = s.max_iterations
         if s.accept_unconverged:
