@@ -25,7 +25,12 @@ or on a regular grid,
 
 E the scene's elastic energy only (``IncrementalPotential.elastic``: no
 inertia, gravity or Dirichlet penalty).  ``orthogonality='unit'`` uses
-(l^T y / |l|)^2 instead of the paper's (l^T y)^2.
+(l^T y / |l|)^2 instead of the paper's (l^T y)^2; ``orthogonality='exact'``
+builds the constraint into the map instead, y <- y - l (l^T y) / (l^T l)
+(l^T M y and l^T M l with ``metric='mass'``), so l^T y = 0 holds to round-off
+and the loss is the energy alone: the constrained problem of Eq. 9 itself
+rather than its penalty, which on the sheet trains to a tenth of the energy
+error in the same epochs (the penalty's large lambda makes the loss stiff).
 
 Ground truth (Eq. 9).  Nonlinear compliant modes per sample,
 
@@ -74,6 +79,7 @@ __all__ = [
     "NeuralModes",
     "compliant_mode",
     "direction_correlation",
+    "from_config",
     "ground_truth",
     "latent_directions",
     "linear_modes",
@@ -221,18 +227,33 @@ class NeuralModes(nn.Module):
         and the paper's eta ||y(0)||^2 term is identically zero.  False keeps
         the paper's plain MLP, where only that penalty holds y(0) near 0
         (|y(0)| ~ 1e-4 |X| after short trainings).
+    exact_orthogonality : None (the paper: the loss's lambda (l^T y)^2 holds
+        the constraint), or 'euclidean' / 'mass': y is projected off l(z) in
+        that inner product, y <- y - l (l^T W y) / (l^T W l) (W = I or M; needs
+        ``masses``), so l^T W y = 0 to round-off (``orthogonality='exact'``).
 
     The output layer starts at zero, so the untrained map is the linear one.
     Float64 throughout, like the physics.
     """
 
-    def __init__(self, rest_positions, modes, widths=(64, 64, 64, 64), aux_dim: int = 0, fixed_dofs=None, rigid=None, masses=None, exact_origin=True):
+    def __init__(self, rest_positions, modes, widths=(64, 64, 64, 64), aux_dim: int = 0, fixed_dofs=None, rigid=None, masses=None, exact_origin=True,
+                 exact_orthogonality=None):  # fmt: skip
         super().__init__()
         X = torch.as_tensor(np.asarray(rest_positions), dtype=torch.float64)
         E = torch.as_tensor(np.asarray(modes), dtype=torch.float64)
         self.n, self.m, self.aux_dim = X.shape[0], E.shape[1], int(aux_dim)
         self.exact_origin = bool(exact_origin)
-        self.hparams = {"n": self.n, "m": self.m, "widths": [int(w) for w in widths], "aux_dim": self.aux_dim, "exact_origin": self.exact_origin}
+        if exact_orthogonality not in (None, "euclidean", "mass"):
+            raise ValueError(f"exact_orthogonality '{exact_orthogonality}': use None, 'euclidean' or 'mass'")
+        if exact_orthogonality == "mass" and masses is None:
+            raise ValueError("exact_orthogonality 'mass' needs the vertex masses")
+        self.exact_orthogonality = exact_orthogonality
+        self.hparams = {"n": self.n, "m": self.m, "widths": [int(w) for w in widths], "aux_dim": self.aux_dim, "exact_origin": self.exact_origin,
+                        "exact_orthogonality": exact_orthogonality}  # fmt: skip
+        if exact_orthogonality == "mass":
+            self.register_buffer("w3", torch.as_tensor(np.repeat(np.asarray(masses, dtype=np.float64), 3)))
+        else:
+            self.w3 = None
         self.register_buffer("X", X.reshape(-1))
         self.register_buffer("E", E)
         mask = torch.ones(3 * self.n, dtype=torch.float64)
@@ -270,6 +291,13 @@ class NeuralModes(nn.Module):
         y = y * self.mask
         if self.R is not None:
             y = y - (y @ self.MR) @ self.R.T
+        if self.exact_orthogonality is not None:
+            # off l in the constraint's inner product (l is M-orthogonal to the rigid modes and zero on
+            # fixed DoFs, so neither property above is undone); z = 0 (l = 0) keeps y
+            l = self.linear(z)
+            wl = l if self.w3 is None else l * self.w3
+            ll = (wl * l).sum(-1, keepdim=True)
+            y = y - l * torch.where(ll > 0, (wl * y).sum(-1, keepdim=True) / torch.where(ll > 0, ll, 1.0), 0.0)
         return y
 
     def forward(self, z: torch.Tensor, aux: torch.Tensor | None = None) -> torch.Tensor:
@@ -292,11 +320,22 @@ def load_neural_modes(path) -> NeuralModes:
         hp["aux_dim"],
         fixed_dofs=np.flatnonzero(sd["mask"].numpy() == 0),
         rigid=None if rigid is None else rigid.numpy(),
-        masses=None if rigid is None else np.ones(hp["n"]),  # MR is restored from the state dict
+        masses=None if rigid is None and hp.get("exact_orthogonality") != "mass" else np.ones(hp["n"]),  # MR, w3: from the state dict
         exact_origin=hp["exact_origin"],
+        exact_orthogonality=hp.get("exact_orthogonality"),
     )
     model.load_state_dict(sd)
     return model.eval()
+
+
+def from_config(basis: dict, cfg: dict, masses=None, aux_dim: int = 0) -> NeuralModes:
+    """An untrained :class:`NeuralModes` for settings ``cfg`` (``NM_DEFAULTS`` keys: widths, exact_origin,
+    orthogonality, metric) on ``basis`` (X, modes, fixed_dofs, rigid: ``nm_pipeline.read_linear_modes``)."""
+    cfg = {**NM_DEFAULTS, **cfg}
+    return NeuralModes(
+        basis["X"], basis["modes"], cfg["widths"], aux_dim, fixed_dofs=basis["fixed_dofs"], rigid=basis.get("rigid"), masses=masses,
+        exact_origin=cfg["exact_origin"], exact_orthogonality=cfg["metric"] if cfg["orthogonality"] == "exact" else None,
+    )  # fmt: skip
 
 
 def neural_modes_loss(model: NeuralModes, potential: IncrementalPotential, z, aux=None, lam=1e8, eta=1e7, orthogonality="paper", metric="euclidean"):
@@ -316,8 +355,11 @@ def neural_modes_loss(model: NeuralModes, potential: IncrementalPotential, z, au
         raise ValueError(f"metric '{metric}': use 'euclidean' or 'mass'")
     if orthogonality == "unit":
         c = c / l.norm(dim=-1).clamp_min(1e-12)
+    elif orthogonality == "exact":
+        if model.exact_orthogonality != metric:
+            raise ValueError(f"orthogonality 'exact' needs a NeuralModes built with exact_orthogonality='{metric}' (see from_config)")
     elif orthogonality != "paper":
-        raise ValueError(f"orthogonality '{orthogonality}': use 'paper' or 'unit'")
+        raise ValueError(f"orthogonality '{orthogonality}': use 'paper', 'unit' or 'exact'")
     z0 = torch.zeros((1, model.m), dtype=z.dtype)
     a0 = None if aux is None else aux[:1]
     y0 = model.correction(z0, a0)

@@ -148,9 +148,7 @@ def train_stage(mesh_h5, modes_h5, params: dict, seed: int, out_pt, out_h5):
     basis = read_linear_modes(modes_h5)
     masses = pot.masses.numpy()
     torch.manual_seed(seed)
-    model = nm.NeuralModes(
-        basis["X"], basis["modes"], cfg["widths"], fixed_dofs=basis["fixed_dofs"], rigid=basis["rigid"], masses=masses, exact_origin=cfg["exact_origin"]
-    )
+    model = nm.from_config(basis, cfg, masses)
     hist = nm.train_neural_modes(model, pot, cfg, seed=seed)
     log.info("trained %d epochs in %.0f s; final energy %.4g, constraint %.3g", cfg["epochs"], hist["seconds"], hist["energy"][-1], hist["constraint"][-1])
     # evaluation on a fixed set of uniform samples: energy of Neural Modes vs linear modes at the same z

@@ -49,6 +49,7 @@ PAPER_TABLE2 = {  # method: (val dE_avg, dE_max, dE_std, E_avg, test dE_avg, dE_
     "Neural Modes (stoch.)": (376, 1197, 170, 17032, 386, 1154, 183, 22891),
     "Neural Modes (grid)": (199, 754, 118, 16831, 245, 3062, 215, 22730),
 }
+PAPER_TABLE2["Neural Modes (grid, penalty)"] = PAPER_TABLE2["Neural Modes (grid)"]  # the paper's own formulation
 PAPER_TABLE4 = {  # x1e6: weighted dS_avg, dS_max, dS_std, |S|_avg, max-over-elements dS_avg, dS_max, dS_std, |S|_avg
     "PCA+AE": (25, 138, 17, 251, 67, 431, 49, 520),
     "PCA+AE (grid)": (25, 305, 29, 245, 64, 784, 68, 505),
@@ -56,6 +57,7 @@ PAPER_TABLE4 = {  # x1e6: weighted dS_avg, dS_max, dS_std, |S|_avg, max-over-ele
     "Neural Modes (stoch.)": (9, 36, 7, 240, 22, 155, 21, 486),
     "Neural Modes (grid)": (6, 24, 5, 236, 16, 124, 16, 479),
 }
+PAPER_TABLE4["Neural Modes (grid, penalty)"] = PAPER_TABLE4["Neural Modes (grid)"]
 PAPER_TABLEA1 = {  # x1e4: ||dF||_1, ||dF||_2, ||F||_1, ||F||_2
     "PCA+AE": (111, 5.95, 279, 24),
     "PCA+AE (grid)": (83, 4.35, 250, 22),
@@ -63,6 +65,7 @@ PAPER_TABLEA1 = {  # x1e4: ||dF||_1, ||dF||_2, ||F||_1, ||F||_2
     "Neural Modes (stoch.)": (31, 0.93, 199, 19),
     "Neural Modes (grid)": (25, 0.74, 193, 19),
 }
+PAPER_TABLEA1["Neural Modes (grid, penalty)"] = PAPER_TABLEA1["Neural Modes (grid)"]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -387,12 +390,14 @@ def mode_collapse(potential, rest_positions, modes, models: dict, widths, box, s
 SHEET_METHODS = {  # slug: the paper's label
     "nm_stochastic": "Neural Modes (stoch.)",
     "nm_grid": "Neural Modes (grid)",
+    # with orthogonality 'exact' (the constraint built into the map), the paper's penalty formulation too
+    "nm_grid_penalty": "Neural Modes (grid, penalty)",
     "l2_supervised": "L2 Supervised",
     "pca_ae": "PCA+AE",
     "pca_ae_grid": "PCA+AE (grid)",
 }
 SUPERVISED = ("l2_supervised", "pca_ae", "pca_ae_grid")  # early-stopped on the validation L2 in Tables 2, 4, A1
-TRAIN_SET = {"nm_stochastic": "train_random", "nm_grid": "train_grid", "l2_supervised": "train_grid", "pca_ae": "train_random", "pca_ae_grid": "train_grid"}
+TRAIN_SET = {"nm_stochastic": "train_random", "nm_grid": "train_grid", "nm_grid_penalty": "train_grid", "l2_supervised": "train_grid", "pca_ae": "train_random", "pca_ae_grid": "train_grid"}
 WALKS = ("nm_grid", "pca_ae_grid")  # Fig. 3: the two trained on the same grid
 SHARP = "Sharp et al. 2023"
 PAPER_TABLE3 = {  # E_avg at the epoch chosen by each stopping criterion: val (L2, energy), test (L2, energy)
@@ -436,9 +441,14 @@ def run_sheet_study(potential, basis: dict, gt: dict, nm_settings: dict, study: 
     z_of = {s: torch.as_tensor(gt[s]["z"]) for s in gt}
     symmetry = half_turn(X, cells, modes, fixed)
 
-    def new_network():
+    # the networks' settings: with orthogonality 'exact', a third Neural Modes run with the paper's penalty
+    net_cfg = {"nm_stochastic": cfg, "nm_grid": cfg, "l2_supervised": cfg}
+    if cfg["orthogonality"] == "exact":
+        net_cfg["nm_grid_penalty"] = {**cfg, "orthogonality": "paper"}
+
+    def new_network(slug):
         torch.manual_seed(seed)
-        return nm.NeuralModes(X, modes, cfg["widths"], fixed_dofs=fixed, rigid=rigid, masses=masses, exact_origin=cfg["exact_origin"])
+        return nm.from_config(basis, net_cfg[slug], masses)
 
     def of_network(model):
         @torch.no_grad()
@@ -471,7 +481,7 @@ def run_sheet_study(potential, basis: dict, gt: dict, nm_settings: dict, study: 
     def train_network(slug, epochs, train):
         """Train a fresh network with ``train(model, callback)``, recording the checkpoints."""
         want = set(checkpoints(epochs, study["curve_points"]).tolist())
-        model = new_network()
+        model = new_network(slug)
         record(slug, 0, of_network(model), copy.deepcopy(model.state_dict()))
         bar = tqdm(total=epochs, desc=SHEET_METHODS[slug], disable=not progress, file=sys.stderr, leave=False)
 
@@ -486,8 +496,8 @@ def run_sheet_study(potential, basis: dict, gt: dict, nm_settings: dict, study: 
         seconds[slug] = time.perf_counter() - t0 - (curves[slug]["eval_seconds"] - evaluating)  # training alone
         log.info("%s: %d epochs in %.0f s", SHEET_METHODS[slug], epochs, seconds[slug])
 
-    for slug, sampling in (("nm_stochastic", "stochastic"), ("nm_grid", "grid")):
-        settings = {**cfg, "sampling": sampling, "grid": study["train_grid"], "epochs": study["epochs"], "batch_size": study["batch_size"]}
+    for slug, sampling in [("nm_stochastic", "stochastic"), ("nm_grid", "grid")] + [("nm_grid_penalty", "grid")] * ("nm_grid_penalty" in net_cfg):
+        settings = {**net_cfg[slug], "sampling": sampling, "grid": study["train_grid"], "epochs": study["epochs"], "batch_size": study["batch_size"]}
         train_network(slug, study["epochs"], lambda model, cb, settings=settings: nm.train_neural_modes(model, potential, settings, seed=seed, callback=cb))
     train_network(
         "l2_supervised", study["l2_epochs"],
@@ -518,7 +528,7 @@ def run_sheet_study(potential, basis: dict, gt: dict, nm_settings: dict, study: 
             with torch.no_grad():
                 origin = snap.decode(torch.zeros(m, dtype=torch.float64)).numpy()
         else:
-            model = new_network()
+            model = new_network(slug)
             model.load_state_dict(snap)
             chosen[slug] = model.eval()
             predict = of_network(model)
