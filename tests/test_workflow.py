@@ -284,8 +284,8 @@ def test_tiny_neural_modes_studies_write_tables_and_figures(tiny_run):
     with h5py.File(res / "energy/ground_truth.h5") as f:
         assert [len(f[f"sets/{k}/x"]) for k in ("train", "val", "test")] == [10, 4, 6]
     t2 = pd.read_csv(res / "sheet/table2.csv")
-    assert t2["method"].tolist() == list(SHEET_METHODS.values())
-    assert t2["test_dE_avg_paper"].tolist() == [386, 245, 2074, 2259, 2649]
+    assert t2["method"].tolist() == list(SHEET_METHODS.values())  # tiny_nm's exact constraint adds the penalty row
+    assert t2["test_dE_avg_paper"].tolist() == [386, 245, 245, 2074, 2259, 2649]
     assert np.isfinite(t2[["val_dE_avg", "test_dE_avg", "test_E_avg"]].to_numpy()).all()
     assert len(pd.read_csv(res / "sheet/table3.csv")) == 3
     structure = pd.read_csv(res / "sheet/structure.csv").set_index("method")
