@@ -398,6 +398,7 @@ SHEET_METHODS = {  # slug: the paper's label
 }
 SUPERVISED = ("l2_supervised", "pca_ae", "pca_ae_grid")  # early-stopped on the validation L2 in Tables 2, 4, A1
 TRAIN_SET = {"nm_stochastic": "train_random", "nm_grid": "train_grid", "nm_grid_penalty": "train_grid", "l2_supervised": "train_grid", "pca_ae": "train_random", "pca_ae_grid": "train_grid"}
+NM_SAMPLING = {"nm_stochastic": "stochastic", "nm_grid": "grid", "nm_grid_penalty": "grid"}  # the self-supervised runs
 WALKS = ("nm_grid", "pca_ae_grid")  # Fig. 3: the two trained on the same grid
 SHARP = "Sharp et al. 2023"
 PAPER_TABLE3 = {  # E_avg at the epoch chosen by each stopping criterion: val (L2, energy), test (L2, energy)
@@ -496,8 +497,8 @@ def run_sheet_study(potential, basis: dict, gt: dict, nm_settings: dict, study: 
         seconds[slug] = time.perf_counter() - t0 - (curves[slug]["eval_seconds"] - evaluating)  # training alone
         log.info("%s: %d epochs in %.0f s", SHEET_METHODS[slug], epochs, seconds[slug])
 
-    for slug, sampling in [("nm_stochastic", "stochastic"), ("nm_grid", "grid")] + [("nm_grid_penalty", "grid")] * ("nm_grid_penalty" in net_cfg):
-        settings = {**net_cfg[slug], "sampling": sampling, "grid": study["train_grid"], "epochs": study["epochs"], "batch_size": study["batch_size"]}
+    for slug in (s for s in net_cfg if s in NM_SAMPLING):
+        settings = {**net_cfg[slug], "sampling": NM_SAMPLING[slug], "grid": study["train_grid"], "epochs": study["epochs"], "batch_size": study["batch_size"]}
         train_network(slug, study["epochs"], lambda model, cb, settings=settings: nm.train_neural_modes(model, potential, settings, seed=seed, callback=cb))
     train_network(
         "l2_supervised", study["l2_epochs"],
