@@ -349,3 +349,65 @@ def test_exact_orthogonality_trains_lower_than_the_penalty(sheet_setup):
         if orthogonality == "exact":
             assert max(hist["constraint"]) < 1e-20
     assert error["exact"] < 0.7 * error["paper"]  # measured: 2.0 against 4.4 (mean ground-truth energy 27)
+
+
+@pytest.mark.parametrize("orthogonality, metric, symmetric", [("paper", "euclidean", False), ("exact", "euclidean", False), ("exact", "mass", False),
+                                                               ("exact", "euclidean", True), ("paper", "euclidean", True)])  # fmt: skip
+def test_subspace_map_is_the_network_for_every_map_option(orthogonality, metric, symmetric, tmp_path):
+    """The dynamics' NumPy map and its forward-mode Jacobian equal the trained network and autograd with
+    every option built into the map (l^T W y = 0, the half turn, rigid modes removed); with the half
+    turn built in, n(S z) = T n(z) holds to round-off for any weights, odd modes included (S z flips
+    them), and the model reloads with it."""
+    from latentsim.latent import save_module
+    from latentsim.neural_modes import from_config, load_neural_modes
+    from latentsim.nm_dynamics import NeuralModesSubspace
+    from latentsim.nm_sheet import half_turn, symmetry_error
+
+    pot, V = free_sheet(cells=4, thickness=0.003)
+    lm = linear_modes(pot, 4, V, boundary="free", normalization="euclidean")
+    masses = pot.masses.numpy()
+    sym = half_turn(V, cloth_grid(4, 4, 0.2, 0.2)[1], lm.modes)
+    assert sym is not None and list(sym[2]) == [1, 1, 1, -1]  # the fourth mode is odd under the half turn
+    basis = {"X": V, "modes": lm.modes, "fixed_dofs": np.zeros(0, dtype=int), "rigid": rigid_modes(V, masses)}
+    cfg = {"widths": [16, 16], "orthogonality": orthogonality, "metric": metric, "symmetry": "half_turn" if symmetric else "none"}
+    torch.manual_seed(3)
+    model = from_config(basis, cfg, masses, symmetry=sym)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    sub = NeuralModesSubspace(model, np.zeros(0, dtype=np.int64))
+    q = np.array([0.03, -0.02, 0.05, 0.04])
+    with torch.no_grad():
+        ref = model(torch.from_numpy(q)).numpy()
+        assert np.linalg.norm(model.correction(torch.from_numpy(q)).numpy()) > 1e-3 * np.linalg.norm(lm.modes @ q)
+    assert np.allclose(sub.map(q, V[:0]), ref, rtol=0, atol=1e-13)
+    J_ref = latent_directions(lambda z: model(z + torch.from_numpy(q)), 4).numpy()
+    x, J = sub.jacobian(q, V[:0])
+    assert np.allclose(x, ref, rtol=0, atol=1e-13)
+    assert np.abs(J - J_ref).max() < 1e-10 * np.abs(J_ref).max()
+    # the symmetry: every z with its mirror S z in the set
+    z = torch.randn(10, 4, dtype=torch.float64) * 0.05
+    z = torch.cat([z, z * torch.as_tensor(sym[2])])
+    with torch.no_grad():
+        x = model(z).numpy()
+    err = symmetry_error(x, z.numpy(), V, sym)[1]
+    if symmetric:
+        assert err < 1e-10  # round-off (the lumped masses of the rigid projection)
+        save_module(tmp_path / "nm.pt", model)
+        with torch.no_grad():
+            assert torch.equal(load_neural_modes(tmp_path / "nm.pt")(z), model(z))
+    else:
+        assert err > 1e-3  # free to break it
+
+
+def test_half_turn_symmetry_is_required_where_configured():
+    """symmetry 'half_turn' without a symmetry of the scene is an error naming the setting."""
+    from latentsim.neural_modes import from_config
+
+    pot, V = free_sheet(cells=4, thickness=0.003)
+    lm = linear_modes(pot, 2, V, boundary="free", normalization="euclidean")
+    basis = {"X": V, "modes": lm.modes, "fixed_dofs": np.zeros(0, dtype=int), "rigid": None}
+    with pytest.raises(ValueError, match="neural_modes.symmetry 'half_turn'"):
+        from_config(basis, {"widths": [8], "symmetry": "half_turn"}, pot.masses.numpy(), symmetry=None)
+    with pytest.raises(ValueError, match="neural_modes.symmetry 'mirror'"):
+        from_config(basis, {"widths": [8], "symmetry": "mirror"}, pot.masses.numpy())

@@ -205,6 +205,7 @@ NM_DEFAULTS = {
     "orthogonality": "paper",
     "metric": "euclidean",
     "exact_origin": True,
+    "symmetry": "none",
 }
 
 
@@ -231,13 +232,20 @@ class NeuralModes(nn.Module):
         the constraint), or 'euclidean' / 'mass': y is projected off l(z) in
         that inner product, y <- y - l (l^T W y) / (l^T W l) (W = I or M; needs
         ``masses``), so l^T W y = 0 to round-off (``orthogonality='exact'``).
+    symmetry : None, or ``(perm, R, parity)``, a symmetry of order two of the
+        scene (``nm_sheet.half_turn``): vertex i goes to vertex perm[i] with
+        its displacement rotated by R (3,3), and mode i to parity[i] times
+        itself.  The correction is averaged with its image,
+        y(z) <- (y(z) + T y(S z)) / 2 with S = diag(parity), so that
+        n(S z) = T n(z) holds to round-off (``symmetry='half_turn'``); the
+        projections above commute with T, so they keep it.
 
     The output layer starts at zero, so the untrained map is the linear one.
     Float64 throughout, like the physics.
     """
 
     def __init__(self, rest_positions, modes, widths=(64, 64, 64, 64), aux_dim: int = 0, fixed_dofs=None, rigid=None, masses=None, exact_origin=True,
-                 exact_orthogonality=None):  # fmt: skip
+                 exact_orthogonality=None, symmetry=None):  # fmt: skip
         super().__init__()
         X = torch.as_tensor(np.asarray(rest_positions), dtype=torch.float64)
         E = torch.as_tensor(np.asarray(modes), dtype=torch.float64)
@@ -249,7 +257,7 @@ class NeuralModes(nn.Module):
             raise ValueError("exact_orthogonality 'mass' needs the vertex masses")
         self.exact_orthogonality = exact_orthogonality
         self.hparams = {"n": self.n, "m": self.m, "widths": [int(w) for w in widths], "aux_dim": self.aux_dim, "exact_origin": self.exact_origin,
-                        "exact_orthogonality": exact_orthogonality}  # fmt: skip
+                        "exact_orthogonality": exact_orthogonality, "symmetry": symmetry is not None}  # fmt: skip
         if exact_orthogonality == "mass":
             self.register_buffer("w3", torch.as_tensor(np.repeat(np.asarray(masses, dtype=np.float64), 3)))
         else:
@@ -267,6 +275,17 @@ class NeuralModes(nn.Module):
             self.register_buffer("MR", m3[:, None] * R)
         else:
             self.R = self.MR = None
+        if symmetry is not None:
+            perm, Rs, parity = (np.asarray(a) for a in symmetry)
+            if perm.shape != (self.n,) or not np.array_equal(np.sort(perm), np.arange(self.n)) or Rs.shape != (3, 3) or parity.shape != (self.m,):
+                raise ValueError(f"symmetry: need a permutation of the {self.n} vertices, a (3,3) rotation and {self.m} mode parities")
+            inverse = np.empty_like(perm)
+            inverse[perm] = np.arange(self.n)
+            self.register_buffer("sym_source", torch.as_tensor(inverse, dtype=torch.long))  # image[j] = R u[sym_source[j]]
+            self.register_buffer("sym_R", torch.as_tensor(Rs, dtype=torch.float64))
+            self.register_buffer("sym_parity", torch.as_tensor(parity, dtype=torch.float64))
+        else:
+            self.sym_source = self.sym_R = self.sym_parity = None
         layers, prev = [], self.m + self.aux_dim
         for w in widths:
             layers += [nn.Linear(prev, int(w), dtype=torch.float64), nn.GELU()]
@@ -280,14 +299,26 @@ class NeuralModes(nn.Module):
         """l = sum_i z_i e_i; z (..., m) -> (..., 3n)."""
         return z[..., : self.m].to(self.E.dtype) @ self.E.T
 
-    def correction(self, z: torch.Tensor, aux: torch.Tensor | None = None) -> torch.Tensor:
-        """y(z, a); (..., m) [, (..., aux_dim)] -> (..., 3n), zero on fixed DoFs."""
-        z = z.to(self.E.dtype)
+    def _network(self, z: torch.Tensor, aux: torch.Tensor | None) -> torch.Tensor:
         h = z if aux is None else torch.cat([z, aux.to(z.dtype)], -1)
         y = self.mlp(h)
         if self.exact_origin:
             h0 = z.new_zeros(self.m) if aux is None else torch.cat([torch.zeros_like(z), aux.to(z.dtype)], -1)
             y = y - self.mlp(h0)
+        return y
+
+    def turn(self, u: torch.Tensor) -> torch.Tensor:
+        """The symmetry's image T u of displacements u (..., 3n)."""
+        v = u.reshape(u.shape[:-1] + (self.n, 3)) @ self.sym_R.T
+        return v.index_select(-2, self.sym_source).reshape(u.shape)
+
+    def correction(self, z: torch.Tensor, aux: torch.Tensor | None = None) -> torch.Tensor:
+        """y(z, a); (..., m) [, (..., aux_dim)] -> (..., 3n), zero on fixed DoFs."""
+        z = z.to(self.E.dtype)
+        y = self._network(z, aux)
+        if self.sym_R is not None:
+            even = bool(torch.all(self.sym_parity > 0))
+            y = 0.5 * (y + self.turn(y if even else self._network(z * self.sym_parity, aux)))
         y = y * self.mask
         if self.R is not None:
             y = y - (y @ self.MR) @ self.R.T
@@ -313,6 +344,9 @@ def load_neural_modes(path) -> NeuralModes:
         raise ValueError(f"{path} holds a {blob.get('kind')!r}, not NeuralModes")
     hp, sd = blob["hparams"], blob["state_dict"]
     rigid = sd.get("R")
+    symmetry = None
+    if hp.get("symmetry"):  # placeholders of the right shapes: the state dict holds the symmetry
+        symmetry = (np.arange(hp["n"]), np.eye(3), np.ones(hp["m"]))
     model = NeuralModes(
         sd["X"].reshape(-1, 3).numpy(),
         sd["E"].numpy(),
@@ -323,18 +357,28 @@ def load_neural_modes(path) -> NeuralModes:
         masses=None if rigid is None and hp.get("exact_orthogonality") != "mass" else np.ones(hp["n"]),  # MR, w3: from the state dict
         exact_origin=hp["exact_origin"],
         exact_orthogonality=hp.get("exact_orthogonality"),
+        symmetry=symmetry,
     )
     model.load_state_dict(sd)
     return model.eval()
 
 
-def from_config(basis: dict, cfg: dict, masses=None, aux_dim: int = 0) -> NeuralModes:
+def from_config(basis: dict, cfg: dict, masses=None, aux_dim: int = 0, symmetry=None) -> NeuralModes:
     """An untrained :class:`NeuralModes` for settings ``cfg`` (``NM_DEFAULTS`` keys: widths, exact_origin,
-    orthogonality, metric) on ``basis`` (X, modes, fixed_dofs, rigid: ``nm_pipeline.read_linear_modes``)."""
+    orthogonality, metric, symmetry) on ``basis`` (X, modes, fixed_dofs, rigid: ``nm_pipeline.read_linear_modes``).
+
+    ``cfg['symmetry']`` 'half_turn' builds ``symmetry`` (``nm_sheet.half_turn`` of the scene; required then)
+    into the map; 'none' leaves the map free to break it.
+    """
     cfg = {**NM_DEFAULTS, **cfg}
+    if cfg["symmetry"] not in ("none", "half_turn"):
+        raise ValueError(f"neural_modes.symmetry '{cfg['symmetry']}': use 'none' or 'half_turn'")
+    if cfg["symmetry"] == "half_turn" and symmetry is None:
+        raise ValueError("neural_modes.symmetry 'half_turn': the scene has no half-turn symmetry (mesh, fixed DoFs and modes must map onto themselves)")
     return NeuralModes(
         basis["X"], basis["modes"], cfg["widths"], aux_dim, fixed_dofs=basis["fixed_dofs"], rigid=basis.get("rigid"), masses=masses,
         exact_origin=cfg["exact_origin"], exact_orthogonality=cfg["metric"] if cfg["orthogonality"] == "exact" else None,
+        symmetry=symmetry if cfg["symmetry"] == "half_turn" else None,
     )  # fmt: skip
 
 

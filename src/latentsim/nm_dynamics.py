@@ -65,6 +65,12 @@ class NeuralModesSubspace:
         self.mask = model.mask.detach().numpy().copy()
         self.R = None if model.R is None else model.R.detach().numpy().copy()
         self.MR = None if model.MR is None else model.MR.detach().numpy().copy()
+        # l^T W y = 0 built into the map (orthogonality 'exact'): W the vertex masses (metric 'mass') or 1
+        self.exact_orthogonality = model.exact_orthogonality is not None
+        self.w3 = np.ones(len(self.X)) if model.w3 is None else model.w3.detach().numpy().copy()
+        self.symmetry = None  # (source (n,), R (3,3), parity (m,)) when built into the map
+        if model.sym_R is not None:
+            self.symmetry = tuple(b.detach().numpy().copy() for b in (model.sym_source, model.sym_R, model.sym_parity))
         self.y0 = self._mlp(np.zeros(self.dim))[0] if model.exact_origin else np.zeros_like(self.X)
         XD = self.X.reshape(-1, 3)[self.dirichlet]
         self.c0 = XD.mean(0) if len(XD) else np.zeros(3)
@@ -84,13 +90,33 @@ class NeuralModesSubspace:
         if self.linear_only:
             return np.zeros_like(self.X), (np.zeros((len(self.X), self.dim)) if jac else None)
         y, Jy = self._mlp(q, jac)
-        y = (y - self.y0) * self.mask
+        y = y - self.y0
+        if self.symmetry is not None:  # y <- (y(q) + T y(S q)) / 2, as NeuralModes.correction
+            source, Rs, parity = self.symmetry
+            ys, Jys = (y, Jy) if np.all(parity > 0) else self._mlp(parity * q, jac)
+            if ys is not y:
+                ys = ys - self.y0
+            y = 0.5 * (y + (ys.reshape(-1, 3) @ Rs.T)[source].reshape(-1))
+            if jac:
+                Jt = np.einsum("ij,njr->nir", Rs, Jys.reshape(-1, 3, self.dim))[source].reshape(-1, self.dim)
+                Jy = 0.5 * (Jy + Jt * parity)
+        y = y * self.mask
         if jac:
             Jy = Jy * self.mask[:, None]
         if self.R is not None:
             y = y - self.R @ (self.MR.T @ y)
             if jac:
                 Jy = Jy - self.R @ (self.MR.T @ Jy)
+        if self.exact_orthogonality:  # y <- y - l c, c = (l^T W y) / (l^T W l), as NeuralModes.correction
+            l = self.E @ q
+            wl = self.w3 * l
+            b = float(wl @ l)
+            if b > 0:
+                c = float(wl @ y) / b
+                if jac:
+                    dc = ((self.w3 * y) @ self.E + wl @ Jy - 2.0 * c * (wl @ self.E)) / b
+                    Jy = Jy - self.E * c - np.outer(l, dc)
+                y = y - l * c
         return y, Jy
 
     def _frame(self, xD):

@@ -141,14 +141,24 @@ def linear_modes_stage(mesh_h5, params: dict, out_h5):
         f.attrs.update(rigid_removed=lm.rigid_removed, normalization=lm.normalization, boundary=cfg["boundary"], seconds=seconds)
 
 
+def scene_symmetry(cfg: dict, basis: dict, arrays: dict):
+    """The half turn of ``nm_sheet.half_turn`` when ``neural_modes.symmetry`` asks for it, else None."""
+    if cfg.get("symmetry", "none") != "half_turn":
+        return None
+    from .nm_sheet import half_turn
+
+    cells = arrays["triangles"] if "triangles" in arrays else arrays["tets"]
+    return half_turn(basis["X"], cells, basis["modes"], basis["fixed_dofs"])
+
+
 def train_stage(mesh_h5, modes_h5, params: dict, seed: int, out_pt, out_h5):
     """Stage ``nm_train``: self-supervised Neural Modes (Eq. 13), its history and latent-direction correlation."""
     cfg = {**nm.NM_DEFAULTS, **params["neural_modes"]}
-    pot, _ = scene_potential(mesh_h5, params["model"], params["material"])
+    pot, arrays = scene_potential(mesh_h5, params["model"], params["material"])
     basis = read_linear_modes(modes_h5)
     masses = pot.masses.numpy()
     torch.manual_seed(seed)
-    model = nm.from_config(basis, cfg, masses)
+    model = nm.from_config(basis, cfg, masses, symmetry=scene_symmetry(cfg, basis, arrays))
     hist = nm.train_neural_modes(model, pot, cfg, seed=seed)
     log.info("trained %d epochs in %.0f s; final energy %.4g, constraint %.3g", cfg["epochs"], hist["seconds"], hist["energy"][-1], hist["constraint"][-1])
     # evaluation on a fixed set of uniform samples: energy of Neural Modes vs linear modes at the same z
