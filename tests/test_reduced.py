@@ -61,7 +61,7 @@ def test_full_rank_linear_subspace_reproduces_full_newton(beam):
         xs.append(full.step(xs[-1], xs[-2], xD[t])[0])
     q0 = sub.project(V, xD[0])
     out = reduced_rollout(sub, pot, q0, q0, np.concatenate([V[D][None]] * 2 + [xD[2:]]), ReducedSettings(tolerance=1e-10))
-    assert out["diverged_frame"] == -1
+    assert out["diverged_frame"] == -1 and out["failure"] == ""
     X = out["positions"]
     moved = np.abs(xs[-1] - V).max()
     assert moved > 0.02  # the beam really moves and sags
@@ -162,6 +162,7 @@ def test_rollout_records_the_frame_that_does_not_converge(beam):
     # no iteration allowed and an unreachable tolerance: frame 2 fails, and the rollout stops there
     out = reduced_rollout(sub, pot, q0, q0, xD, ReducedSettings(tolerance=1e-14, max_iterations=0))
     assert out["diverged_frame"] == 2
+    assert out["failure"].startswith("ReducedFailed: no convergence in 0 iterations")  # why, for the log
     assert np.isnan(out["positions"][2:]).all() and np.isfinite(out["positions"][:2]).all()
     assert out["positions"].shape == (len(xD), len(V), 3) and out["latents"].shape == (len(xD), 1)
 

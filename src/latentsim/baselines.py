@@ -205,6 +205,7 @@ def baseline_rollouts(trajectories, ae_path, method: str, settings: dict, out, p
             h.attrs["split"] = "test"
             h.attrs["method"] = method
             h.attrs["diverged_frame"] = int(res["diverged_frame"])
+            h.attrs["failure"] = res.get("failure", "")  # why the step at diverged_frame failed
             h.attrs["rollout_seconds"] = wall
             h.attrs["step_ms"] = step_ms
             h.attrs["integrate_ms"] = step_ms
@@ -223,3 +224,5 @@ def baseline_rollouts(trajectories, ae_path, method: str, settings: dict, out, p
             write_dataset(h, "kinetic_energy", ke)
             log.info("%s %s: %d frames, diverged at %d, median %.2f ms/step, %.1f iterations/step",
                      method, name, len(x), res["diverged_frame"], step_ms, h.attrs["mean_iterations"])  # fmt: skip
+            if res.get("failure"):
+                log.warning("%s %s: the step to frame %d failed: %s", method, name, res["diverged_frame"], res["failure"])

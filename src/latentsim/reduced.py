@@ -486,7 +486,8 @@ def reduced_rollout(subspace, potential, q0, q1, dirichlet_positions, settings: 
     :func:`latentsim.latent.rollout`; NaN from the frame whose solve failed on), ``latents`` (T, r),
     ``step_ms`` (T,) (wall time of each step's solve; NaN at frames 0, 1),
     ``iterations`` (T,) int, ``gradient_norm`` (T,), ``diverged_frame`` (first
-    frame that met a non-finite value or did not converge; -1 if none), and the
+    frame that met a non-finite value or did not converge; -1 if none), ``failure``
+    (why that frame's step failed; "" if none), and the
     step's split ``map_ms``, ``derivatives_ms``, ``reduce_ms``, ``line_search_ms`` (T,)
     (see :class:`ReducedStepInfo`; Newton only).
     """
@@ -501,7 +502,7 @@ def reduced_rollout(subspace, potential, q0, q1, dirichlet_positions, settings: 
     parts = np.full((T, 4), np.nan)
     Q[0], Q[1] = q0, q1
     X[0], X[1] = subspace.map(Q[0], xD[0]), subspace.map(Q[1], xD[1])
-    diverged = -1
+    diverged, failure = -1, ""
     for t in range(2, T):
         t0 = time.perf_counter()
         try:
@@ -511,16 +512,16 @@ def reduced_rollout(subspace, potential, q0, q1, dirichlet_positions, settings: 
             info = getattr(err, "info", None)
             if info is not None:
                 iters[t], gnorm[t] = info.iterations, info.gradient_norm
-            diverged = t
+            diverged, failure = t, f"{type(err).__name__}: {err}"
             break
         ms[t] = 1e3 * (time.perf_counter() - t0)
         iters[t], gnorm[t] = info.iterations, info.gradient_norm
         parts[t] = [1e3 * info.timings[k] for k in TIMING_PARTS]
         Q[t], X[t] = q, x
         if not (np.isfinite(q).all() and np.isfinite(x).all()):
-            diverged = t
+            diverged, failure = t, "non-finite reduced coordinates or positions"
             break
     return {
         "positions": X, "latents": Q, "step_ms": ms, "iterations": iters, "gradient_norm": gnorm,
-        "diverged_frame": int(diverged), **{f"{k}_ms": parts[:, i] for i, k in enumerate(TIMING_PARTS)},
+        "diverged_frame": int(diverged), "failure": failure, **{f"{k}_ms": parts[:, i] for i, k in enumerate(TIMING_PARTS)},
     }
