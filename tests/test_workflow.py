@@ -38,7 +38,7 @@ NM_JOBS_DEFAULT = (
     + [("nm_ground_truth", "nm_armadillo"), ("nm_energy_table", "nm_armadillo")]
     + [("nm_dynamics", s) for s in ("nm_armadillo", "nm_bunny", "nm_giraffe")]
     + [("nm_keyframes", "nm_giraffe"), ("nm_summary", None)]
-    + [("nm_linear_modes", "cantilever"), ("nm_train", "cantilever")]  # for its neural_modes_reduced baseline
+    + [(r, s) for r in ("nm_linear_modes", "nm_train") for s in ("bunny_ears", "cantilever")]  # for their neural_modes_reduced baselines
 )
 
 
