@@ -93,8 +93,10 @@ class NeuralModesSubspace:
         y = y - self.y0
         if self.symmetry is not None:  # y <- (y(q) + T y(S q)) / 2, as NeuralModes.correction
             source, Rs, parity = self.symmetry
-            ys, Jys = (y, Jy) if np.all(parity > 0) else self._mlp(parity * q, jac)
-            if ys is not y:
+            if np.all(parity > 0):  # S q = q
+                ys, Jys = y, Jy
+            else:
+                ys, Jys = self._mlp(parity * q, jac)
                 ys = ys - self.y0
             y = 0.5 * (y + (ys.reshape(-1, 3) @ Rs.T)[source].reshape(-1))
             if jac:
