@@ -67,6 +67,8 @@ def test_defaults_do_not_leak_between_scenes(tiny):
         (lambda sc: sc["neural_modes"].update(boundary="free"), r"'scenes\.tiny_nm\.nm_study\.dynamics\.enabled'.*boundary to dirichlet"),
         (lambda sc: sc["nm_study"]["sheet"].update(curve_points=0), r"'scenes\.tiny_nm\.nm_study\.sheet\.curve_points'.*0 is out of range"),
         (lambda sc: sc["nm_study"].update(table6={}), r"'scenes\.tiny_nm\.nm_study'.*unknown key.*table6"),
+        (lambda sc: sc["nm_study"]["aspect"].update(ratios=4), r"'scenes\.tiny_nm\.nm_study\.aspect\.ratios'.*4 is even"),
+        (lambda sc: sc["nm_study"]["aspect"].update(ratio_min=2.0), r"'scenes\.tiny_nm\.nm_study\.aspect'.*ratio_min 2\.0 must be below ratio_max 2\.0"),
     ],
 )
 def test_neural_modes_studies_that_do_not_fit_the_scene_are_named(tiny, edit, message):

@@ -37,7 +37,7 @@ NM_JOBS_DEFAULT = (
     + [("nm_ground_truth", "nm_sheet"), ("nm_sheet_study", "nm_sheet"), ("nm_sheet_tables", "nm_sheet")]
     + [("nm_ground_truth", "nm_armadillo"), ("nm_energy_table", "nm_armadillo")]
     + [("nm_dynamics", s) for s in ("nm_armadillo", "nm_bunny", "nm_giraffe")]
-    + [("nm_keyframes", "nm_giraffe"), ("nm_summary", None)]
+    + [("nm_keyframes", "nm_giraffe"), ("nm_aspect_ratio", "nm_sheet"), ("nm_summary", None)]
     + [(r, s) for r in ("nm_linear_modes", "nm_train") for s in ("bunny_ears", "cantilever")]  # for their neural_modes_reduced baselines
 )
 
@@ -233,7 +233,8 @@ def test_report_holds_tables_and_figures(tiny_run, tmp_path):
     assert any(n.endswith("summary.csv") for n in names)
     assert any(n.endswith("speed_accuracy.png") for n in names)
     assert any(n.endswith("errors.png") for n in names)
-    for name in ("table2.csv", "table3.csv", "learning_curves.png", "latent_walk.png", "correlation.png", "table5.csv", "dynamics.csv", "keyframes.png"):
+    for name in ("table2.csv", "table3.csv", "learning_curves.png", "latent_walk.png", "correlation.png", "table5.csv", "dynamics.csv", "keyframes.png", "aspect.csv",
+                 "aspect_ratio.png"):  # fmt: skip
         assert any(n.endswith(name) for n in names), name
 
 
@@ -318,7 +319,23 @@ def test_tiny_neural_modes_studies_write_tables_and_figures(tiny_run):
     with torch.no_grad():
         want = model(torch.as_tensor(np.asarray(st["keyframes"]["poses"], dtype=np.float64) * cfg["neural_modes"]["box"])).numpy()
     assert np.allclose(kx[keys], want, atol=1e-14)
-    for stage in ("sheet_ground_truth", "sheet_study", "energy_table", "dynamics"):
+    # the aspect-ratio example (Fig. A2): both ends train, the middle is held out; the files agree with the model
+    from latentsim.nm_aspect import load_family_model
+
+    asp = pd.read_csv(res / "aspect/aspect.csv")
+    assert asp["ratio"].tolist() == [1.0, 1.5, 2.0] and asp["split"].tolist() == ["train", "held out", "train"]
+    assert (asp["max |cos(l, y)|"] < 1e-10).all()  # tiny_nm builds l^T y = 0 into the map
+    assert np.isfinite(asp.drop(columns="split").to_numpy()).all() and (asp["E_avg ground truth"] > 0).all()
+    family_model = load_family_model(res / "aspect/neural_modes.pt")
+    with h5py.File(res / "aspect/family.h5") as f:
+        decoded, X = f["evaluation/modes_plus"][()], f["X"][()]
+    with torch.no_grad():
+        want = family_model(torch.as_tensor(cfg["neural_modes"]["box"] * np.eye(2)), 1).numpy()
+    assert np.allclose(decoded[1], want, atol=1e-14)
+    vtu = meshio.read(res / "aspect/paraview/ratio_1.500_mode_2.vtu")
+    assert np.allclose(vtu.points, X[1]) and np.allclose(vtu.points + vtu.point_data["displacement"], decoded[1, 1])
+    assert (res / "aspect/aspect_ratio.png").stat().st_size > 1000
+    for stage in ("sheet_ground_truth", "sheet_study", "energy_table", "dynamics", "aspect_ratio"):
         assert (work / f"results/benchmarks/neural_modes/tiny_nm_{stage}.tsv").exists(), stage
         assert (work / f"logs/neural_modes/tiny_nm_{stage}.log").read_text(), stage
 
@@ -340,6 +357,7 @@ def test_editing_one_study_reruns_only_that_study(tiny_run, tmp_path):
         sc["nm_study"]["energy"]["ae_epochs"] += 1
 
     assert jobs_after(studies) == sorted([("nm_sheet_study", "tiny_nm"), ("nm_sheet_tables", "tiny_nm"), ("nm_energy_table", "tiny_nm"), ("all", None)], key=str)
+    assert jobs_after(lambda sc: sc["nm_study"]["aspect"].update(epochs=4)) == sorted([("nm_aspect_ratio", "tiny_nm"), ("all", None)], key=str)
     # the model also serves tiny_nm's neural_modes_reduced baseline: that rollout and what reads it rerun too
     assert jobs_after(lambda sc: sc["neural_modes"].update(epochs=sc["neural_modes"]["epochs"] + 1)) == sorted(
         [(r, "tiny_nm") for r in ("nm_train", "nm_energy_table", "nm_dynamics", "nm_keyframes", "reduced_rollout", "evaluate", "render")]

@@ -104,6 +104,14 @@ def _check_nm_study(config: dict) -> None:
             poses, m = study["keyframes"]["poses"], scene.get("neural_modes", {}).get("modes")
             if len(poses) < 2 or any(len(p) != m for p in poses):
                 raise ConfigError(f"config key '{key}.keyframes.poses': need at least two keyframes of {m} modal coordinates each (neural_modes.modes); got {poses}")
+        if "aspect" in on:
+            a = study["aspect"]
+            if scene.get("model") != "shell":
+                raise ConfigError(f"config key '{key}.aspect.enabled': the aspect-ratio study stretches a sheet; model is {scene.get('model')!r}, not 'shell'")
+            if a["ratios"] % 2 == 0:
+                raise ConfigError(f"config key '{key}.aspect.ratios': {a['ratios']} is even; use an odd count, so that both ends train and every other ratio is held out")
+            if not a["ratio_min"] < a["ratio_max"]:
+                raise ConfigError(f"config key '{key}.aspect': ratio_min {a['ratio_min']} must be below ratio_max {a['ratio_max']}")
 
 
 def integrator_settings(config: dict, scene: str, method: str) -> dict:

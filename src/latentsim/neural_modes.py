@@ -84,8 +84,11 @@ __all__ = [
     "latent_directions",
     "linear_modes",
     "load_neural_modes",
+    "make_optimizer",
     "modal_samples",
+    "neural_modes_from_state",
     "neural_modes_loss",
+    "optimizer_step",
     "rigid_modes",
     "train_neural_modes",
 ]
@@ -342,7 +345,11 @@ def load_neural_modes(path) -> NeuralModes:
     blob = torch.load(path, map_location="cpu", weights_only=True)
     if blob.get("kind") != "NeuralModes":
         raise ValueError(f"{path} holds a {blob.get('kind')!r}, not NeuralModes")
-    hp, sd = blob["hparams"], blob["state_dict"]
+    return neural_modes_from_state(blob["hparams"], blob["state_dict"]).eval()
+
+
+def neural_modes_from_state(hp: dict, sd: dict) -> NeuralModes:
+    """A :class:`NeuralModes` rebuilt from its ``hparams`` and ``state_dict`` (every buffer is in the state dict)."""
     rigid = sd.get("R")
     symmetry = None
     if hp.get("symmetry"):  # placeholders of the right shapes: the state dict holds the symmetry
@@ -360,7 +367,7 @@ def load_neural_modes(path) -> NeuralModes:
         symmetry=symmetry,
     )
     model.load_state_dict(sd)
-    return model.eval()
+    return model
 
 
 def from_config(basis: dict, cfg: dict, masses=None, aux_dim: int = 0, symmetry=None) -> NeuralModes:
@@ -422,6 +429,25 @@ def modal_samples(kind: str, m: int, box: float, count: int = 0, resolution: int
     raise ValueError(f"sampling '{kind}': use 'grid' or 'stochastic'")
 
 
+def make_optimizer(params, cfg: dict):
+    """``cfg['optimizer']``: 'lbfgs' (strong-Wolfe line search, up to ``lbfgs_max_iter`` iterations a step, as the
+    paper) or 'adam'; learning rate ``lr``."""
+    if cfg["optimizer"] == "lbfgs":
+        return torch.optim.LBFGS(params, lr=float(cfg["lr"]), max_iter=int(cfg["lbfgs_max_iter"]), line_search_fn="strong_wolfe")
+    if cfg["optimizer"] == "adam":
+        return torch.optim.Adam(params, lr=float(cfg["lr"]))
+    raise ValueError(f"optimizer '{cfg['optimizer']}': use 'lbfgs' or 'adam'")
+
+
+def optimizer_step(opt, closure) -> None:
+    """One epoch's step: L-BFGS evaluates ``closure`` itself (several times); Adam steps after one evaluation."""
+    if isinstance(opt, torch.optim.LBFGS):
+        opt.step(closure)
+    else:
+        closure()
+        opt.step()
+
+
 def train_neural_modes(model: NeuralModes, potential: IncrementalPotential, config: dict | None = None, seed: int = 0, callback=None, compiled: bool = True):
     """Train Neural Modes self-supervised (Eq. 13).
 
@@ -441,13 +467,7 @@ def train_neural_modes(model: NeuralModes, potential: IncrementalPotential, conf
     if compiled:
         potential = with_compiled_elastic(potential)
     gen = torch.Generator().manual_seed(seed)
-    params = [p for p in model.parameters() if p.requires_grad]
-    if cfg["optimizer"] == "lbfgs":
-        opt = torch.optim.LBFGS(params, lr=float(cfg["lr"]), max_iter=int(cfg["lbfgs_max_iter"]), line_search_fn="strong_wolfe")
-    elif cfg["optimizer"] == "adam":
-        opt = torch.optim.Adam(params, lr=float(cfg["lr"]))
-    else:
-        raise ValueError(f"optimizer '{cfg['optimizer']}': use 'lbfgs' or 'adam'")
+    opt = make_optimizer([p for p in model.parameters() if p.requires_grad], cfg)
     grid = modal_samples("grid", model.m, cfg["box"], resolution=int(cfg["grid"])) if cfg["sampling"] == "grid" else None
     hist = {"loss": [], "energy": [], "constraint": [], "origin": []}
     t0 = time.perf_counter()
@@ -462,11 +482,7 @@ def train_neural_modes(model: NeuralModes, potential: IncrementalPotential, conf
             parts.update(p, loss=loss.detach())
             return loss
 
-        if cfg["optimizer"] == "lbfgs":
-            opt.step(closure)
-        else:
-            closure()
-            opt.step()
+        optimizer_step(opt, closure)
         for key, values in hist.items():
             values.append(float(parts[key]))
         if not np.isfinite(hist["loss"][-1]):

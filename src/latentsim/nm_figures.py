@@ -1,4 +1,4 @@
-"""Figures of the Neural Modes studies (Wang et al. 2024, Figs. 2, 3, 4, 6).
+"""Figures of the Neural Modes studies (Wang et al. 2024, Figs. 2, 3, 4, 6, A2).
 
 Each function takes a study result (``nm_sheet.run_sheet_study``, read back with
 ``io.read_tree``) or positions, writes one image atomically (``plots.save_figure``,
@@ -10,7 +10,9 @@ reading pixels.
 - :func:`correlation_heatmaps` (Fig. 4): the correlation matrices of the latent directions at the
   origin, eigenvalues in the titles;
 - :func:`shape_strips` (Figs. 3 and 6): decoded shapes, one column per walk or subspace, one row per
-  step, drawn by ``render.render_frames`` (same axes in every panel).
+  step, drawn by ``render.render_frames`` (same axes in every panel);
+- :func:`aspect_ratio_figure` (Fig. A2): the modes of a sheet at several aspect ratios, the first
+  mode's folding direction and the energies against the ratio.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from .nm_sheet import METRICS
 from .plots import method_colours, save_figure
 from .render import Motion, render_frames
 
-__all__ = ["correlation_heatmaps", "learning_curves", "shape_strips"]
+__all__ = ["aspect_ratio_figure", "correlation_heatmaps", "learning_curves", "shape_strips"]
 
 CURVES = (  # (panel title, set, metric); "train" is each method's own training set
     ("train L2 (own training set)", "train", "l2"),
@@ -111,3 +113,72 @@ def shape_strips(columns: dict, rest, cells, model: str, path, title: str, rows=
     rows = list(range(len(motions[0].positions))) if rows is None else [int(r) for r in rows]
     first, *others = motions
     return render_frames(first, {m.label: m for m in others}, "shapes", rows, path, bounds="all", panel_size=panel_size, dpi=dpi, title=title)
+
+
+def aspect_ratio_figure(ratios, train, X, shapes, cells, normal: int, evaluation: dict, path, rows=None, amplitude=0.5, panel_size=2.3, dpi=100) -> dict:
+    """Fig. A2: each mode at z_i = ``amplitude`` box (columns) on sheets of several aspect ratios (``rows``: indices into
+    ``ratios``), coloured by the normal displacement; below, the first mode's folding direction and the
+    mean energies against the ratio (filled markers: training ratios, open: held out).
+
+    ``X`` (K,n,3) rest shapes, ``shapes`` (K,m,n,3) decoded modes, ``evaluation``: ``nm_aspect.evaluate_family``.
+    Returns {row ratio: [max |normal displacement| per mode]}.
+    """
+    ratios, train = np.asarray(ratios), np.asarray(train, dtype=bool)
+    K, m = shapes.shape[:2]
+    rows = list(range(K)) if rows is None else [int(r) for r in rows]
+    fig = plt.figure(figsize=(panel_size * max(m, 4), panel_size * (len(rows) + 1.6)))
+    grid = fig.add_gridspec(len(rows) + 1, max(m, 4), height_ratios=[1.0] * len(rows) + [1.5])
+    lim = np.abs(shapes[rows] - X[rows][:, None]).max()
+    centred = shapes[rows] - shapes[rows].mean(axis=2, keepdims=True)
+    span = np.abs(centred).max()  # one scale for every panel: the largest half-extent drawn
+    drawn = {}
+    tangent = [a for a in range(3) if a != normal]
+    for i, k in enumerate(rows):
+        drawn[float(ratios[k])] = []
+        for j in range(m):
+            ax = fig.add_subplot(grid[i, j], projection="3d")
+            p = shapes[k, j]
+            w = (p - X[k])[:, normal]
+            surf = ax.plot_trisurf(p[:, tangent[0]], p[:, tangent[1]], p[:, normal], triangles=np.asarray(cells), cmap="coolwarm", linewidth=0.1,
+                                   edgecolor="0.3", antialiased=True)  # fmt: skip
+            surf.set_array(w[np.asarray(cells)].mean(1))
+            surf.set_clim(-lim, lim)
+            c = p.mean(0)
+            ax.set_xlim(c[tangent[0]] - span, c[tangent[0]] + span)
+            ax.set_ylim(c[tangent[1]] - span, c[tangent[1]] + span)
+            ax.set_zlim(c[normal] - span, c[normal] + span)
+            ax.set_box_aspect((1, 1, 1), zoom=1.5)
+            ax.set_axis_off()
+            ax.view_init(elev=28, azim=-60)
+            if j == 0:
+                ax.text2D(-0.05, 0.5, f"{ratios[k]:.2f}:1", transform=ax.transAxes, rotation=90, va="center", ha="right")
+            if i == 0:
+                ax.set_title(f"mode {j + 1}")
+            drawn[float(ratios[k])].append(float(np.abs(w).max()))
+    half = max(m, 4) // 2
+    ax = fig.add_subplot(grid[-1, :half])
+    _against_ratio(ax, ratios, train, evaluation, (("fold_nm", "Neural Modes", "C0"), ("fold_linear", "linear mode", "C1")))
+    ax.set_xlabel("aspect ratio (long : short)")
+    ax.set_ylabel("mode 1 folding direction [deg]\n0: short axis, 45: diagonal")
+    ax.legend(fontsize=8)
+    ax = fig.add_subplot(grid[-1, half:])
+    series = (("E_gt", "ground truth (Eq. 9)", "k"), ("E_nm", "Neural Modes", "C0"), ("E_linear", "linear modes", "C1"),
+              ("E_wrong_ratio", "Neural Modes, told the far ratio", "C3"))  # fmt: skip
+    _against_ratio(ax, ratios, train, evaluation, series)
+    ax.set_yscale("log")
+    ax.set_xlabel("aspect ratio (long : short)")
+    ax.set_ylabel("mean elastic energy, test samples [J]")
+    ax.legend(fontsize=7)
+    fig.suptitle(f"Fig. A2: Neural Modes conditioned on the aspect ratio\n(each mode at z_i = {amplitude:g} box; open markers: ratios held out of training)")
+    fig.tight_layout()
+    save_figure(fig, path, dpi=dpi)
+    return drawn
+
+
+def _against_ratio(ax, ratios, train, evaluation: dict, series):
+    """Lines of ``evaluation[key]`` against the ratio for each (key, label, colour); filled markers train, open held out."""
+    for key, label, colour in series:
+        v = np.asarray(evaluation[key])
+        ax.plot(ratios, v, "-", color=colour, label=label)
+        ax.plot(ratios[train], v[train], "o", color=colour)
+        ax.plot(ratios[~train], v[~train], "o", mfc="white", color=colour)

@@ -8,7 +8,9 @@ and the evaluation studies of Wang et al. 2024 that a scene's ``nm_study`` block
   Tables 2, 3, 4, A1 and Figs. 2, 3, 4 (``latentsim.nm_sheet``, ``latentsim.nm_figures``);
 - ``nm_energy_table``: Table 5 (``latentsim.nm_energy``);
 - ``nm_dynamics``: the subspace dynamics of Sec. 4.5 against the full simulation, with ParaView series;
-- ``nm_keyframes``: Fig. 6, linear interpolation of modal coordinates between keyframes.
+- ``nm_keyframes``: Fig. 6, linear interpolation of modal coordinates between keyframes;
+- ``nm_aspect_ratio``: Sec. 4.3 / Fig. A2, one network conditioned on a sheet's aspect ratio
+  (``latentsim.nm_aspect``).
 
 Each stage reads its inputs, calls the package and writes its artefacts atomically with provenance
 (``docs/artefacts.md``, section Neural Modes).  The ``*_params`` functions give each rule only the
@@ -49,7 +51,7 @@ def scene_params(config: dict, scene: str) -> dict:
     return _canonical({"model": sc["model"], "material": sc["material"], "neural_modes": sc["neural_modes"]})
 
 
-STUDIES = ("sheet", "energy", "dynamics", "keyframes")
+STUDIES = ("sheet", "energy", "dynamics", "keyframes", "aspect")
 MODE_KEYS = ("modes", "boundary", "normalization")  # all that the linear modes depend on
 GROUND_TRUTH_KEYS = MODE_KEYS + ("box", "metric")  # ... and the ground truth
 SET_KEYS = {"sheet": ("train_grid", "random_samples", "val_grid", "test_grid"), "energy": ("samples", "train", "validation")}
@@ -83,6 +85,8 @@ def study_params(config: dict, scene: str, study: str) -> dict:
         out.update(model=sc["model"], material=sc["material"], neural_modes={k: v for k, v in nmc.items() if k not in STUDY_SETS})
     elif study == "energy":
         out.update(model=sc["model"], material=sc["material"], widths=nmc["widths"])
+    elif study == "aspect":  # its own modes, widths and sampling; the scene's map and loss settings
+        out.update(model=sc["model"], material=sc["material"], neural_modes={k: v for k, v in nmc.items() if k not in STUDY_SETS + ("modes", "widths")})
     else:
         out.update(box=nmc["box"])
     return _canonical(out)
@@ -102,6 +106,7 @@ def targets(config: dict, scenes) -> list:
     out += [f"results/neural_modes/{s}/energy/table5.md" for s in study_scenes(config, scenes, "energy")]
     out += [f"results/neural_modes/{s}/dynamics/dynamics.md" for s in study_scenes(config, scenes, "dynamics")]
     out += [f"results/neural_modes/{s}/keyframes/keyframes.png" for s in study_scenes(config, scenes, "keyframes")]
+    out += [f"results/neural_modes/{s}/aspect/aspect.md" for s in study_scenes(config, scenes, "aspect")]
     return out
 
 
@@ -485,3 +490,112 @@ def keyframes_stage(mesh_h5, model_pt, params: dict, out_h5, out_png, out_paravi
     with _new_folder(out_paraview) as tmp:
         for name in shapes:
             write_xdmf_series(out_h5, name, Path(tmp) / f"{name}.xdmf")
+
+
+# --------------------------------------------------------------------------------------------------
+# the aspect-ratio example (Sec. 4.3, Fig. A2)
+# --------------------------------------------------------------------------------------------------
+def aspect_ratios(st: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The study's ratios (evenly spaced, ``ratio_min`` to ``ratio_max``) and which train (every other
+    one, both ends included; the ones between are held out)."""
+    count = int(st["ratios"])
+    if count % 2 == 0:
+        raise ValueError(f"nm_study.aspect.ratios {count}: use an odd count, so that both ends train and every other ratio is held out")
+    if not 0 < float(st["ratio_min"]) < float(st["ratio_max"]):
+        raise ValueError(f"nm_study.aspect: need 0 < ratio_min < ratio_max, got {st['ratio_min']} and {st['ratio_max']}")
+    ratios = np.linspace(float(st["ratio_min"]), float(st["ratio_max"]), count)
+    return ratios, np.arange(count) % 2 == 0
+
+
+def aspect_stage(mesh_h5, params: dict, out: dict, progress: bool = False):
+    """Stage ``nm_aspect_ratio`` (Sec. 4.3, Fig. A2): tracked linear modes of the sheet stretched to each
+    ratio, one network conditioned on the ratio trained on every other ratio, evaluated at all of them.
+
+    ``out``: model, family (h5), csv, markdown, figure, paraview (folder)."""
+    import meshio
+    import pandas as pd
+
+    from . import nm_aspect, nm_figures
+
+    st = params["study"]
+    cfg = {**nm.NM_DEFAULTS, **params["neural_modes"], "modes": int(st["modes"]), "widths": [int(w) for w in st["widths"]]}
+    arrays = read_mesh_arrays(mesh_h5)
+    ratios, train = aspect_ratios(st)
+    t0 = time.perf_counter()
+    family = nm_aspect.mode_family(arrays, params["model"], params["material"], ratios, cfg["modes"], cfg["boundary"], cfg["normalization"],
+                                   extra=int(st["track_extra"]))  # fmt: skip
+    log.info("tracked %d modes over %d ratios in %.1f s; smallest overlap between neighbours %.3f", cfg["modes"], len(ratios), time.perf_counter() - t0,
+             family.overlap.min())  # fmt: skip
+    if family.overlap.min() < 0.5:
+        log.warning("a mode's overlap with its match at the next ratio is %.2f: nm_study.aspect.ratios is too coarse to follow the modes", family.overlap.min())
+    pots = {k: nm_aspect.ratio_potential(arrays, params["model"], params["material"], family.X[k]) for k in range(len(ratios))}
+    torch.manual_seed(int(params["seed"]))
+    model = nm_aspect.RatioConditionedModes.build(family, cfg, arrays["triangles"], symmetric=cfg["symmetry"] == "half_turn")
+    hist = nm_aspect.train_family(model, {k: pots[k] for k in np.flatnonzero(train)}, cfg, int(st["batch_size"]), int(st["epochs"]),
+                                  seed=int(params["seed"]), progress=progress)  # fmt: skip
+    log.info("trained %d epochs on %d ratios in %.0f s; final mean energy %.4g", int(st["epochs"]), int(train.sum()), hist["seconds"], hist["energy"][-1])
+    model.eval()
+    gen = torch.Generator().manual_seed(int(params["seed"]) + 2)
+    z = nm.modal_samples("stochastic", cfg["modes"], cfg["box"], int(st["test_samples"]), generator=gen).numpy()
+    ev = nm_aspect.evaluate_family(model, family, pots, z, cfg["box"], train, cfg, max_iter=int(st["gt_max_iterations"]),
+                                  amplitude=float(st["figure_amplitude"]), progress=progress)  # fmt: skip
+    save_module(out["model"], model, extra={"config": cfg, "study": st, "seed": int(params["seed"])})
+    with atomic_h5(out["family"], config=params, seed=int(params["seed"])) as f:
+        for key in ("ratios", "X", "modes", "omega2", "overlap", "rank", "fixed_dofs", "masses"):
+            write_dataset(f, key, getattr(family, key))
+        if family.rigid is not None:
+            write_dataset(f, "rigid", family.rigid)
+        write_dataset(f, "train", train)
+        write_dataset(f, "triangles", arrays["triangles"])
+        write_dataset(f, "test_z", z)
+        g = f.create_group("evaluation")
+        for key, value in ev.items():
+            if key != "gt_seconds":
+                write_dataset(g, key, value)
+        h = f.create_group("history")
+        for key in ("loss", "energy", "constraint"):
+            write_dataset(h, key, np.asarray(hist[key]))
+        f.attrs.update(train_seconds=hist["seconds"], ground_truth_seconds=ev["gt_seconds"])
+    df = pd.DataFrame(
+        {
+            "ratio": ratios, "split": np.where(train, "train", "held out"), "E_avg ground truth": ev["E_gt"], "E_avg Neural Modes": ev["E_nm"],
+            "E_avg linear modes": ev["E_linear"], "E_avg Neural Modes, far ratio": ev["E_wrong_ratio"], "dE_avg Neural Modes": ev["dE_nm"],
+            "dE_avg linear modes": ev["dE_linear"], "mode 1 fold Neural Modes [deg]": ev["fold_nm"], "mode 1 fold linear [deg]": ev["fold_linear"],
+            "mode tracking overlap": family.overlap, "max |cos(l, y)|": ev["constraint_max"],
+        }
+    )  # fmt: skip
+    write_table(df, out["csv"])
+    held = ~train
+    summary = pd.DataFrame(
+        {
+            "ratios": ["train", "held out"],
+            "dE_avg Neural Modes": [ev["dE_nm"][train].mean(), ev["dE_nm"][held].mean()],
+            "dE_avg linear modes": [ev["dE_linear"][train].mean(), ev["dE_linear"][held].mean()],
+            "E_avg Neural Modes / ground truth": [(ev["E_nm"] / ev["E_gt"])[train].mean(), (ev["E_nm"] / ev["E_gt"])[held].mean()],
+            "E_avg far ratio / right ratio": [(ev["E_wrong_ratio"] / ev["E_nm"])[train].mean(), (ev["E_wrong_ratio"] / ev["E_nm"])[held].mean()],
+        }
+    )  # fmt: skip
+    write_markdown(
+        out["markdown"], {"Per ratio": df, "Training against held-out ratios": summary},
+        preamble=(
+            "# Neural Modes conditioned on the aspect ratio (Wang et al. 2024, Sec. 4.3, Fig. A2)\n\n"
+            "The paper: starting from a 2:1 sheet, the folding direction (of the first mode) smoothly changes from the short axis to the "
+            "diagonal as the ratio decreases towards 1:1 (no numbers given). Here: one network y(z, r) with the ratio r as its auxiliary "
+            f"input, trained on the ratios marked train ({hist['seconds']:.0f} s, {int(st['epochs'])} epochs), the others held out; "
+            f"{len(z)} uniform test samples in the modal box at every ratio, ground truth by Eq. 9 at that ratio. Fold: the angle between "
+            "the long axis and the principal direction of the larger curvature of mode 1 at z_1 = "
+            f"{float(st['figure_amplitude']):g} box (0: the long axis bends, i.e. the fold "
+            "runs along the short axis; 45: diagonal). 'Far ratio': the same shapes' network told the other end of the range instead of "
+            "their own ratio.\n"
+        ),
+    )  # fmt: skip
+    normal = nm_aspect.sheet_axes(family.X[0])[2]
+    rows = np.unique(np.linspace(0, len(ratios) - 1, min(int(st["figure_rows"]), len(ratios))).round().astype(int))[::-1]
+    nm_figures.aspect_ratio_figure(ratios, train, family.X, ev["modes_plus"], arrays["triangles"], normal, ev, out["figure"], rows=rows,
+                                   amplitude=float(st["figure_amplitude"]))  # fmt: skip
+    with _new_folder(out["paraview"]) as tmp:
+        for k, r in enumerate(ratios):
+            for j in range(cfg["modes"]):
+                u = ev["modes_plus"][k, j] - family.X[k]
+                meshio.write(Path(tmp) / f"ratio_{r:.3f}_mode_{j + 1}.vtu",
+                             meshio.Mesh(family.X[k], [("triangle", np.asarray(arrays["triangles"]))], point_data={"displacement": u}))  # fmt: skip

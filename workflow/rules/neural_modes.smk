@@ -292,3 +292,40 @@ rule nm_keyframes:
         nm=nm_study_params("keyframes"),
     script:
         "../scripts/nm_keyframes.py"
+
+
+# Aspect ratio as an auxiliary input (Sec. 4.3, Fig. A2): one network over a stretched sheet's ratios, every other held out.
+rule nm_aspect_ratio:
+    input:
+        mesh="results/mesh/{scene}/mesh.h5",
+    output:
+        model="results/neural_modes/{scene}/aspect/neural_modes.pt",
+        family="results/neural_modes/{scene}/aspect/family.h5",
+        csv=report(
+            "results/neural_modes/{scene}/aspect/aspect.csv",
+            caption="../report/nm_aspect.rst",
+            category="Neural Modes",
+            subcategory="{scene}",
+        ),
+        markdown="results/neural_modes/{scene}/aspect/aspect.md",
+        figure=report(
+            "results/neural_modes/{scene}/aspect/aspect_ratio.png",
+            caption="../report/nm_aspect.rst",
+            category="Neural Modes",
+            subcategory="{scene}",
+        ),
+        paraview=directory("results/neural_modes/{scene}/aspect/paraview"),
+    log:
+        "logs/neural_modes/{scene}_aspect_ratio.log",
+    benchmark:
+        "results/benchmarks/neural_modes/{scene}_aspect_ratio.tsv"
+    conda:
+        "../../envs/latentsim.yaml"
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=60,
+    params:
+        nm=nm_study_params("aspect"),
+    script:
+        "../scripts/nm_aspect_ratio.py"
