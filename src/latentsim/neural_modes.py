@@ -79,6 +79,7 @@ __all__ = [
     "NeuralModes",
     "compliant_mode",
     "direction_correlation",
+    "fixed_dofs",
     "from_config",
     "ground_truth",
     "latent_directions",
@@ -135,6 +136,15 @@ def rigid_modes(X, masses) -> np.ndarray:
     G = R.T @ (m3[:, None] * R)
     Lc = np.linalg.cholesky(G)
     return np.linalg.solve(Lc, R.T).T
+
+
+def fixed_dofs(dirichlet, boundary: str) -> np.ndarray:
+    """The DoFs the modes and the correction leave at rest: every DoF of the ``dirichlet`` vertices with
+    ``boundary='dirichlet'``, none with 'free'."""
+    if boundary == "free":
+        return np.zeros(0, dtype=np.int64)
+    D = np.asarray(dirichlet, dtype=np.int64)
+    return (3 * D[:, None] + np.arange(3)).reshape(-1)
 
 
 def linear_modes(

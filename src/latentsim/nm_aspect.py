@@ -143,8 +143,7 @@ def mode_family(arrays: dict, model: str, material: dict, ratios, m: int, bounda
     X, modes, omega2 = np.empty((K, n, 3)), np.empty((K, 3 * n, m)), np.empty((K, m))
     overlap, rank = np.ones(K), np.empty((K, m), dtype=np.int64)
     rigid = np.empty((K, 3 * n, 6)) if boundary == "free" else None
-    masses = fixed = None
-    prev = None
+    masses = prev = None
     for k in np.argsort(-ratios, kind="stable"):
         X[k] = stretched(X0, ratios[k])
         pot = ratio_potential(arrays, model, material, X[k])
@@ -171,11 +170,7 @@ def mode_family(arrays: dict, model: str, material: dict, ratios, m: int, bounda
         masses = pot.masses.numpy().astype(np.float64)
         if rigid is not None:
             rigid[k] = nm.rigid_modes(X[k], masses)
-        if boundary == "dirichlet":
-            D = np.asarray(arrays["dirichlet"], dtype=np.int64)
-            fixed = (3 * D[:, None] + np.arange(3)).reshape(-1)
-    if fixed is None:
-        fixed = np.zeros(0, dtype=np.int64)
+    fixed = nm.fixed_dofs(arrays["dirichlet"], boundary)
     return ModeFamily(ratios, X, modes, omega2, overlap, rank, fixed, rigid, masses)
 
 
@@ -276,12 +271,13 @@ def train_family(model: RatioConditionedModes, potentials: dict, cfg: dict, batc
     return hist
 
 
-def evaluate_family(model: RatioConditionedModes, family: ModeFamily, potentials: dict, z, box: float, train_mask, cfg: dict, max_iter: int = 40,
+def evaluate_family(model: RatioConditionedModes, family: ModeFamily, potentials: dict, z, train_mask, cfg: dict, max_iter: int = 40,
                     amplitude: float = 0.5, progress: bool = False) -> dict:  # fmt: skip
     """Every ratio's energies on the test samples z (N,m), with and without the right auxiliary input,
     the ground truth of Eq. 9, and the first mode's folding direction; arrays over ratios (K,), and
-    ``modes_plus`` (K,m,n,3): each mode decoded at z_i = ``amplitude`` * box (the fold is measured there)."""
+    ``modes_plus`` (K,m,n,3): each mode decoded at z_i = ``amplitude`` * ``cfg['box']`` (the fold is measured there)."""
     cfg = {**nm.NM_DEFAULTS, **cfg}
+    box = float(cfg["box"])
     ratios = family.ratios
     K, m = len(ratios), model.m
     zt = torch.as_tensor(np.asarray(z, dtype=np.float64))
@@ -296,15 +292,15 @@ def evaluate_family(model: RatioConditionedModes, family: ModeFamily, potentials
         pot, mem, r = potentials[k], model.member(k), float(ratios[k])
         wrong = hi if r < 0.5 * (lo + hi) else lo
         with torch.no_grad():
-            x_nm = mem(zt, aux_of(zt, r))
-            x_wrong = mem(zt, aux_of(zt, wrong))
+            x_nm = model(zt, k)
+            x_wrong = model(zt, k, ratio=wrong)
             l = mem.linear(zt)
             x_lin = (mem.X + l).reshape(-1, n, 3)
             y = x_nm.reshape(len(zt), -1) - mem.X - l
             cons = ((l * y).sum(-1).abs() / (l.norm(dim=-1) * y.norm(dim=-1)).clamp_min(1e-300)).max()
             e_nm, e_lin, e_wrong = (pot.elastic(x).numpy() for x in (x_nm, x_lin, x_wrong))
             zi = torch.as_tensor(amplitude * box * np.eye(m))
-            modes_plus[k] = mem(zi, aux_of(zi, r)).numpy()
+            modes_plus[k] = model(zi, k).numpy()
         t0 = time.perf_counter()
         _, e_gt, infos = nm.ground_truth(pot, family.X[k], family.modes[k], z, free_dofs=free, rigid=None if family.rigid is None else family.rigid[k],
                                          metric=cfg["metric"], max_iter=max_iter)  # fmt: skip

@@ -116,13 +116,6 @@ def scene_potential(mesh_h5, model: str, material: dict):
     return build_potential(model, arrays, material, 1.0, [0.0, 0.0, 0.0]), arrays
 
 
-def _fixed_dofs(arrays, boundary):
-    if boundary == "free":
-        return np.zeros(0, dtype=np.int64)
-    D = np.asarray(arrays["dirichlet"], dtype=np.int64)
-    return (3 * D[:, None] + np.arange(3)).reshape(-1)
-
-
 def linear_modes_stage(mesh_h5, params: dict, out_h5):
     """Stage ``nm_linear_modes``: the scene's lowest m modes (sparse shift-invert) to ``linear_modes.h5``.
 
@@ -140,7 +133,7 @@ def linear_modes_stage(mesh_h5, params: dict, out_h5):
         f["omega2"] = lm.omega2
         f["modes"] = lm.modes
         f["free_dofs"] = lm.free_dofs
-        f["fixed_dofs"] = _fixed_dofs(arrays, cfg["boundary"])
+        f["fixed_dofs"] = nm.fixed_dofs(arrays["dirichlet"], cfg["boundary"])
         if cfg["boundary"] == "free":
             f["rigid_modes"] = nm.rigid_modes(X, pot.masses.numpy())
         f.attrs.update(rigid_removed=lm.rigid_removed, normalization=lm.normalization, boundary=cfg["boundary"], seconds=seconds)
@@ -537,7 +530,7 @@ def aspect_stage(mesh_h5, params: dict, out: dict, progress: bool = False):
     model.eval()
     gen = torch.Generator().manual_seed(int(params["seed"]) + 2)
     z = nm.modal_samples("stochastic", cfg["modes"], cfg["box"], int(st["test_samples"]), generator=gen).numpy()
-    ev = nm_aspect.evaluate_family(model, family, pots, z, cfg["box"], train, cfg, max_iter=int(st["gt_max_iterations"]),
+    ev = nm_aspect.evaluate_family(model, family, pots, z, train, cfg, max_iter=int(st["gt_max_iterations"]),
                                   amplitude=float(st["figure_amplitude"]), progress=progress)  # fmt: skip
     save_module(out["model"], model, extra={"config": cfg, "study": st, "seed": int(params["seed"])})
     with atomic_h5(out["family"], config=params, seed=int(params["seed"])) as f:
