@@ -92,15 +92,27 @@ def _reference(ae, integ, coords, args):
     return z[0].double().numpy(), x[0].numpy()
 
 
-@pytest.mark.parametrize("mode", ["roots", "mean", "hard_mean"])
-def test_runtimes_match_modules_float64(mode):
+LAYOUTS = [("roots", "full"), ("roots", "scatter"), ("mean", "full"), ("hard_mean", "full"), ("hard_mean", "scatter")]
+
+
+def _force_layout(monkeypatch, layout: str) -> None:
+    """The hard modes decode over all vertices ("full") or scatter the free ones ("scatter")."""
+    monkeypatch.setattr(rt, "FULL_LAYOUT_MAX_GROWTH", np.inf if layout == "full" else 0.0)
+
+
+@pytest.mark.parametrize(("mode", "layout"), LAYOUTS)
+def test_runtimes_match_modules_float64(mode, layout, monkeypatch):
+    _force_layout(monkeypatch, layout)
     ae, integ, coords = _trained_modules(mode)
     ae64, integ64 = copy.deepcopy(ae).double(), copy.deepcopy(integ).double()
     args = _inputs(coords, dtype=torch.float64)
     z_ref, x_ref = _reference(ae64, integ64, coords, args)
     folded = rt.fold_networks(ae, integ, coords)
     np_step = rt.NumpyStepper(folded, np.float64)
+    assert np_step.layout == layout
     z, x = np_step.step(*(a.numpy() for a in args))
+    with pytest.raises(ValueError, match="C-contiguous"):  # a strided out would be written as a copy
+        np_step.decode(z, args[-1].numpy(), out=np.empty((coords.n, 6))[:, :3])
     assert np.allclose(z, z_ref, rtol=0, atol=1e-12)
     assert np.allclose(x, x_ref, rtol=0, atol=1e-12)
     ts = rt.TorchStepper(rt.torchscript_module(folded, torch.float64))
@@ -188,14 +200,21 @@ def test_export_load_round_trip_and_rollout(mode, tmp_path):
         rt.export_runtime(ae, integ, coords, tmp_path / "runtime.bin")
 
 
-def test_numpy_step_does_not_allocate():
+@pytest.mark.parametrize(("mode", "layout"), LAYOUTS)
+def test_numpy_step_does_not_allocate(mode, layout, monkeypatch):
     """No per-step allocation: the traced peak over 20 steps stays far below
     the size of one decoded frame (n = 2000 vertices, 48 kB)."""
-    coords = RelativeCoordinates(2000, [0, 1, 2], "mean")
+    _force_layout(monkeypatch, layout)
+    if mode == "roots":  # 50 rods of 40 vertices
+        roots = list(range(0, 2000, 40))
+        coords = RelativeCoordinates(2000, roots, "roots", root_of=[v - v % 40 for v in range(2000)])
+    else:
+        coords = RelativeCoordinates(2000, [0, 1, 2], mode)
     torch.manual_seed(0)
     ae = Autoencoder(coords.dim, R, [32, 32], pca_dim=32).eval()
     integ = LatentIntegrator(R, K, [32, 32]).eval()
     st = rt.NumpyStepper(rt.fold_networks(ae, integ, coords), np.float32)
+    assert st.layout == layout
     args = [a.numpy() for a in _inputs(coords)]
     st.step(*args)  # first call
     tracemalloc.start()
