@@ -76,3 +76,38 @@ def test_a_contracting_integrator_survives_and_an_exploding_one_fails_where_its_
         x = latent.decode_latents(ae, coords, torch.stack(Z), torch.as_tensor(cond.dirichlet_positions)).numpy()
     ext = np.linalg.norm(x.max(-2) - x.min(-2), axis=-1)
     assert bad["survived"] == int(np.argmax(ext > 3.0 * diag))
+
+
+class _SpeedSensitive(torch.nn.Module):
+    """Contracting while the boundary moves slowly; exploding above ``limit`` (|p_t| max-norm), and
+    for good once its latent has run away (|z| > 10)."""
+
+    def __init__(self, limit):
+        super().__init__()
+        self.limit = limit
+
+    def forward(self, z1, z2, p, p1, p2):
+        fast = (p.abs().amax(-1, keepdim=True) > self.limit) | (z1.abs().amax(-1, keepdim=True) > 10.0)
+        return torch.where(fast, 1.5 * z1 + 1.0, 0.5 * z1)
+
+
+def test_stress_test_runs_every_condition_of_the_settings_and_finds_the_one_that_breaks_a_method(program):
+    """The shared stress test (rollout stage and sizing sweep): every condition of the settings runs on the
+    sequence's program, and an integrator that explodes only beyond 3x the program's speed fails
+    speed_x5 alone."""
+    ae, coords, rest = _tiny_autoencoder()
+    dt = 0.1
+    xD = stability.dirichlet_trajectory(rest.numpy()[[0]], program, dt)
+    x = rest.numpy()[None] + (xD - rest.numpy()[[0]])  # the shape carried rigidly by its Dirichlet vertex
+    seq = {"positions": x, "dirichlet_positions": xD, "bc": program}
+    settings = {"speed_factors": [0.5, 2.0, 5.0], "long_factor": 3, "perturbation": 0.1}
+    limit = 3.0 * np.abs(program).max()
+    out = {c.name: r for c, r in stability.stress_test(_SpeedSensitive(limit), ae, coords, seq, rest.numpy(), np.array([0]),
+                                                       dt, train_frames=20, settings=settings, max_extent=3.0)}  # fmt: skip
+    assert set(out) == {"long_x3", "speed_x0p5", "speed_x2", "speed_x5", "sudden_stop", "sudden_reversal", "perturbed_start"}
+    assert out["long_x3"]["frames"] == 60
+    failed = {name for name, r in out.items() if r["survived"] < r["frames"]}
+    assert failed == {"speed_x5"}
+    calm = {c.name: r for c, r in stability.stress_test(_Linear(0.5), ae, coords, seq, rest.numpy(), np.array([0]), dt,
+                                                        train_frames=20, settings=settings, max_extent=3.0)}  # fmt: skip
+    assert all(r["survived"] == r["frames"] for r in calm.values())

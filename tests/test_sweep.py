@@ -31,6 +31,22 @@ def test_smallest_passing_model_is_chosen_judged_on_its_worst_sequence():
     assert t.loc[0, "mean_error"] == pytest.approx(0.05)  # the worst sequence counts
 
 
+def test_a_model_that_fails_a_stress_condition_is_not_chosen():
+    """Within the tolerance on the test sequences, but diverged at twice the boundary speed: the next
+    smallest model that survives every stress condition is chosen."""
+    df = _rows([(2, "8 8", 100, [0.001], False), (4, "8 8", 200, [0.004], False), (8, "8 8", 300, [0.002], False)])
+    df["stress_conditions"] = 8
+    df["stress_failed"] = [1, 0, 0]
+    df["stress_failures"] = ["speed_x2@177", "", ""]
+    t = choose(df, tolerance=0.01)
+    assert t["within_tolerance"].tolist() == [True, True, True]
+    assert t["passes"].tolist() == [False, True, True]
+    assert t[t["chosen"]].iloc[0]["parameters"] == 200
+    assert t.loc[0, "stress_failures"] == "speed_x2@177"
+    # measured without stress conditions (older metrics): judged on the test sequences alone
+    assert choose(df.drop(columns=["stress_conditions", "stress_failed", "stress_failures"]), tolerance=0.01)["passes"].all()
+
+
 def test_nothing_chosen_when_no_model_meets_the_tolerance():
     t = choose(_rows([(2, "8 8", 100, [0.5], False), (4, "8 8", 200, [0.2], False)]), tolerance=0.01)
     assert not t["chosen"].any() and not t["passes"].any()

@@ -169,3 +169,40 @@ def survive_latent(integrator, ae, coords, z0, z1, condition: Condition, dirichl
     err = np.concatenate(errors) if errors else np.zeros(0)
     return {"frames": T, "survived": int(survived), "dirichlet_error": err,
             "dirichlet_error_end": float(err[-1]) if len(err) else float("nan")}  # fmt: skip
+
+
+def stress_test(integrator, ae, coords, sequence: dict, rest_positions, dirichlet, dt: float, train_frames: int,
+                settings: dict, max_extent: float):  # fmt: skip
+    """Every stress condition of ``settings`` (a scene's ``rollout.stability``) on one test sequence.
+
+    One implementation for the rollout stage's stability map and the sizing
+    sweep's check.  The conditions start from the sequence's first two frames,
+    encoded; the perturbation's scale is the std of the sequence's latents.
+
+    Parameters
+    ----------
+    sequence : a test sequence (``positions``, ``dirichlet_positions``, ``bc``).
+    rest_positions : (n, 3); dirichlet : (m,) indices; dt : time step [s].
+    train_frames : length of the longest training sequence.
+
+    Yields
+    ------
+    (condition, result of :func:`survive_latent`), one condition at a time.
+    """
+    import torch
+
+    from . import latent
+    from .evaluate import bbox_diagonal
+
+    x = torch.as_tensor(sequence["positions"])
+    xD = torch.as_tensor(sequence["dirichlet_positions"])
+    z = latent.encode_positions(ae, coords, x, xD)
+    rest = np.asarray(rest_positions)
+    conditions = stress_conditions(
+        sequence["bc"], rest[dirichlet], float(dt), int(train_frames),
+        factors=settings.get("speed_factors", DEFAULT_FACTORS), long_factor=int(settings.get("long_factor", 10)),
+        perturbation=float(settings.get("perturbation", 0.5)),
+    )  # fmt: skip
+    for c in conditions:
+        yield c, survive_latent(integrator, ae, coords, z[0], z[1], c, dirichlet, bbox_diagonal(rest), float(max_extent),
+                                latent_std=z.std(0), seed=0)  # fmt: skip

@@ -4,10 +4,14 @@ Each sweep point trains the scene's autoencoder and self-supervised latent
 integrator at one latent dimension and one pair of layer widths (everything
 else as the scene's config says), rolls the integrator out on the test
 sequences and records the error against the full simulation, the frames
-survived and the time of one step with the deployable NumPy runtime.  The
-summary picks the smallest model (fewest parameters) whose mean vertex
-error stays within the scene's tolerance on every test sequence without
-diverging.
+survived and the time of one step with the deployable NumPy runtime.  With
+``stress`` on, it also runs the scene's stress conditions (those of the
+rollout stage's stability map, :func:`latentsim.stability.stress_test`): a test
+sequence alone cannot tell a model that holds from one that fails at twice the
+boundary speed (the armadillo's 64-wide latent-12 point did).  The summary
+picks the smallest model (fewest parameters) whose mean vertex error stays
+within the scene's tolerance on every test sequence without diverging, and
+that survives every stress condition.
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from . import latent, runtime
+from . import latent, runtime, stability
 from .evaluate import bbox_diagonal, vertex_errors, write_table
 from .scene import potential_from_artefact
 from .train import coordinates_for, load_sequences
@@ -42,7 +46,8 @@ def parameter_count(module: torch.nn.Module) -> int:
     return int(sum(p.numel() for p in module.parameters()))
 
 
-def sweep_point(trajectories, autoencoder: dict, integrator: dict, rollout: dict, seed: int, out_csv, device="cpu") -> pd.DataFrame:
+def sweep_point(trajectories, autoencoder: dict, integrator: dict, rollout: dict, seed: int, out_csv, device="cpu",
+                stress: bool = True) -> pd.DataFrame:  # fmt: skip
     """Train, roll out and measure one model size; one CSV row per test sequence.
 
     Parameters
@@ -50,7 +55,12 @@ def sweep_point(trajectories, autoencoder: dict, integrator: dict, rollout: dict
     trajectories : the simulator's ``trajectories.h5``.
     autoencoder, integrator : full settings of this point (the scene's, with
         latent_dim and widths replaced).
-    rollout : the scene's rollout settings (``max_extent``, ``timing_repeats``).
+    rollout : the scene's rollout settings (``max_extent``, ``timing_repeats``,
+        ``stability``).
+    stress : run the stress conditions of ``rollout["stability"]`` (unless
+        that says ``enabled: false``) on the first test sequence.  Every row
+        gets ``stress_conditions`` (how many ran), ``stress_failed`` (how many
+        the model did not survive) and ``stress_failures`` (``name@frame``).
     """
     ae_cfg = dict(autoencoder)
     with h5py.File(trajectories, "r") as f:
@@ -59,6 +69,7 @@ def sweep_point(trajectories, autoencoder: dict, integrator: dict, rollout: dict
         tests = load_sequences(f, "test")
         potential = potential_from_artefact(f)
         rest = f["rest_positions"][()]
+        dirichlet, dt = f["dirichlet"][()], float(f.attrs["dt"])
     diag = bbox_diagonal(rest)
     U = torch.cat([coords.encode(torch.as_tensor(s["positions"]), torch.as_tensor(s["dirichlet_positions"])) for s in train.values()])
     ae_cfg["pca_dim"] = ae_cfg.get("pca_dim") or None
@@ -88,6 +99,17 @@ def sweep_point(trajectories, autoencoder: dict, integrator: dict, rollout: dict
             mean_error=float(mean_e.mean()) if len(mean_e) else np.nan, max_error=float(max_e.max()) if len(max_e) else np.nan,
             step_ms=timing["step_ms"], train_seconds=train_s,
         ))  # fmt: skip
+    st = dict(rollout.get("stability", {}))
+    failed, n_conditions = [], 0
+    if stress and st.get("enabled", True) and tests:
+        train_frames = max(len(s["positions"]) for s in train.values())
+        for c, res in stability.stress_test(integ, ae, coords, next(iter(tests.values())), rest, dirichlet, dt, train_frames, st,
+                                            float(rollout["max_extent"])):  # fmt: skip
+            n_conditions += 1
+            if res["survived"] < res["frames"]:
+                failed.append(f"{c.name}@{res['survived']}")
+    for row in rows:
+        row.update(stress_conditions=n_conditions, stress_failed=len(failed), stress_failures=" ".join(failed))
     df = pd.DataFrame(rows)
     df["parameters"] = df["decoder_parameters"] + df["integrator_parameters"]
     write_table(df, out_csv)
@@ -97,17 +119,24 @@ def sweep_point(trajectories, autoencoder: dict, integrator: dict, rollout: dict
 def choose(df: pd.DataFrame, tolerance: float) -> pd.DataFrame:
     """One row per sweep point (worst sequence), with ``passes`` and the ``chosen`` smallest passing point.
 
-    A point passes when no test sequence diverged and every sequence's mean
-    vertex error / bbox diagonal is at most ``tolerance``; among passing points
-    the one with the fewest parameters (then the lowest latent dimension, then
-    the fastest step) is chosen.
+    A point passes when no test sequence diverged, every sequence's mean
+    vertex error / bbox diagonal is at most ``tolerance`` and it failed no
+    stress condition (points measured without them, ``stress_conditions`` 0
+    or the columns absent, are judged on the test sequences alone); among
+    passing points the one with the fewest parameters (then the lowest latent
+    dimension, then the fastest step) is chosen.
     """
+    df = df.copy()
+    for col, default in (("stress_conditions", 0), ("stress_failed", 0), ("stress_failures", "")):
+        df[col] = df[col].fillna(default) if col in df else default
     keys = ["latent_dim", "autoencoder_widths", "integrator_widths"]
     g = df.groupby(keys, sort=False).agg(
         parameters=("parameters", "first"), mean_error=("mean_error", "max"), max_error=("max_error", "max"),
         diverged=("diverged_frame", lambda d: bool((d >= 0).any())), step_ms=("step_ms", "median"), train_seconds=("train_seconds", "first"),
+        stress_conditions=("stress_conditions", "first"), stress_failed=("stress_failed", "first"), stress_failures=("stress_failures", "first"),
     ).reset_index()  # fmt: skip
-    g["passes"] = (~g["diverged"]) & (g["mean_error"] <= tolerance)
+    g["within_tolerance"] = (~g["diverged"]) & (g["mean_error"] <= tolerance)
+    g["passes"] = g["within_tolerance"] & (g["stress_failed"] == 0)
     g["chosen"] = False
     ok = g[g["passes"]].sort_values(["parameters", "latent_dim", "step_ms"])
     if len(ok):
@@ -128,6 +157,9 @@ def sweep_chart(table: pd.DataFrame, tolerance: float, scene: str, path) -> None
             axes[0].scatter(h["parameters"], h["mean_error"].clip(lower=1e-12), edgecolors=colour,
                             facecolors="none" if diverged else colour, label=f"latent {r}" + (" (diverged)" if diverged else ""))  # fmt: skip
         axes[1].scatter(g["parameters"], g["step_ms"], color=colour, label=f"latent {r}")
+    stressed = table[table["stress_failed"] > 0] if "stress_failed" in table else table.iloc[:0]
+    if len(stressed):
+        axes[0].scatter(stressed["parameters"], stressed["mean_error"], marker="x", s=80, color="r", label="fails a stress condition")
     pick = table[table["chosen"]]
     if len(pick):
         axes[0].scatter(pick["parameters"], pick["mean_error"], s=250, facecolors="none", edgecolors="k", label="chosen")
@@ -146,6 +178,6 @@ def sweep_chart(table: pd.DataFrame, tolerance: float, scene: str, path) -> None
         ax.set_xlabel("parameters (decoder + integrator)")
         ax.set_ylabel(ylabel)
         ax.legend(fontsize=7)
-    fig.suptitle(f"{scene}: sizing sweep (hollow: diverged)")
+    fig.suptitle(f"{scene}: sizing sweep (hollow: diverged on a test sequence; x: failed a stress condition)")
     fig.tight_layout()
     save_figure(fig, path)

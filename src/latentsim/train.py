@@ -266,21 +266,11 @@ def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out, m
         st = settings.get("stability", {})
         if st.get("enabled", True) and tests:
             name, s = next(iter(tests.items()))
-            x = torch.as_tensor(s["positions"])
-            xD = torch.as_tensor(s["dirichlet_positions"])
-            z = latent.encode_positions(ae, coords, x, xD)
-            conditions = stability.stress_conditions(
-                s["bc"], rest[root["dirichlet"]], float(attrs["dt"]), train_frames,
-                factors=st.get("speed_factors", stability.DEFAULT_FACTORS), long_factor=int(st.get("long_factor", 10)),
-                perturbation=float(st.get("perturbation", 0.5)),
-            )
             grp = g.create_group("stability", track_order=True)
             grp.attrs["sequence"] = name
-            for c in conditions:
-                r = stability.survive_latent(
-                    integ, ae, coords, z[0], z[1], c, root["dirichlet"], bbox_diagonal(rest), float(settings["max_extent"]),
-                    latent_std=z.std(0), seed=0,
-                )
+            conditions = stability.stress_test(integ, ae, coords, s, rest, root["dirichlet"], float(attrs["dt"]), train_frames,
+                                               st, float(settings["max_extent"]))  # fmt: skip
+            for c, r in conditions:
                 h = grp.create_group(c.name)
                 for k in ("frames", "survived", "dirichlet_error_end"):
                     h.attrs[k] = r[k]

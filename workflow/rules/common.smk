@@ -103,6 +103,7 @@ def sweep_params(wildcards):
             ),
             "integrator": dict(sc["integrator"], widths=size["integrator"]),
             "rollout": sc["rollout"],
+            "stress": sc["sweep"]["stress"],
             "seed": config["seed"],
             "device": config["device"],
         }

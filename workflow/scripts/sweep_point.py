@@ -5,7 +5,8 @@ from latentsim.utils import run_stage
 
 def main(smk):
     p = smk.params.point
-    sweep_point(smk.input.trajectories, p["autoencoder"], p["integrator"], p["rollout"], p["seed"], smk.output.metrics, device=p["device"])
+    sweep_point(smk.input.trajectories, p["autoencoder"], p["integrator"], p["rollout"], p["seed"], smk.output.metrics, device=p["device"],
+                stress=p["stress"])  # fmt: skip
 
 
 run_stage(snakemake, main)  # noqa: F821 (injected by Snakemake)
