@@ -40,3 +40,25 @@ def test_stage_times_put_every_benchmark_file_under_its_stage_and_scene(tmp_path
     ])  # fmt: skip
     assert df.loc[("integrator", "hair_rotation")].tolist() == [2, 150.0, 130.0]
     assert df.loc[("nm_ground_truth", "nm_armadillo"), "wall_s"] == 2000.0
+
+
+def test_runtime_ab_times_a_revisions_runtime_beside_the_working_trees(tmp_path):
+    """bench_runtime_ab loads runtime.py from git (HEAD here) as its own module and steps the same
+    runtime file with both; the decoded frames agree to float32 rounding."""
+    import numpy as np
+    import torch
+
+    from latentsim import runtime
+    from latentsim.latent import Autoencoder, LatentIntegrator, RelativeCoordinates
+
+    ab = load("bench_runtime_ab")
+    old = ab.load_revision("HEAD")
+    assert old is not runtime and old.__name__ == "latentsim._runtime_rev" and hasattr(old, "NumpyStepper")
+    torch.manual_seed(0)
+    coords = RelativeCoordinates(30, [0, 1], "mean")
+    ae = Autoencoder(coords.dim, 3, [8, 8], pca_dim=6).eval()
+    integ = LatentIntegrator(3, 6, [8]).eval()
+    runtime.export_runtime(ae, integ, coords, tmp_path / "runtime.npz")
+    row = ab.compare(tmp_path / "runtime.npz", old, rounds=2, repeats=5)
+    assert row["mode"] == "mean" and np.isfinite(row["speedup"]) and row["old_us"] > 0 and row["new_us"] > 0
+    assert row["max_dx"] < 1e-5

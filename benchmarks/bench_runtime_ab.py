@@ -1,0 +1,112 @@
+"""The NumPy latent runtime against an earlier revision's, on the pipeline's trained runtimes.
+
+Loads ``src/latentsim/runtime.py`` as it was at ``--against`` (``git show``) beside the working
+tree's, and times one whole latent step (integration + decoding to every vertex) of each scene's
+exported runtime (``<results>/rollout/<scene>/<method>/runtime.npz``) with both.  The two alternate
+in rounds, so that the shared machine's noise hits both alike; the figures are medians over the
+rounds of each round's median.  One thread, float32 networks, as the rollout stage times them.
+
+    python benchmarks/bench_runtime_ab.py --against 068298f [--results results] [--scenes armadillo cloth]
+    python benchmarks/bench_runtime_ab.py --against HEAD~1 --rounds 7 --repeats 2000
+
+Prints, per scene: the relative-coordinate mode, the decode layout, both step times [us], their
+ratio, and the largest difference between the two runtimes' decoded positions.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[_var] = "1"
+
+import argparse  # noqa: E402
+import importlib.util  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from latentsim import runtime as current  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+RUNTIME = "src/latentsim/runtime.py"
+
+
+def load_revision(rev: str, root: Path = ROOT):
+    """``latentsim.runtime`` as it was at git revision ``rev``, as a separate module."""
+    try:
+        text = subprocess.run(["git", "show", f"{rev}:{RUNTIME}"], cwd=root, check=True, capture_output=True, text=True).stdout
+    except subprocess.CalledProcessError as e:
+        raise SystemExit(f"git show {rev}:{RUNTIME} failed: {e.stderr.strip()}") from e
+    path = Path(tempfile.mkdtemp()) / "runtime_rev.py"
+    path.write_text(text)
+    spec = importlib.util.spec_from_file_location("latentsim._runtime_rev", path)
+    module = importlib.util.module_from_spec(spec)
+    module.__package__ = "latentsim"  # its function-level relative imports resolve in the package
+    spec.loader.exec_module(module)
+    return module
+
+
+def _median_us(fn, repeats: int, warmup: int = 100) -> float:
+    for _ in range(warmup):
+        fn()
+    samples = np.empty(repeats)
+    for i in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        samples[i] = time.perf_counter() - t0
+    return float(np.median(samples) * 1e6)
+
+
+def compare(npz, old, new=current, rounds: int = 5, repeats: int = 1000, seed: int = 0) -> dict:
+    """Time one step of the runtime file ``npz`` with modules ``old`` and ``new``, alternating."""
+    a, b = old.load_runtime(npz), new.load_runtime(npz)
+    rng = np.random.default_rng(seed)
+    z = (0.1 * rng.standard_normal(a.r)).astype(np.float32)
+    p = rng.standard_normal(a.k).astype(np.float32)
+    xD = np.ascontiguousarray(rng.standard_normal((len(a.dirichlet), 3)))
+    xa = a.step(z, z, p, p, p, xD)[1].copy()
+    xb = b.step(z, z, p, p, p, xD)[1].copy()
+    ta, tb = [], []
+    for _ in range(rounds):
+        ta.append(_median_us(lambda: a.step(z, z, p, p, p, xD), repeats))
+        tb.append(_median_us(lambda: b.step(z, z, p, p, p, xD), repeats))
+    old_us, new_us = float(np.median(ta)), float(np.median(tb))
+    return {"mode": b.mode, "layout": getattr(b, "layout", "-"), "old_us": old_us, "new_us": new_us,
+            "speedup": old_us / new_us, "max_dx": float(np.abs(xa - xb).max())}  # fmt: skip
+
+
+def main(argv=None) -> pd.DataFrame:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--against", required=True, help="git revision whose runtime.py is the baseline")
+    ap.add_argument("--results", default="results", help="the pipeline's results folder")
+    ap.add_argument("--method", default="self_supervised")
+    ap.add_argument("--scenes", nargs="*", help="default: every scene with a runtime file")
+    ap.add_argument("--rounds", type=int, default=5)
+    ap.add_argument("--repeats", type=int, default=1000)
+    args = ap.parse_args(argv)
+    base = Path(args.results) / "rollout"
+    scenes = args.scenes or sorted(p.parent.parent.name for p in base.glob(f"*/{args.method}/runtime.npz"))
+    if not scenes:
+        raise SystemExit(f"no {base}/<scene>/{args.method}/runtime.npz: run the rollout stage first")
+    old = load_revision(args.against)
+    rows = []
+    for scene in scenes:
+        npz = base / scene / args.method / "runtime.npz"
+        if not npz.exists():
+            raise SystemExit(f"{npz}: no such runtime file")
+        rows.append({"scene": scene, **compare(npz, old, rounds=args.rounds, repeats=args.repeats)})
+        print(f"{scene}: {rows[-1]}", file=sys.stderr)
+    df = pd.DataFrame(rows)
+    print(f"one step, us (median of {args.rounds} alternating rounds of {args.repeats}); old = {args.against}")
+    print(df.to_markdown(index=False, floatfmt=".3g"))
+    return df
+
+
+if __name__ == "__main__":
+    main()
