@@ -1,5 +1,7 @@
 """The sizing sweep's choice: the smallest model within the tolerance that never diverged."""
 
+import warnings
+
 import pandas as pd
 import pytest
 
@@ -31,7 +33,7 @@ def test_smallest_passing_model_is_chosen_judged_on_its_worst_sequence():
     assert t.loc[0, "mean_error"] == pytest.approx(0.05)  # the worst sequence counts
 
 
-def test_a_model_that_fails_a_stress_condition_is_not_chosen():
+def test_a_model_that_fails_a_stress_condition_is_not_chosen(tmp_path):
     """Within the tolerance on the test sequences, but diverged at twice the boundary speed: the next
     smallest model that survives every stress condition is chosen."""
     df = _rows([(2, "8 8", 100, [0.001], False), (4, "8 8", 200, [0.004], False), (8, "8 8", 300, [0.002], False)])
@@ -43,6 +45,13 @@ def test_a_model_that_fails_a_stress_condition_is_not_chosen():
     assert t["passes"].tolist() == [False, True, True]
     assert t[t["chosen"]].iloc[0]["parameters"] == 200
     assert t.loc[0, "stress_failures"] == "speed_x2@177"
+    # read back from CSV, an all-empty failure column is float NaN: choose still gives strings, without warnings
+    path = tmp_path / "metrics.csv"
+    df.assign(stress_failed=0, stress_failures="").to_csv(path, index=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        back = choose(pd.read_csv(path), tolerance=0.01)
+    assert back["passes"].all() and (back["stress_failures"] == "").all()
     # measured without stress conditions (older metrics): judged on the test sequences alone
     assert choose(df.drop(columns=["stress_conditions", "stress_failed", "stress_failures"]), tolerance=0.01)["passes"].all()
 

@@ -127,8 +127,10 @@ def choose(df: pd.DataFrame, tolerance: float) -> pd.DataFrame:
     dimension, then the fastest step) is chosen.
     """
     df = df.copy()
-    for col, default in (("stress_conditions", 0), ("stress_failed", 0), ("stress_failures", "")):
-        df[col] = df[col].fillna(default) if col in df else default
+    for col in ("stress_conditions", "stress_failed"):
+        df[col] = df[col].fillna(0).astype(int) if col in df else 0
+    # a CSV reads back an empty failure list as NaN (a float column when every entry is empty)
+    df["stress_failures"] = df["stress_failures"].astype("string").fillna("") if "stress_failures" in df else ""
     keys = ["latent_dim", "autoencoder_widths", "integrator_widths"]
     g = df.groupby(keys, sort=False).agg(
         parameters=("parameters", "first"), mean_error=("mean_error", "max"), max_error=("max_error", "max"),
