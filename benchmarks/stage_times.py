@@ -23,6 +23,7 @@ NM_SUFFIXES = {
     "_energy_table": "nm_energy_table",
     "_sheet_study": "nm_sheet_study",
     "_ground_truth": "nm_ground_truth",
+    "_aspect_ratio": "nm_aspect_ratio",
 }
 
 

@@ -26,6 +26,7 @@ def test_stage_times_put_every_benchmark_file_under_its_stage_and_scene(tmp_path
         "neural_modes/nm_armadillo_dynamics.tsv": (120.0, 118.0),
         "neural_modes/nm_sheet_sheet_ground_truth.tsv": (300.0, 299.0),
         "neural_modes/nm_sheet_sheet_study.tsv": (400.0, 398.0),
+        "neural_modes/nm_sheet_aspect_ratio.tsv": (450.0, 449.0),
         "summary/summary.tsv": (6.0, 5.0),
     }
     for rel, (wall, cpu) in files.items():
@@ -36,7 +37,8 @@ def test_stage_times_put_every_benchmark_file_under_its_stage_and_scene(tmp_path
     assert sorted(df.index) == sorted([
         ("integrator", "hair_rotation"), ("sim", "bunny_ears"), ("nm_train", "nm_armadillo"),
         ("nm_ground_truth", "nm_armadillo"), ("nm_energy_table", "nm_armadillo"), ("nm_dynamics", "nm_armadillo"),
-        ("nm_ground_truth", "nm_sheet"), ("nm_sheet_study", "nm_sheet"), ("summary", "across scenes"),
+        ("nm_ground_truth", "nm_sheet"), ("nm_sheet_study", "nm_sheet"), ("nm_aspect_ratio", "nm_sheet"),
+        ("summary", "across scenes"),
     ])  # fmt: skip
     assert df.loc[("integrator", "hair_rotation")].tolist() == [2, 150.0, 130.0]
     assert df.loc[("nm_ground_truth", "nm_armadillo"), "wall_s"] == 2000.0
