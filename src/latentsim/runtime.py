@@ -244,24 +244,23 @@ class NumpyStepper:
         self.n, self.mode, self.residual = int(hdr["n_vertices"]), hdr["mode"], bool(hdr["residual"])
         self.d = int(hdr["encoded_dim"])
 
-        def layer(name):
-            return _augmented(folded[f"{name[0]}W{name[1]}"], folded[f"{name[0]}b{name[1]}"], dt)
+        def layer(prefix: str, i: int):
+            return _augmented(folded[f"{prefix}W{i}"], folded[f"{prefix}b{i}"], dt)
 
         # integrator: input [z_{t-1}, z_{t-2}, p_t, p_{t-1}, p_{t-2}, 1]; hidden outputs [h; 1]
         L = int(hdr["integrator_layers"])
-        self._int_A = [layer(("int_", i)) for i in range(L)]
+        self._int_A = [layer("int_", i) for i in range(L)]
         self.int_W = [A[:-1].T for A in self._int_A]
         self.int_b = [A[-1] for A in self._int_A]
         self._q = _with_one(2 * self.r + 3 * self.k, dt)
-        self._ia = [np.empty(A.shape[1], dtype=dt) for A in self._int_A]
-        self._it = [np.empty(A.shape[1], dtype=dt) for A in self._int_A]
+        self._ia = [np.empty(A.shape[1], dtype=dt) for A in self._int_A[:-1]]  # pre-activations
+        self._it = [np.empty(A.shape[1], dtype=dt) for A in self._int_A[:-1]]  # SiLU scratch
         self._ih = [_with_one(A.shape[1], dt) for A in self._int_A[:-1]]
         self._z = np.empty(self.r, dtype=dt)
-        self._zin = np.empty(self.r, dtype=dt)
         # decoder: [z; 1] -> hidden [h_i; 1] -> [z; h_L; 1] (-> [y; 1] with a mid layer) -> u
         self.skips = [bool(s) for s in hdr["decoder_skips"]]
         nh = len(self.skips)
-        self._dec_A = [layer(("dec_", i)) for i in range(nh)]
+        self._dec_A = [layer("dec_", i) for i in range(nh)]
         self.dec_W = [A[:-1].T for A in self._dec_A]
         self.dec_b = [A[-1] for A in self._dec_A]
         widths = [A.shape[1] for A in self._dec_A]
