@@ -411,3 +411,50 @@ def test_half_turn_symmetry_is_required_where_configured():
         from_config(basis, {"widths": [8], "symmetry": "half_turn"}, pot.masses.numpy(), symmetry=None)
     with pytest.raises(ValueError, match="neural_modes.symmetry 'mirror'"):
         from_config(basis, {"widths": [8], "symmetry": "mirror"}, pot.masses.numpy())
+
+
+def test_smallest_rotation_turns_a_onto_b_by_the_least_angle():
+    from latentsim.nm_dynamics import smallest_rotation
+
+    rng = np.random.default_rng(0)
+    for a, b in [rng.standard_normal((2, 3)) for _ in range(5)] + [(np.array([1.0, 0, 0]), np.array([-1.0, 0, 0]))]:
+        R = smallest_rotation(a, b)
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(R), 1.0)
+        assert np.allclose(R @ (a / np.linalg.norm(a)), b / np.linalg.norm(b), atol=1e-12)
+        # its angle is the one between a and b: no extra turn about either
+        angle = np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))
+        assert np.isclose(angle, np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1)), atol=1e-9)
+    assert np.array_equal(smallest_rotation([0, 0, 2.0], [0, 0, 1.0]), np.eye(3))
+
+
+def test_subspace_frame_of_two_prescribed_corners():
+    """The cloth holds two corners: the rigid fit of a collinear set is unique only up to a turn
+    about its line.  Translated, the frame is the identity; turned, the corners land exactly
+    and the sheet turns by the least angle (its normal stays across the turned line)."""
+    from latentsim.nm_dynamics import NeuralModesSubspace
+    from latentsim.scene import dirichlet_trajectory
+
+    V = np.array([[x, y, 0.0] for y in (0.0, 0.1, 0.2) for x in (0.0, 0.1, 0.2, 0.3)])
+    D = np.array([8, 11])  # the two top corners
+    model = NeuralModes(V, np.eye(V.size)[:, :2], (8,), fixed_dofs=(3 * D[:, None] + np.arange(3)).reshape(-1))
+    sub = NeuralModesSubspace(model, D)
+    R, c = sub._frame(V[D] + [0.0, 0.0, 0.37])
+    assert np.array_equal(R, np.eye(3)) and np.allclose(c, V[D].mean(0) + [0, 0, 0.37])
+    # the corners turned by 0.3 rad about z (in the sheet's plane): a rotation about z, not about their line
+    p = np.zeros((2, 6))
+    p[1, 5] = 3.0
+    xD = dirichlet_trajectory(V[D], p, 0.1)[1]
+    x = sub.map(np.zeros(2), xD)
+    assert np.allclose(x[D], xD, atol=1e-12)
+    assert np.allclose(x[:, 2], 0.0, atol=1e-12)  # still in its plane
+    # diagonal corners turned about an oblique axis: the SVD alone turns the sheet by 107 degrees
+    # where 57 take the line there; the frame takes the 57
+    from scipy.spatial.transform import Rotation
+
+    D = np.array([0, 11])
+    sub = NeuralModesSubspace(NeuralModes(V, np.eye(V.size)[:, :2], (8,), fixed_dofs=(3 * D[:, None] + np.arange(3)).reshape(-1)), D)
+    xD = (V[D] - V[D].mean(0)) @ Rotation.from_rotvec([0.3, -0.5, 0.8]).as_matrix().T + [0.1, 0.2, 0.3]
+    R, _ = sub._frame(xD)
+    a, b = V[D[1]] - V[D[0]], xD[1] - xD[0]
+    assert np.allclose(sub.map(np.zeros(2), xD)[D], xD, atol=1e-12)
+    assert np.isclose(np.arccos((np.trace(R) - 1) / 2), np.arccos(a @ b / np.linalg.norm(a) / np.linalg.norm(b)), atol=1e-9)

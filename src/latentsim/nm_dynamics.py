@@ -31,7 +31,7 @@ from .neural_modes import NeuralModes
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DYNAMICS_METHODS", "NeuralModesSubspace", "keyframe_coordinates", "relative_errors", "subspace_dynamics"]
+__all__ = ["DYNAMICS_METHODS", "NeuralModesSubspace", "keyframe_coordinates", "relative_errors", "smallest_rotation", "subspace_dynamics"]
 
 
 def _gelu(s):
@@ -40,6 +40,22 @@ def _gelu(s):
 
 def _gelu_prime(s):
     return 0.5 * (1.0 + erf(s / math.sqrt(2.0))) + s * np.exp(-0.5 * s * s) / math.sqrt(2.0 * math.pi)
+
+
+def smallest_rotation(a, b) -> np.ndarray:
+    """The rotation of least angle that turns the direction a onto b (3-vectors)."""
+    a = np.asarray(a, dtype=np.float64) / np.linalg.norm(a)
+    b = np.asarray(b, dtype=np.float64) / np.linalg.norm(b)
+    v, cos = np.cross(a, b), float(a @ b)
+    sin = float(np.linalg.norm(v))
+    if sin < 1e-12:
+        if cos > 0:
+            return np.eye(3)
+        axis = np.cross(a, np.eye(3)[np.argmin(np.abs(a))])  # a half turn about an axis across a
+        axis /= np.linalg.norm(axis)
+        return 2.0 * np.outer(axis, axis) - np.eye(3)
+    K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + K + K @ K * ((1.0 - cos) / sin**2)
 
 
 class NeuralModesSubspace:
@@ -122,12 +138,19 @@ class NeuralModesSubspace:
         return y, Jy
 
     def _frame(self, xD):
-        """Rotation R and centre c of the best rigid fit of the rest Dirichlet set onto xD."""
+        """Rotation R and centre c of the best rigid fit of the rest Dirichlet set onto xD.
+
+        A collinear set (the cloth's two corners) fixes no rotation about its own line: the
+        fit's singular vectors across that line are arbitrary.  Then R is the smallest
+        rotation that turns the rest line onto the current one (the identity while the set
+        only translates)."""
         if not len(self.dirichlet):
             return np.eye(3), self.c0
         xD = np.asarray(xD, dtype=np.float64)
         c = xD.mean(0)
-        U, _, Vt = np.linalg.svd(self._XDc.T @ (xD - c))
+        U, S, Vt = np.linalg.svd(self._XDc.T @ (xD - c))
+        if S[1] <= 1e-9 * S[0] or S[0] == 0.0:
+            return (smallest_rotation(U[:, 0], Vt[0]) if S[0] > 0 else np.eye(3)), c
         d = np.sign(np.linalg.det(U @ Vt))
         return (U @ np.diag([1.0, 1.0, d]) @ Vt).T, c
 
