@@ -38,7 +38,7 @@ NM_JOBS_DEFAULT = (
     + [("nm_ground_truth", "nm_armadillo"), ("nm_energy_table", "nm_armadillo")]
     + [("nm_dynamics", s) for s in ("nm_armadillo", "nm_bunny", "nm_giraffe")]
     + [("nm_keyframes", "nm_giraffe"), ("nm_aspect_ratio", "nm_sheet"), ("nm_summary", None)]
-    + [(r, s) for r in ("nm_linear_modes", "nm_train") for s in ("bunny_ears", "cantilever", "hair_rotation", "hair_translation")]  # for their neural_modes_reduced baselines
+    + [(r, s) for r in ("nm_linear_modes", "nm_train") for s in ("bunny_ears", "cantilever", "cloth", "hair_rotation", "hair_translation")]  # for their neural_modes_reduced baselines
 )
 
 
