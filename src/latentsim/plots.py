@@ -237,7 +237,8 @@ def speed_accuracy_chart(df: pd.DataFrame, path, scene=None, error="mean_error",
     pts = _aggregate_methods(sub, error)
     ncol = min(len(scenes), 3)
     nrow = -(-len(scenes) // ncol)
-    fig, axes = plt.subplots(nrow, ncol, figsize=(5.2 * ncol, 4.2 * nrow), squeeze=False)
+    legend_width = 2.4 if scene is not None else 0.0  # one scene: the legend beside the axes, off the points
+    fig, axes = plt.subplots(nrow, ncol, figsize=(5.2 * ncol + legend_width, 4.2 * nrow), squeeze=False)
     drawn = []
     for k, s in enumerate(scenes):
         ax = axes.flat[k]
@@ -258,7 +259,7 @@ def speed_accuracy_chart(df: pd.DataFrame, path, scene=None, error="mean_error",
         fig.suptitle(title or "speed vs accuracy per scene")
         fig.tight_layout(rect=(0, 0.06 + 0.02 * (len(handles) // 5), 1, 0.97))
     else:
-        axes[0, 0].legend(handles=handles, fontsize=7, loc="best")
+        axes[0, 0].legend(handles=handles, fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False)
         fig.tight_layout()
     save_figure(fig, path, dpi=dpi)
     return pd.concat(drawn, ignore_index=True)
