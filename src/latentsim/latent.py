@@ -133,6 +133,7 @@ INTEGRATOR_DEFAULTS: dict[str, Any] = {
     "batch_size": 500,
     "mode": "self_supervised",  # or "supervised"
     "noise_scale": 0.1,  # Eq. 5; 0 disables the training noise
+    "supervised_weight": 0.0,  # self-supervised mode: weight of an added L2 term on the ground-truth latents (0: the paper)
     "balancing": True,  # Eq. 6
     "balancing_eps": 1e-2,  # [m/s] floor of |v_{t-1}| in Eq. 6
     "use_penalty": None,  # None -> penalty iff the coordinates do not impose Dirichlet exactly
@@ -695,6 +696,7 @@ def integrator_loss(
     use_penalty: bool | None = None,
     balancing_eps: float = 1e-2,
     generator: torch.Generator | None = None,
+    supervised_weight: float = 0.0,
 ):
     """Loss of one minibatch of triplets.
 
@@ -713,6 +715,14 @@ def integrator_loss(
     Data balancing (Eq. 6, ``balancing=True``): each sample's loss is
     multiplied by :func:`balancing_weights` of its decoded x_{t-1}, x_{t-2}
     (the perturbed ones for perturbed samples).
+
+    Supervision (``supervised_weight`` w > 0, self-supervised mode only; not in
+    the paper): the loss gains ``w * mean_b |(z_pred_b - z_b) / sigma|^2`` over
+    the unperturbed samples, sigma the integrator's output scale ``out_std``
+    (the spread of the training increments; 1 for a callable without one).
+    The incremental potential minimised in a small latent space is not the
+    full-space dynamics projected into it; the term pulls the integrator
+    towards the latter where the training data show it.
 
     Parameters
     ----------
@@ -734,8 +744,11 @@ def integrator_loss(
     """
     if mode not in ("self_supervised", "supervised"):
         raise ValueError(f"mode must be 'self_supervised' or 'supervised', got {mode!r}")
+    if supervised_weight < 0 or (supervised_weight > 0 and mode != "self_supervised"):
+        raise ValueError(f"supervised_weight must be >= 0 and is for the self-supervised loss; got {supervised_weight} with mode {mode!r}")
     if use_penalty is None:
         use_penalty = not coords.hard_dirichlet
+    clean = batch["z_prev"].shape[0]
     z1, z2 = batch["z_prev"], batch["z_prev2"]
     p, p1, p2 = batch["p"], batch["p_prev"], batch["p_prev2"]
     xD, xD1, xD2 = batch["xD"], batch["xD_prev"], batch["xD_prev2"]
@@ -771,6 +784,13 @@ def integrator_loss(
     else:
         w = torch.ones_like(per)
     loss = (w * per).mean()
+    if supervised_weight > 0:
+        if zt is None:
+            raise ValueError("supervised_weight needs the ground-truth latents batch['z']")
+        scale = getattr(integrator, "out_std", None)
+        scale = torch.ones_like(pred[0]) if scale is None else scale.to(pred)
+        sup = (((pred[:clean] - zt[:clean].to(pred)) / scale) ** 2).sum(-1).mean()
+        loss = loss + float(supervised_weight) * sup.to(loss)
     info = {"per_sample": per.detach(), "weights": w.detach(), "count": count, "prediction": pred.detach()}
     return loss, info
 
@@ -864,7 +884,7 @@ def fit_integrator(
     sequences : training sequences (see :func:`build_triplets`).
     config : keys of :data:`INTEGRATOR_DEFAULTS`: widths, epochs, lr,
         lr_final (cosine decay of the learning rate to it; None: constant), batch_size, mode ('self_supervised' | 'supervised'), noise_scale,
-        balancing, balancing_eps, use_penalty, residual, checkpoint_path,
+        supervised_weight, balancing, balancing_eps, use_penalty, residual, checkpoint_path,
         checkpoint_every.
     seed : seeds weight init, minibatch order and the training noise.
     checkpoint_path : overrides ``config['checkpoint_path']``.  When set, the
@@ -967,6 +987,7 @@ def fit_integrator(
                 integ, ae_f, coords, pot, batch,
                 mode=cfg["mode"], noise_scale=float(cfg["noise_scale"]), balancing=bool(cfg["balancing"]),
                 use_penalty=cfg["use_penalty"], balancing_eps=float(cfg["balancing_eps"]), generator=gen,
+                supervised_weight=float(cfg["supervised_weight"]),
             )
             if not torch.isfinite(loss):
                 raise TrainingDiverged(epoch + 1, b)
