@@ -149,7 +149,7 @@ class NeuralModesSubspace:
         xD = np.asarray(xD, dtype=np.float64)
         c = xD.mean(0)
         U, S, Vt = np.linalg.svd(self._XDc.T @ (xD - c))
-        if S[1] <= 1e-9 * S[0] or S[0] == 0.0:
+        if S[1] <= 1e-9 * S[0]:  # collinear (or a single vertex: S = 0, no turn at all)
             return (smallest_rotation(U[:, 0], Vt[0]) if S[0] > 0 else np.eye(3)), c
         d = np.sign(np.linalg.det(U @ Vt))
         return (U @ np.diag([1.0, 1.0, d]) @ Vt).T, c
