@@ -25,7 +25,7 @@ import pandas as pd  # noqa: E402
 
 from .io import atomic_path, require  # noqa: E402
 from .paper import li2025_table1, li2025_table2  # noqa: E402
-from .plots import speed_accuracy_chart, stability_heatmap  # noqa: E402
+from .plots import pareto_front, speed_accuracy_chart, stability_heatmap  # noqa: E402
 
 
 def bbox_diagonal(x: np.ndarray) -> float:
@@ -319,6 +319,66 @@ def stability_table(df: pd.DataFrame) -> pd.DataFrame:
     return out
 
 
+# the methods of the comparison (issue order), as the glance's columns; variants stay in its long table
+GLANCE_METHODS = ("full_space", "newton_1it", "pca_reduced", "modes_reduced", "fulton_reduced", "neural_modes_reduced",
+                  "self_supervised", "supervised_5x256")  # fmt: skip
+
+
+def glance_table(df: pd.DataFrame, pts: pd.DataFrame, stress: pd.DataFrame | None = None) -> pd.DataFrame:
+    """One row per scene and method: what the speed-accuracy chart and the stability map show, as numbers.
+
+    ``df``: the per-sequence metrics (:func:`summarise`'s table); ``pts``: the chart's points
+    (:func:`latentsim.plots.speed_accuracy_chart`'s return, with the ``full_space`` rows); ``stress``: the
+    stress-condition rows (:func:`stress_table`), optional.
+
+    Columns: ``scene``, ``method``, ``ms_per_frame`` (median over test sequences), ``speedup`` (full-space
+    over latent or reduced ms, both means timed in the method's own job, as Table 1), ``mean_error`` (mean), ``max_error`` (max), ``kinetic_ratio`` (mean; 1 for the
+    full space), ``test_survived`` (test sequences stable to the end, ``k/N``), ``stress_survived``
+    (stress conditions survived, ``k/N``, empty where none ran), ``on_front`` (the chart's Pareto front).
+    Sorted by scene, then ms per frame.
+    """
+    g = pts.copy()
+    own = df.groupby(["scene", "method"], sort=False)
+    # each method's job timed full-space frames in its own process: the speed-up is that ratio
+    ratio = own["full_ms"].mean() / own["latent_ms"].mean()
+    ke = own["kinetic_ratio"].mean()
+    ok = own["diverged_frame"].agg(lambda s: f"{int((s < 0).sum())}/{len(s)}")
+    key = list(zip(g["scene"], g["method"]))
+    g["speedup"] = [1.0 if k[1] == "full_space" else ratio.get(k, np.nan) for k in key]
+    g["kinetic_ratio"] = [1.0 if m == "full_space" else ke.get(k, np.nan) for k, m in zip(key, g["method"])]
+    n_seq = df.groupby("scene")["sequence"].nunique()
+    g["test_survived"] = [f"{n_seq.get(k[0], 0)}/{n_seq.get(k[0], 0)}" if k[1] == "full_space" else ok.get(k, "") for k in key]
+    surv = {}
+    if stress is not None and not stress.empty:
+        for k, s in stress.groupby(["scene", "method"], sort=False):
+            surv[k] = f"{int((~s['diverged'].astype(bool)).sum())}/{len(s)}"
+    g["stress_survived"] = [surv.get(k, "") for k in key]
+    cols = ["scene", "method", "ms_per_frame", "speedup", "mean_error", "max_error", "kinetic_ratio", "test_survived",
+            "stress_survived", "on_front"]  # fmt: skip
+    return g[cols].sort_values(["scene", "ms_per_frame"], kind="stable").reset_index(drop=True)
+
+
+def glance_grid(glance: pd.DataFrame, methods=GLANCE_METHODS) -> pd.DataFrame:
+    """Scenes x the comparison's methods, each cell ``mean error (ms per frame)``; ``*`` marks the Pareto
+    front of these methods alone (the long table's ``on_front`` also counts the scene's variants), ``-`` a
+    method the scene did not run.  A method that diverged on a test sequence is never on the front."""
+    present = [m for m in methods if m in set(glance["method"])]
+    rows = []
+    for scene, g in glance.groupby("scene", sort=True):
+        by = g[g["method"].isin(present)].set_index("method")
+        stable = [s.split("/")[0] == s.split("/")[1] for s in by["test_survived"]]
+        front = pareto_front(by["ms_per_frame"], np.where(stable, by["mean_error"], np.nan))
+        row = {"scene": scene}
+        for m in present:
+            if m not in by.index:
+                row[m] = "-"
+                continue
+            r = by.loc[m]
+            row[m] = f"{r['mean_error']:.3g} ({r['ms_per_frame']:.3g})" + (" *" if front[by.index.get_loc(m)] else "")
+        rows.append(row)
+    return pd.DataFrame(rows, columns=["scene", *present])
+
+
 def summarise(tables: list, csv_path, md_path, fig_path, table1_path=None, stability_path=None, reconstruction=(), stress=(), stress_paths=None,
               table2_path=None, sizes=None, sweep_choices=None, sizes_path=None):  # fmt: skip
     """Concatenate the scene tables; Tables 1-2, the stability, reconstruction and model-size tables;
@@ -339,7 +399,15 @@ def summarise(tables: list, csv_path, md_path, fig_path, table1_path=None, stabi
         write_table(t2, table2_path)
     if stability_path is not None:
         write_table(st, stability_path)
-    text = ["## Li et al. Table 1: full space vs latent integrator (ours, then the paper's)", "", _markdown(t1), "",
+    frames = [pd.read_csv(t) for t in stress]
+    st_all = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+    pts = speed_accuracy_chart(speed_accuracy_rows(df), fig_path, scene=None, title="speed vs accuracy, every scene (full space at error 0)")
+    glance = glance_table(df, pts, st_all)
+    text = ["## At a glance: mean error / bbox diagonal (ms per frame) of the compared methods; * on their Pareto front", "",
+            _markdown(glance_grid(glance)), "",
+            "## Every method per scene: median ms per frame, speed-up over the full space, errors, kinetic energy ratio, "
+            "test sequences and stress conditions survived, Pareto front", "", _markdown(glance), "",
+            "## Li et al. Table 1: full space vs latent integrator (ours, then the paper's)", "", _markdown(t1), "",
             "## Li et al. Table 2: single-vertex Jvp (torch.func.jvp, forward mode), our latent step, a Fulton-style reduced step", "",
             _markdown(t2), "",
             "## Stability: frames survived per method (Li et al. Fig. 8-11)", "", _markdown(st), "",
@@ -349,10 +417,7 @@ def summarise(tables: list, csv_path, md_path, fig_path, table1_path=None, stabi
             "## Every method and test sequence", "", _markdown(df)]  # fmt: skip
     with atomic_path(md_path) as tmp:
         tmp.write_text("\n".join(text) + "\n")
-    speed_accuracy_chart(speed_accuracy_rows(df), fig_path, scene=None, title="speed vs accuracy, every scene (full space at error 0)")
     if stress_paths is not None:
-        frames = [pd.read_csv(t) for t in stress]
-        st_all = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
         csv, png = stress_paths
         write_table(st_all, csv)
         if not st_all.empty:
