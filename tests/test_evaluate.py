@@ -76,8 +76,11 @@ def test_summary_markdown_opens_with_the_glance(tmp_path):
     df.to_csv(tmp_path / "m.csv", index=False)
     _stress().to_csv(tmp_path / "st.csv", index=False)
     summarise([tmp_path / "m.csv"], tmp_path / "s.csv", tmp_path / "s.md", tmp_path / "s.png",
-              stress=[tmp_path / "st.csv"], stress_paths=(tmp_path / "stress.csv", tmp_path / "stress.png"))  # fmt: skip
+              stress=[tmp_path / "st.csv"], stress_paths=(tmp_path / "stress.csv", tmp_path / "stress.png"),
+              glance_path=tmp_path / "glance.csv")  # fmt: skip
     text = (tmp_path / "s.md").read_text()
     assert text.startswith("## At a glance")
     assert "| a | 0 (11) * | 0.001 (2) * | 0.02 (0.1) * | 0.005 (0.05) |" in text
     assert "| a | self_supervised | 0.1 | 110 | 0.02 | 0.06 | 0.9 | 2/2 | 3/3 | False |" in text
+    g = pd.read_csv(tmp_path / "glance.csv", keep_default_na=False)
+    assert len(g) == 7 and set(g["method"]) == {"full_space", "self_supervised", "no_noise", "pca_reduced", "supervised_5x256"}

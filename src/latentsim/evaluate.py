@@ -380,9 +380,10 @@ def glance_grid(glance: pd.DataFrame, methods=GLANCE_METHODS) -> pd.DataFrame:
 
 
 def summarise(tables: list, csv_path, md_path, fig_path, table1_path=None, stability_path=None, reconstruction=(), stress=(), stress_paths=None,
-              table2_path=None, sizes=None, sweep_choices=None, sizes_path=None):  # fmt: skip
+              table2_path=None, sizes=None, sweep_choices=None, sizes_path=None, glance_path=None):  # fmt: skip
     """Concatenate the scene tables; Tables 1-2, the stability, reconstruction and model-size tables;
-    Markdown copy; speed-accuracy chart.  ``sizes`` and ``sweep_choices``: see :func:`sizes_table`."""
+    Markdown copy, opening with the glance tables (:func:`glance_grid`, :func:`glance_table`; the latter also
+    to ``glance_path``); speed-accuracy chart.  ``sizes`` and ``sweep_choices``: see :func:`sizes_table`."""
     df = pd.concat([pd.read_csv(t) for t in tables], ignore_index=True)
     rec = pd.concat([pd.read_csv(t) for t in reconstruction], ignore_index=True) if reconstruction else pd.DataFrame()
     if not rec.empty:  # one row per scene and split: mean of the sequence means, max of the maxima
@@ -403,6 +404,8 @@ def summarise(tables: list, csv_path, md_path, fig_path, table1_path=None, stabi
     st_all = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
     pts = speed_accuracy_chart(speed_accuracy_rows(df), fig_path, scene=None, title="speed vs accuracy, every scene (full space at error 0)")
     glance = glance_table(df, pts, st_all)
+    if glance_path is not None:
+        write_table(glance, glance_path)
     text = ["## At a glance: mean error / bbox diagonal (ms per frame) of the compared methods; * on their Pareto front", "",
             _markdown(glance_grid(glance)), "",
             "## Every method per scene: median ms per frame, speed-up over the full space, errors, kinetic energy ratio, "

@@ -82,6 +82,11 @@ rule summary:
             category="Summary",
         ),
         markdown="results/evaluation/summary.md",
+        glance=report(
+            "results/evaluation/glance.csv",
+            caption="../report/glance.rst",
+            category="Summary",
+        ),
         table1=report(
             "results/evaluation/table1.csv",
             caption="../report/table1.rst",

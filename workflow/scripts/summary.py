@@ -19,6 +19,7 @@ def main(smk):
         sizes=dict(smk.params.sizes),
         sweep_choices=dict(smk.params.sweep_choices),
         sizes_path=out.sizes,
+        glance_path=out.glance,
     )
 
 
