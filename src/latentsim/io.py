@@ -80,22 +80,6 @@ def write_dataset(group, name, data, **kwargs):
     return group.create_dataset(name, data=data, track_times=False, **kwargs)
 
 
-def save_json(path, obj):
-    """Write JSON atomically."""
-    with atomic_path(path) as tmp:
-        Path(tmp).write_text(json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n")
-
-
-def _json_default(o):
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, (np.floating,)):
-        return float(o)
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
-
-
 class ArtefactError(ValueError):
     """An input artefact is missing a key or holds a bad value."""
 

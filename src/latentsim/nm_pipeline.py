@@ -51,7 +51,6 @@ def scene_params(config: dict, scene: str) -> dict:
     return _canonical({"model": sc["model"], "material": sc["material"], "neural_modes": sc["neural_modes"]})
 
 
-STUDIES = ("sheet", "energy", "dynamics", "keyframes", "aspect")
 MODE_KEYS = ("modes", "boundary", "normalization")  # all that the linear modes depend on
 GROUND_TRUTH_KEYS = MODE_KEYS + ("box", "metric")  # ... and the ground truth
 SET_KEYS = {"sheet": ("train_grid", "random_samples", "val_grid", "test_grid"), "energy": ("samples", "train", "validation")}
