@@ -332,8 +332,8 @@ def glance_table(df: pd.DataFrame, pts: pd.DataFrame, stress: pd.DataFrame | Non
     stress-condition rows (:func:`stress_table`), optional.
 
     Columns: ``scene``, ``method``, ``ms_per_frame`` (median over test sequences), ``speedup`` (full-space
-    over latent or reduced ms, both means timed in the method's own job, as Table 1), ``mean_error`` (mean), ``max_error`` (max), ``kinetic_ratio`` (mean; 1 for the
-    full space), ``test_survived`` (test sequences stable to the end, ``k/N``), ``stress_survived``
+    over latent or reduced ms, both means timed in the method's own job, as Table 1), ``mean_error``
+    (mean), ``max_error`` (max), ``kinetic_ratio`` (mean; 1 for the full space), ``test_survived`` (test sequences stable to the end, ``k/N``), ``stress_survived``
     (stress conditions survived, ``k/N``, empty where none ran), ``on_front`` (the chart's Pareto front).
     Sorted by scene, then ms per frame.
     """
@@ -345,7 +345,7 @@ def glance_table(df: pd.DataFrame, pts: pd.DataFrame, stress: pd.DataFrame | Non
     ok = own["diverged_frame"].agg(lambda s: f"{int((s < 0).sum())}/{len(s)}")
     key = list(zip(g["scene"], g["method"]))
     g["speedup"] = [1.0 if k[1] == "full_space" else ratio.get(k, np.nan) for k in key]
-    g["kinetic_ratio"] = [1.0 if m == "full_space" else ke.get(k, np.nan) for k, m in zip(key, g["method"])]
+    g["kinetic_ratio"] = [1.0 if k[1] == "full_space" else ke.get(k, np.nan) for k in key]
     n_seq = df.groupby("scene")["sequence"].nunique()
     g["test_survived"] = [f"{n_seq.get(k[0], 0)}/{n_seq.get(k[0], 0)}" if k[1] == "full_space" else ok.get(k, "") for k in key]
     surv = {}
