@@ -62,6 +62,20 @@ def sweep_point(trajectories, autoencoder: dict, integrator: dict, rollout: dict
         gets ``stress_conditions`` (how many ran), ``stress_failed`` (how many
         the model did not survive) and ``stress_failures`` (``name@frame``).
     """
+    point = train_point(trajectories, autoencoder, integrator, seed, device=device)
+    df = measure_point(point, rollout, stress=stress)
+    write_table(df, out_csv)
+    return df
+
+
+def train_point(trajectories, autoencoder: dict, integrator: dict, seed: int, device="cpu") -> dict:
+    """Train one model size on a scene's training sequences (see :func:`sweep_point`).
+
+    Returns the eval-mode autoencoder ``ae`` and integrator ``integrator`` (on
+    the CPU), their ``coords``, the scene's ``train`` and ``tests`` sequences,
+    ``rest`` positions, ``dirichlet`` indices, ``dt``, and ``train_seconds``;
+    :func:`measure_point` takes it.
+    """
     ae_cfg = dict(autoencoder)
     with h5py.File(trajectories, "r") as f:
         coords = coordinates_for(f, ae_cfg.pop("coordinates", None))
@@ -70,15 +84,21 @@ def sweep_point(trajectories, autoencoder: dict, integrator: dict, rollout: dict
         potential = potential_from_artefact(f)
         rest = f["rest_positions"][()]
         dirichlet, dt = f["dirichlet"][()], float(f.attrs["dt"])
-    diag = bbox_diagonal(rest)
     U = torch.cat([coords.encode(torch.as_tensor(s["positions"]), torch.as_tensor(s["dirichlet_positions"])) for s in train.values()])
     ae_cfg["pca_dim"] = ae_cfg.get("pca_dim") or None
     t0 = time.perf_counter()
     ae, _ = latent.fit_autoencoder(U.to(torch.float32), ae_cfg, seed=seed, device=device)
     ae = ae.cpu().eval()
     integ, _ = latent.fit_integrator(ae, coords, potential, list(train.values()), dict(integrator), seed=seed, device=device)
-    integ = integ.cpu().eval()
-    train_s = time.perf_counter() - t0
+    return dict(ae=ae, integrator=integ.cpu().eval(), coords=coords, train=train, tests=tests, rest=rest, dirichlet=dirichlet, dt=dt,
+                train_seconds=time.perf_counter() - t0, latent_dim=int(autoencoder["latent_dim"]),
+                autoencoder_widths=list(autoencoder["widths"]), integrator_widths=list(integrator["widths"]))  # fmt: skip
+
+
+def measure_point(point: dict, rollout: dict, stress: bool = True) -> pd.DataFrame:
+    """Roll out, time and stress-test a trained point (:func:`train_point`); one row per test sequence."""
+    ae, integ, coords, train, tests, rest = (point[k] for k in ("ae", "integrator", "coords", "train", "tests", "rest"))
+    diag = bbox_diagonal(rest)
     stepper = runtime.NumpyStepper(runtime.fold_networks(ae, integ, coords))
     rows = []
     for name, s in tests.items():
@@ -93,17 +113,17 @@ def sweep_point(trajectories, autoencoder: dict, integrator: dict, rollout: dict
         timing = runtime.time_step(stepper, z[1].numpy(), z[0].numpy(), p, p, p, np.asarray(s["dirichlet_positions"][-1]),
                                    repeats=int(rollout["timing_repeats"]))  # fmt: skip
         rows.append(dict(
-            latent_dim=int(autoencoder["latent_dim"]), autoencoder_widths=" ".join(map(str, autoencoder["widths"])),
-            integrator_widths=" ".join(map(str, integrator["widths"])), decoder_parameters=parameter_count(ae.dec_branch) + parameter_count(ae.pca_out),
+            latent_dim=point["latent_dim"], autoencoder_widths=" ".join(map(str, point["autoencoder_widths"])),
+            integrator_widths=" ".join(map(str, point["integrator_widths"])), decoder_parameters=parameter_count(ae.dec_branch) + parameter_count(ae.pca_out),
             integrator_parameters=parameter_count(integ), sequence=name, frames=T, diverged_frame=div,
             mean_error=float(mean_e.mean()) if len(mean_e) else np.nan, max_error=float(max_e.max()) if len(max_e) else np.nan,
-            step_ms=timing["step_ms"], train_seconds=train_s,
+            step_ms=timing["step_ms"], train_seconds=point["train_seconds"],
         ))  # fmt: skip
     st = dict(rollout.get("stability", {}))
     failed, n_conditions = [], 0
     if stress and st.get("enabled", True) and tests:
         train_frames = max(len(s["positions"]) for s in train.values())
-        for c, res in stability.stress_test(integ, ae, coords, next(iter(tests.values())), rest, dirichlet, dt, train_frames, st,
+        for c, res in stability.stress_test(integ, ae, coords, next(iter(tests.values())), rest, point["dirichlet"], point["dt"], train_frames, st,
                                             float(rollout["max_extent"])):  # fmt: skip
             n_conditions += 1
             if res["survived"] < res["frames"]:
@@ -112,7 +132,6 @@ def sweep_point(trajectories, autoencoder: dict, integrator: dict, rollout: dict
         row.update(stress_conditions=n_conditions, stress_failed=len(failed), stress_failures=" ".join(failed))
     df = pd.DataFrame(rows)
     df["parameters"] = df["decoder_parameters"] + df["integrator_parameters"]
-    write_table(df, out_csv)
     return df
 
 
