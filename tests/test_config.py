@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from latentsim.config import ConfigError, load_config, validate_config
+from latentsim.config import ConfigError, autoencoder_dir, autoencoder_settings, integrator_settings, load_config, validate_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -74,4 +74,25 @@ def test_defaults_do_not_leak_between_scenes(tiny):
 def test_neural_modes_studies_that_do_not_fit_the_scene_are_named(tiny, edit, message):
     edit(tiny["scenes"]["tiny_nm"])
     with pytest.raises(ConfigError, match=message):
+        validate_config(tiny)
+
+
+def test_a_variant_of_another_size_overrides_the_autoencoder_apart_from_the_integrator(tiny):
+    cfg = validate_config(tiny)
+    assert tiny["integrator_variants"]["small"]["autoencoder"] == {"latent_dim": 2, "widths": [16]}
+    own, small = autoencoder_settings(cfg, "tiny_rods"), autoencoder_settings(cfg, "tiny_rods", "small")
+    assert (own["latent_dim"], own["widths"], small["latent_dim"], small["widths"]) == (4, [32, 32], 2, [16])
+    assert {k: v for k, v in small.items() if k not in ("latent_dim", "widths")} == {k: v for k, v in own.items() if k not in ("latent_dim", "widths")}
+    assert autoencoder_settings(cfg, "tiny_rods", "supervised") == own  # a variant without the block shares the scene's
+    integ = integrator_settings(cfg, "tiny_rods", "small")
+    assert "autoencoder" not in integ and integ["widths"] == [16] and integ["epochs"] == cfg["scenes"]["tiny_rods"]["integrator"]["epochs"]
+    assert autoencoder_dir(cfg, "tiny_rods", "small") == "results/autoencoder/tiny_rods/small"
+    assert autoencoder_dir(cfg, "tiny_rods", "supervised") == autoencoder_dir(cfg, "tiny_rods") == "results/autoencoder/tiny_rods"
+    with pytest.raises(ConfigError, match="no integrator variant 'small'"):
+        autoencoder_settings(cfg, "tiny_cloth", "small")  # the scene does not list it
+
+
+def test_unknown_key_of_a_variants_autoencoder_is_named(tiny):
+    tiny["integrator_variants"]["small"]["autoencoder"]["coordinates"] = "mean"
+    with pytest.raises(ConfigError, match=r"integrator_variants\.small\.autoencoder'.*coordinates"):
         validate_config(tiny)

@@ -3,7 +3,7 @@
 import numpy as np
 import pandas as pd
 
-from latentsim.evaluate import glance_grid, glance_table, speed_accuracy_rows, summarise
+from latentsim.evaluate import glance_grid, glance_table, speed_accuracy_rows, summarise, table1, table2
 from latentsim.plots import speed_accuracy_chart
 
 
@@ -84,3 +84,18 @@ def test_summary_markdown_opens_with_the_glance(tmp_path):
     assert "| a | self_supervised | 0.1 | 110 | 0.02 | 0.06 | 0.9 | 2/2 | 3/3 | False |" in text
     g = pd.read_csv(tmp_path / "glance.csv", keep_default_na=False)
     assert len(g) == 7 and set(g["method"]) == {"full_space", "self_supervised", "no_noise", "pca_reduced", "supervised_5x256"}
+
+
+def test_tables_1_and_2_give_a_variant_of_another_size_a_row_of_its_own():
+    df = _metrics()
+    small = df[(df["scene"] == "a") & (df["method"] == "no_noise")].assign(method="small", latent_dim=1, latent_ms=0.01, decode_ms=0.006)
+    df = pd.concat([small, df], ignore_index=True)  # listed first: the tables still put the scene's own model first
+    t1 = table1(df, sized=["small"])
+    assert list(zip(t1["scene"], t1["method"])) == [("a", "self_supervised"), ("a", "small"), ("b", "self_supervised")]
+    row = t1.set_index(["scene", "method"]).loc[("a", "small")]
+    assert row["latent_dof"] == 1 and np.isclose(row["full_ms"], 11.0) and np.isclose(row["speedup"], 1100.0)
+    assert list(table1(df)["method"]) == ["self_supervised", "self_supervised"]  # no_noise, supervised: the scene's size
+    layers = {"a": ("8, 8", "8"), ("a", "small"): ("4", "4")}
+    t2 = table2(df, layers, sized=["small"]).set_index(["scene", "method"])
+    assert t2.loc[("a", "small"), "decoder_layers"] == "4" and t2.loc[("a", "self_supervised"), "decoder_layers"] == "8, 8"
+    assert np.isclose(t2.loc[("a", "small"), "ours_ms"], 0.01) and ("b", "small") not in t2.index

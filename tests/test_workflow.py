@@ -260,7 +260,7 @@ def test_editing_one_scenes_integrator_reruns_only_its_downstream_jobs(tiny_run,
     quiet = planned_jobs(snakemake("-n", "all", "--configfile", str(TINY), "--config", "progress=False", "--directory", str(work)).stdout)
     assert quiet == [], f"progress bars must not trigger reruns: {quiet}"
     jobs = planned_jobs(snakemake("-n", "all", "--configfile", str(edited), "--directory", str(work)).stdout)
-    methods = ("self_supervised", "supervised")
+    methods = ("self_supervised", "supervised", "small")
     assert sorted(jobs, key=str) == sorted(
         [(stage, "tiny_rods") for stage in ("train_integrator", "rollout") for _ in methods]
         + [("evaluate", "tiny_rods"), ("render", "tiny_rods"), ("summary", None), ("all", None)],
@@ -381,6 +381,37 @@ def test_editing_a_variant_reruns_only_that_methods_jobs(tiny_run, tmp_path):
     assert sorted(jobs, key=str) == sorted(
         [("train_integrator", "tiny_rods", "supervised"), ("rollout", "tiny_rods", "supervised"), ("evaluate", "tiny_rods", None),
          ("render", "tiny_rods", None), ("summary", None, None), ("all", None, None)],
+        key=str,
+    )  # fmt: skip
+
+
+def test_a_variant_of_another_size_trains_and_decodes_with_its_own_autoencoder(tiny_run, tmp_path):
+    """tiny_rods' ``small`` variant (latent 2, 16 wide) beside the scene's own model (latent 4, 32 wide)."""
+    import pandas as pd
+
+    work, _ = tiny_run
+    own = torch.load(work / "results/autoencoder/tiny_rods/autoencoder.pt", weights_only=True)["hparams"]
+    small = torch.load(work / "results/autoencoder/tiny_rods/small/autoencoder.pt", weights_only=True)["hparams"]
+    assert (own["latent_dim"], small["latent_dim"]) == (4, 2)
+    for method, r in (("self_supervised", 4), ("supervised", 4), ("small", 2)):
+        with h5py.File(work / f"results/rollout/tiny_rods/{method}/rollout.h5") as f:
+            assert {g["latents"].shape[-1] for g in f["sequences"].values()} == {r}, method
+    t1 = pd.read_csv(work / "results/evaluation/table1.csv").set_index(["scene", "method"])
+    assert t1.loc[("tiny_rods", "small"), "latent_dof"] == 2 and t1.loc[("tiny_rods", "self_supervised"), "latent_dof"] == 4
+    assert ("tiny_rods", "supervised") not in t1.index  # variants of the scene's own size stay out of Table 1
+    t2 = pd.read_csv(work / "results/evaluation/table2.csv").set_index(["scene", "method"])
+    assert t2.loc[("tiny_rods", "small"), "decoder_layers"] == "16" and t2.loc[("tiny_rods", "small"), "integrator_layers"] == "16"
+    sizes = pd.read_csv(work / "results/evaluation/sizes.csv").set_index("scene")
+    assert sizes.loc["tiny_rods", "variant_models"] == "small: latent 2, 16 / 16"
+    # its autoencoder is its own: editing it reruns the variant's jobs only
+    cfg = yaml.safe_load(TINY.read_text())
+    cfg["integrator_variants"]["small"]["autoencoder"]["latent_dim"] = 3
+    edited = tmp_path / "edited.yaml"
+    edited.write_text(yaml.safe_dump(cfg))
+    jobs = planned_jobs(snakemake("-n", "all", "--configfile", str(edited), "--directory", str(work)).stdout, methods=True)
+    assert sorted(jobs, key=str) == sorted(
+        [("train_variant_autoencoder", "tiny_rods", "small"), ("train_integrator", "tiny_rods", "small"), ("rollout", "tiny_rods", "small"),
+         ("evaluate", "tiny_rods", None), ("render", "tiny_rods", None), ("summary", None, None), ("all", None, None)],
         key=str,
     )  # fmt: skip
 

@@ -121,8 +121,31 @@ def integrator_settings(config: dict, scene: str, method: str) -> dict:
         return base
     if method not in config["scenes"][scene].get("variants", []):
         raise ConfigError(f"scene {scene!r} has no integrator variant {method!r}")
-    base.update(config["integrator_variants"][method])
+    base.update({k: v for k, v in config["integrator_variants"][method].items() if k != "autoencoder"})
     return base
+
+
+def own_autoencoder(config: dict, method: str) -> bool:
+    """Whether ``method`` (self_supervised or a variant name) trains its own autoencoder.
+
+    A variant with an ``autoencoder`` block is a whole model of another size; every other method
+    shares its scene's autoencoder.
+    """
+    return "autoencoder" in config["integrator_variants"].get(method, {})
+
+
+def autoencoder_settings(config: dict, scene: str, method: str = "self_supervised") -> dict:
+    """A scene's autoencoder settings for ``method``: the scene's, with the variant's ``autoencoder`` overrides."""
+    base = dict(config["scenes"][scene]["autoencoder"])
+    if method != "self_supervised":
+        integrator_settings(config, scene, method)  # the scene must list the variant
+        base.update(config["integrator_variants"][method].get("autoencoder", {}))
+    return base
+
+
+def autoencoder_dir(config: dict, scene: str, method: str = "self_supervised") -> str:
+    """Where ``method``'s autoencoder of ``scene`` lives: the scene's, or the variant's own."""
+    return f"results/autoencoder/{scene}/{method}" if own_autoencoder(config, method) else f"results/autoencoder/{scene}"
 
 
 def scene_methods(config: dict, scene: str) -> list[str]:

@@ -212,14 +212,22 @@ def reconstruction_table(scene: str, latents) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def table1(df: pd.DataFrame) -> pd.DataFrame:
-    """Li et al. Table 1: ours (self-supervised integrator, mean over test sequences) next to the paper's."""
+def table1(df: pd.DataFrame, sized=()) -> pd.DataFrame:
+    """Li et al. Table 1: ours (self-supervised integrator, mean over test sequences) next to the paper's.
+
+    sized : variants that are whole models of another size (their own autoencoder); each gets a row of
+        its own below its scene's, so the table shows the speed of the model a scene needs beside the
+        paper-size one.
+    """
     rows = []
-    own = df[df["method"] == "self_supervised"]
-    for scene, g in own.groupby("scene", sort=False):
+    order = ["self_supervised"] + [m for m in sized if m != "self_supervised"]
+    own = df[df["method"].isin(order)]
+    own = own.assign(_order=own["method"].map(order.index)).sort_values("_order", kind="stable")
+    for (scene, method), g in own.groupby(["scene", "method"], sort=False):
         paper = li2025_table1(scene)
         row = dict(
             scene=scene,
+            method=method,
             dof=int(g["dof"].iloc[0]),
             latent_dof=int(g["latent_dim"].iloc[0]),
             full_ms=g["full_ms"].mean(),
@@ -232,31 +240,41 @@ def table1(df: pd.DataFrame) -> pd.DataFrame:
             row.update(paper_dof=paper[0], paper_latent=paper[1], paper_full_ms=paper[2], paper_integrate_ms=paper[3],
                        paper_decode_ms=paper[4], paper_total_ms=paper[5], paper_speedup=paper[2] / paper[5])  # fmt: skip
         rows.append(row)
-    return pd.DataFrame(rows)
+    out = pd.DataFrame(rows)
+    if len(out):  # the scenes in the metrics' order
+        scenes = list(dict.fromkeys(df["scene"]))
+        out = out.sort_values("scene", key=lambda c: c.map(scenes.index), kind="stable").reset_index(drop=True)
+    return out
 
 
-def table2(df: pd.DataFrame, layers: dict | None = None) -> pd.DataFrame:
+def table2(df: pd.DataFrame, layers: dict | None = None, sized=()) -> pd.DataFrame:
     """Li et al. Table 2: the single-vertex Jvp (torch.func.jvp as the paper, and forward mode), our whole
     latent step, and the whole Fulton-style reduced step when the scene ran that baseline; paper's alongside.
 
-    layers : optional {scene: (decoder layers, integrator layers)} strings of our networks.
+    layers : optional {scene: (decoder layers, integrator layers)} strings of our networks, and
+        {(scene, method): ...} for the ``sized`` variants (see :func:`table1`), which get rows of their own.
     """
     rows = []
     for scene, g in df.groupby("scene", sort=False):
-        own = g[g["method"] == "self_supervised"]
-        if own.empty:
-            continue
-        row = dict(scene=scene, dof=int(own["dof"].iloc[0]), latent_dof=int(own["latent_dim"].iloc[0]))
-        if layers and scene in layers:
-            row["decoder_layers"], row["integrator_layers"] = layers[scene]
-        row.update(jvp_torch_ms=own["jvp_torch_ms"].median(), jvp_forward_ms=own["jvp_forward_ms"].median(), ours_ms=own["latent_ms"].median())
-        fulton = g[g["method"] == "fulton_reduced"]
-        row["fulton_step_ms"] = fulton["latent_ms"].median() if not fulton.empty else np.nan
-        paper = li2025_table2(scene)
-        if paper is not None:
-            row.update(paper_decoder_layers=paper[0], paper_integrator_layers=paper[1], paper_jvp_ms=paper[2], paper_ours_ms=paper[3])
-        rows.append(row)
+        for method in ["self_supervised"] + [m for m in sized if m != "self_supervised"]:
+            own = g[g["method"] == method]
+            if not own.empty:
+                rows.append(_table2_row(scene, method, g, own, (layers or {}).get(scene if method == "self_supervised" else (scene, method))))
     return pd.DataFrame(rows)
+
+
+def _table2_row(scene: str, method: str, g: pd.DataFrame, own: pd.DataFrame, layers) -> dict:
+    """One row of :func:`table2`: ``own``, the method's rows of the scene's metrics ``g``; ``layers`` its layer strings."""
+    row = dict(scene=scene, method=method, dof=int(own["dof"].iloc[0]), latent_dof=int(own["latent_dim"].iloc[0]))
+    if layers:
+        row["decoder_layers"], row["integrator_layers"] = layers
+    row.update(jvp_torch_ms=own["jvp_torch_ms"].median(), jvp_forward_ms=own["jvp_forward_ms"].median(), ours_ms=own["latent_ms"].median())
+    fulton = g[g["method"] == "fulton_reduced"]
+    row["fulton_step_ms"] = fulton["latent_ms"].median() if not fulton.empty else np.nan
+    paper = li2025_table2(scene)
+    if paper is not None:
+        row.update(paper_decoder_layers=paper[0], paper_integrator_layers=paper[1], paper_jvp_ms=paper[2], paper_ours_ms=paper[3])
+    return row
 
 
 def layers_text(widths, pca_dim=None) -> str:
@@ -270,8 +288,9 @@ def sizes_table(sizes: dict, choices: dict | None = None) -> pd.DataFrame:
 
     Parameters
     ----------
-    sizes : {scene: {"latent_dim", "decoder_layers", "integrator_layers"[, "tolerance"]}}, the
-        config's model of each scene (layers as :func:`layers_text` writes them) and its sweep tolerance.
+    sizes : {scene: {"latent_dim", "decoder_layers", "integrator_layers"[, "tolerance", "variants"]}}, the
+        config's model of each scene (layers as :func:`layers_text` writes them), its sweep tolerance, and
+        the same of its variants that are models of their own size ({method: {...}}; column ``variant_models``).
     choices : {scene: path of the sweep's ``choice.csv``} for the scenes that ran a sweep.
 
     Returns
@@ -285,6 +304,9 @@ def sizes_table(sizes: dict, choices: dict | None = None) -> pd.DataFrame:
     for scene, own in sizes.items():
         row = dict(scene=scene, latent_dim=int(own["latent_dim"]), decoder_layers=own["decoder_layers"],
                    integrator_layers=own["integrator_layers"])  # fmt: skip
+        if own.get("variants"):  # models of their own size beside the scene's (Tables 1-2 give their speed)
+            row["variant_models"] = "; ".join(f"{m}: latent {int(w['latent_dim'])}, {w['decoder_layers']} / {w['integrator_layers']}"
+                                              for m, w in own["variants"].items())  # fmt: skip
         t1, t2 = li2025_table1(scene), li2025_table2(scene)
         row.update(paper_latent=t1[1] if t1 else np.nan, paper_decoder_layers=t2[0] if t2 else "", paper_integrator_layers=t2[1] if t2 else "")
         path = (choices or {}).get(scene)
@@ -383,14 +405,19 @@ def summarise(tables: list, csv_path, md_path, fig_path, table1_path=None, stabi
               table2_path=None, sizes=None, sweep_choices=None, sizes_path=None, glance_path=None):  # fmt: skip
     """Concatenate the scene tables; Tables 1-2, the stability, reconstruction and model-size tables;
     Markdown copy, opening with the glance tables (:func:`glance_grid`, :func:`glance_table`; the latter also
-    to ``glance_path``); speed-accuracy chart.  ``sizes`` and ``sweep_choices``: see :func:`sizes_table`."""
+    to ``glance_path``); speed-accuracy chart.  ``sizes`` and ``sweep_choices``: see :func:`sizes_table`; a
+    scene's ``sizes[scene]["variants"]`` ({method: latent_dim, decoder_layers, integrator_layers}) names the
+    variants that are models of their own size, which get rows of their own in Tables 1-2."""
     df = pd.concat([pd.read_csv(t) for t in tables], ignore_index=True)
     rec = pd.concat([pd.read_csv(t) for t in reconstruction], ignore_index=True) if reconstruction else pd.DataFrame()
     if not rec.empty:  # one row per scene and split: mean of the sequence means, max of the maxima
         rec = rec.groupby(["scene", "split"], sort=False).agg(mean_error=("mean_error", "mean"), max_error=("max_error", "max")).reset_index()
     write_table(df, csv_path)
     layers = {k: (v["decoder_layers"], v["integrator_layers"]) for k, v in (sizes or {}).items()}
-    t1, t2, st = table1(df), table2(df, layers), stability_table(df)
+    for scene, v in (sizes or {}).items():
+        layers.update({(scene, m): (w["decoder_layers"], w["integrator_layers"]) for m, w in v.get("variants", {}).items()})
+    sized = sorted({m for v in (sizes or {}).values() for m in v.get("variants", {})})
+    t1, t2, st = table1(df, sized), table2(df, layers, sized), stability_table(df)
     sz = sizes_table(sizes, sweep_choices) if sizes else pd.DataFrame()
     if sizes_path is not None:
         write_table(sz, sizes_path)

@@ -17,6 +17,19 @@ rule train_autoencoder:
         runtime=120,
         gpu=gpu_count,
     params:
-        train=training_params("autoencoder"),
+        train=autoencoder_params,
     script:
         "../scripts/train_autoencoder.py"
+
+
+# A variant that is a whole model of another size (integrator_variants.<name>.autoencoder) trains its own.
+use rule train_autoencoder as train_variant_autoencoder with:
+    output:
+        model="results/autoencoder/{scene}/{method}/autoencoder.pt",
+        latents="results/autoencoder/{scene}/{method}/latents.h5",
+    log:
+        "logs/autoencoder/{scene}/{method}.log",
+    benchmark:
+        "results/benchmarks/autoencoder/{scene}/{method}.tsv"
+    wildcard_constraints:
+        method="|".join(SIZED_METHODS) if SIZED_METHODS else "NO_METHOD",

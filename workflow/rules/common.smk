@@ -9,7 +9,10 @@ from latentsim.evaluate import layers_text
 from latentsim.sweep import parse_label, point_label
 from latentsim.config import (
     ConfigError,
+    autoencoder_dir,
+    autoencoder_settings,
     integrator_settings,
+    own_autoencoder,
     scene_methods,
     validate_config,
 )
@@ -23,6 +26,8 @@ SCENES = sorted(config["scenes"])
 
 
 INTEGRATOR_METHODS = ["self_supervised"] + sorted(config["integrator_variants"])
+# variants that are whole models of another size: they train their own autoencoder
+SIZED_METHODS = [m for m in INTEGRATOR_METHODS if own_autoencoder(config, m)]
 METHODS = INTEGRATOR_METHODS + list(BASELINES)
 
 
@@ -51,14 +56,25 @@ def mesh_sources():
     return canonical(config["meshes"])
 
 
-def training_params(key):
-    """Input function: a training stage's config plus seed and device."""
+def autoencoder_params(wildcards):
+    """Input function: the autoencoder settings of the scene (or of the variant ``method``), seed and device."""
+    method = getattr(wildcards, "method", "self_supervised")
+    return canonical(
+        {
+            "settings": autoencoder_settings(config, wildcards.scene, method),
+            "seed": config["seed"],
+            "device": config["device"],
+        }
+    )
+
+
+def method_autoencoder(*names):
+    """Input function: the named files (autoencoder, latents) of the autoencoder that ``method`` decodes with."""
 
     def get(wildcards):
-        sc = config["scenes"][wildcards.scene]
-        return canonical(
-            {"settings": sc[key], "seed": config["seed"], "device": config["device"]}
-        )
+        d = autoencoder_dir(config, wildcards.scene, wildcards.method)
+        files = {"autoencoder": f"{d}/autoencoder.pt", "latents": f"{d}/latents.h5"}
+        return {n: files[n] for n in names}
 
     return get
 
@@ -143,6 +159,19 @@ def model_sizes():
         }
         if sweep_points(scene):
             out[scene]["tolerance"] = sc["sweep"]["tolerance"]
+        variants = {}
+        for m in scene_methods(config, scene):
+            if own_autoencoder(config, m):
+                a = autoencoder_settings(config, scene, m)
+                variants[m] = {
+                    "latent_dim": a["latent_dim"],
+                    "decoder_layers": layers_text(a["widths"], a.get("pca_dim")),
+                    "integrator_layers": layers_text(
+                        integrator_settings(config, scene, m)["widths"]
+                    ),
+                }
+        if variants:
+            out[scene]["variants"] = variants
     return out
 
 

@@ -2,9 +2,8 @@
 # or a variant (supervised baseline, ablation) from config integrator_variants.
 rule train_integrator:
     input:
+        unpack(method_autoencoder("autoencoder", "latents")),
         trajectories="results/sim/{scene}/trajectories.h5",
-        autoencoder="results/autoencoder/{scene}/autoencoder.pt",
-        latents="results/autoencoder/{scene}/latents.h5",
     output:
         model="results/integrator/{scene}/{method}/integrator.pt",
         history="results/integrator/{scene}/{method}/history.h5",

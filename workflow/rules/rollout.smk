@@ -1,8 +1,8 @@
 # Autoregressive rollout of one method on every test sequence from its first two frames and the BC history.
 rule rollout:
     input:
+        unpack(method_autoencoder("autoencoder")),
         trajectories="results/sim/{scene}/trajectories.h5",
-        autoencoder="results/autoencoder/{scene}/autoencoder.pt",
         integrator="results/integrator/{scene}/{method}/integrator.pt",
     output:
         rollout="results/rollout/{scene}/{method}/rollout.h5",
