@@ -1,0 +1,85 @@
+"""The floor of a latent step against a full-space frame: can any network reach 1000x on a scene?
+
+    python benchmarks/bench_step_floor.py cloth hair_rotation hair_translation bunny_ears armadillo \\
+        [--results results] [--latent 2] [--width 8]
+
+For each scene, from its simulated trajectories (``<results>/sim/<scene>/trajectories.h5``; run
+``snakemake --cores 2 results/sim/<scene>/trajectories.h5`` first), an untrained network far smaller
+than any scene needs (latent ``--latent``, one hidden layer of ``--width`` in the decoder and in the
+integrator, no separate PCA layer): its NumPy step still decodes every DoF through the output layer,
+so its time is a floor under every trained model's step on that mesh. Timed in the same process as
+full-space Newton frames of the scene's first test sequence (``train.time_full_space``, as the rollout
+stage times them), in interleaved rounds, one thread. Prints the full-space ms, the floor step in us,
+the floor's speed-up, and the step a 1000x speed-up would need.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("MKL_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import h5py  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+import torch  # noqa: E402
+
+from latentsim import runtime  # noqa: E402
+from latentsim.latent import Autoencoder, LatentIntegrator  # noqa: E402
+from latentsim.train import coordinates_for, load_sequences, time_full_space  # noqa: E402
+
+
+def floor_stepper(f, latent: int, width: int, seed: int = 0):
+    """NumPy stepper of a minimal untrained autoencoder + integrator on the scene of the open trajectories.h5."""
+    torch.manual_seed(seed)
+    coords = coordinates_for(f, None)
+    test = load_sequences(f, "test")
+    name, seq = next(iter(test.items()))
+    ae = Autoencoder(coords.dim, latent, [width], None).eval()
+    integ = LatentIntegrator(latent, np.asarray(seq["bc"]).shape[-1], [width]).eval()
+    return runtime.NumpyStepper(runtime.fold_networks(ae, integ, coords)), name, seq
+
+
+def bench(path, latent: int, width: int, rounds: int, frames: int, repeats: int) -> dict:
+    with h5py.File(path, "r") as f:
+        stepper, name, seq = floor_stepper(f, latent, width)
+        dof = int(f["rest_positions"].size)
+        z = np.zeros(latent, np.float32)
+        p = np.asarray(seq["bc"][-1], np.float32)
+        xD = np.asarray(seq["dirichlet_positions"][-1], np.float64)
+        full, step = [], []
+        for _ in range(rounds):
+            full.append(time_full_space(f, name, frames)["full_ms"])
+            step.append(runtime.time_step(stepper, z, z, p, p, p, xD, repeats=repeats)["step_ms"])
+    full_ms, step_ms = float(np.median(full)), float(np.median(step))
+    return {"dof": dof, "sequence": name, "full_ms": full_ms, "floor_step_us": 1e3 * step_ms, "floor_speedup": full_ms / step_ms,
+            "step_for_1000x_us": full_ms, "floor_speedup_rounds": " ".join(f"{a / b:.0f}" for a, b in zip(full, step))}  # fmt: skip
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("scenes", nargs="+")
+    ap.add_argument("--results", default="results")
+    ap.add_argument("--latent", type=int, default=2)
+    ap.add_argument("--width", type=int, default=8)
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--full-frames", type=int, default=20)
+    ap.add_argument("--repeats", type=int, default=500)
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    rows = []
+    for scene in args.scenes:
+        path = os.path.join(args.results, "sim", scene, "trajectories.h5")
+        if not os.path.exists(path):
+            raise SystemExit(f"{path}: missing; run `snakemake --cores 2 {path}` first")
+        rows.append({"scene": scene, **bench(path, args.latent, args.width, args.rounds, args.full_frames, args.repeats)})
+        print(pd.DataFrame(rows[-1:]).to_string(index=False, float_format=lambda v: f"{v:.4g}"), flush=True)
+    print(f"\nlatent {args.latent}, one hidden layer of {args.width} (decoder and integrator), medians of {args.rounds} rounds:")
+    print(pd.DataFrame(rows).to_markdown(index=False, floatfmt=".4g"))
+
+
+if __name__ == "__main__":
+    main()
