@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from latentsim.config import ConfigError, autoencoder_dir, autoencoder_settings, integrator_settings, load_config, validate_config
+from latentsim.config import ConfigError, autoencoder_dir, autoencoder_settings, integrator_settings, load_config, sweep_point_settings, validate_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -95,4 +95,25 @@ def test_a_variant_of_another_size_overrides_the_autoencoder_apart_from_the_inte
 def test_unknown_key_of_a_variants_autoencoder_is_named(tiny):
     tiny["integrator_variants"]["small"]["autoencoder"]["coordinates"] = "mean"
     with pytest.raises(ConfigError, match=r"integrator_variants\.small\.autoencoder'.*coordinates"):
+        validate_config(tiny)
+
+
+def test_a_sweep_trains_its_points_with_the_method_it_names(tiny):
+    cfg = validate_config(copy.deepcopy(tiny))
+    own = sweep_point_settings(cfg, "tiny_cloth", 2, 0)
+    assert own["integrator"] == dict(cfg["scenes"]["tiny_cloth"]["integrator"], widths=[16, 16])
+    assert own["autoencoder"] == dict(cfg["scenes"]["tiny_cloth"]["autoencoder"], latent_dim=2, widths=[16, 16])
+    tiny["integrator_variants"]["hybrid"] = {"supervised_weight": 3.0, "widths": [99], "autoencoder": {"latent_dim": 7, "epochs": 11}}
+    tiny["scenes"]["tiny_cloth"]["variants"] = ["hybrid"]
+    tiny["scenes"]["tiny_cloth"]["sweep"]["method"] = "hybrid"
+    cfg = validate_config(tiny)
+    point = sweep_point_settings(cfg, "tiny_cloth", 2, 0)
+    # the variant's loss and settings, the point's latent size and widths
+    assert point["integrator"]["supervised_weight"] == 3.0 and point["integrator"]["widths"] == [16, 16]
+    assert point["autoencoder"]["epochs"] == 11 and point["autoencoder"]["latent_dim"] == 2 and point["autoencoder"]["widths"] == [16, 16]
+
+
+def test_a_sweep_method_the_scene_does_not_run_is_named(tiny):
+    tiny["scenes"]["tiny_cloth"]["sweep"]["method"] = "supervised"  # defined, but tiny_cloth does not list it
+    with pytest.raises(ConfigError, match=r"scenes\.tiny_cloth\.sweep\.method'.*'supervised'"):
         validate_config(tiny)

@@ -149,6 +149,7 @@ def test_tiny_run_writes_tables_and_figures(tiny_run):
     assert (work / "results/evaluation/speed_accuracy.png").stat().st_size > 1000
     choice = pd.read_csv(work / "results/sweep/tiny_cloth/choice.csv")
     assert sorted(choice["latent_dim"]) == [2, 4] and choice["chosen"].sum() <= 1
+    assert (choice["method"] == "self_supervised").all()  # the loss its points trained with (sweep.method)
     assert (choice["stress_conditions"] == 8).all()  # the rollout stage's conditions, at every point
     assert (choice["passes"] == choice["within_tolerance"] & (choice["stress_failed"] == 0)).all()
     assert (work / "results/sweep/tiny_cloth/sweep.png").stat().st_size > 1000

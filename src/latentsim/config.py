@@ -72,12 +72,15 @@ def validate_config(config: dict, schema_path=SCHEMA) -> dict:
 
 
 def _check_variants(config: dict) -> None:
-    """Every scene's ``variants`` entry must name a defined integrator variant."""
+    """Every scene's ``variants`` entry must name a defined integrator variant; its sweep, one of its methods."""
     known = config.get("integrator_variants", {})
     for name, scene in config.get("scenes", {}).items():
         for v in scene.get("variants", []):
             if v not in known:
                 raise ConfigError(f"config key 'scenes.{name}.variants': unknown variant {v!r}; defined in integrator_variants: {sorted(known)}")
+        method = scene.get("sweep", {}).get("method", "self_supervised")
+        if method != "self_supervised" and method not in scene.get("variants", []):
+            raise ConfigError(f"config key 'scenes.{name}.sweep.method': {method!r} is not one of the scene's methods: {['self_supervised', *scene.get('variants', [])]}")
 
 
 def _check_nm_study(config: dict) -> None:
@@ -146,6 +149,17 @@ def autoencoder_settings(config: dict, scene: str, method: str = "self_supervise
 def autoencoder_dir(config: dict, scene: str, method: str = "self_supervised") -> str:
     """Where ``method``'s autoencoder of ``scene`` lives: the scene's, or the variant's own."""
     return f"results/autoencoder/{scene}/{method}" if own_autoencoder(config, method) else f"results/autoencoder/{scene}"
+
+
+def sweep_point_settings(config: dict, scene: str, latent_dim: int, size_index: int) -> dict:
+    """{"autoencoder", "integrator"} settings of one sizing-sweep point: those of the scene's
+    ``sweep.method`` (its own integrator, or a variant's), at the point's latent size and widths."""
+    sweep = config["scenes"][scene]["sweep"]
+    method, size = sweep.get("method", "self_supervised"), sweep["sizes"][size_index]
+    return {
+        "autoencoder": dict(autoencoder_settings(config, scene, method), latent_dim=int(latent_dim), widths=list(size["autoencoder"])),
+        "integrator": dict(integrator_settings(config, scene, method), widths=list(size["integrator"])),
+    }
 
 
 def scene_methods(config: dict, scene: str) -> list[str]:

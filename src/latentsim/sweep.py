@@ -165,8 +165,11 @@ def choose(df: pd.DataFrame, tolerance: float) -> pd.DataFrame:
     return g
 
 
-def sweep_chart(table: pd.DataFrame, tolerance: float, scene: str, path) -> None:
-    """Error and ms per step against parameter count, one marker per latent dimension; the choice circled."""
+def sweep_chart(table: pd.DataFrame, tolerance: float, scene: str, path, method: str = "self_supervised") -> None:
+    """Error and ms per step against parameter count, one marker per latent dimension; the choice circled.
+
+    ``method``: whose loss the points trained with (the config's ``sweep.method``), named in the title.
+    """
     import matplotlib.pyplot as plt
 
     from .plots import save_figure
@@ -199,6 +202,6 @@ def sweep_chart(table: pd.DataFrame, tolerance: float, scene: str, path) -> None
         ax.set_xlabel("parameters (decoder + integrator)")
         ax.set_ylabel(ylabel)
         ax.legend(fontsize=7)
-    fig.suptitle(f"{scene}: sizing sweep (hollow: diverged on a test sequence; x: failed a stress condition)")
+    fig.suptitle(f"{scene}: sizing sweep, {method} loss (hollow: diverged on a test sequence; x: failed a stress condition)")
     fig.tight_layout()
     save_figure(fig, path)

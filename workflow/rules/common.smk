@@ -14,6 +14,7 @@ from latentsim.config import (
     integrator_settings,
     own_autoencoder,
     scene_methods,
+    sweep_point_settings,
     validate_config,
 )
 
@@ -111,13 +112,9 @@ def sweep_params(wildcards):
     """Input function: the full settings of one sweep point."""
     sc = config["scenes"][wildcards.scene]
     r, i = parse_label(wildcards.point)
-    size = sc["sweep"]["sizes"][i]
     return canonical(
         {
-            "autoencoder": dict(
-                sc["autoencoder"], latent_dim=r, widths=size["autoencoder"]
-            ),
-            "integrator": dict(sc["integrator"], widths=size["integrator"]),
+            **sweep_point_settings(config, wildcards.scene, r, i),
             "rollout": sc["rollout"],
             "stress": sc["sweep"]["stress"],
             "seed": config["seed"],

@@ -44,5 +44,6 @@ rule sweep_summary:
         "../../envs/latentsim.yaml"
     params:
         tolerance=sweep_tolerance,
+        method=lambda w: config["scenes"][w.scene]["sweep"]["method"],
     script:
         "../scripts/sweep_summary.py"
