@@ -1,12 +1,12 @@
 """The floor of a latent step against a full-space frame: can any network reach 1000x on a scene?
 
     python benchmarks/bench_step_floor.py cloth hair_rotation hair_translation bunny_ears armadillo \\
-        [--results results] [--latent 2] [--width 8]
+        [--results results] [--config config/config.yaml] [--latent 2] [--width 8]
 
 For each scene, from its simulated trajectories (``<results>/sim/<scene>/trajectories.h5``; run
 ``snakemake --cores 2 results/sim/<scene>/trajectories.h5`` first), an untrained network far smaller
 than any scene needs (latent ``--latent``, one hidden layer of ``--width`` in the decoder and in the
-integrator, no separate PCA layer): its NumPy step still decodes every DoF through the output layer,
+integrator, no separate PCA layer; the coordinates of the scene's config): its NumPy step still decodes every DoF through the output layer,
 so its time is a floor under every trained model's step on that mesh. Timed in the same process as
 full-space Newton frames of the scene's first test sequence (``train.time_full_space``, as the rollout
 stage times them), in interleaved rounds, one thread. Prints the full-space ms, the floor step in us,
@@ -28,14 +28,16 @@ import pandas as pd  # noqa: E402
 import torch  # noqa: E402
 
 from latentsim import runtime  # noqa: E402
+from latentsim.config import load_config  # noqa: E402
 from latentsim.latent import Autoencoder, LatentIntegrator  # noqa: E402
 from latentsim.train import coordinates_for, load_sequences, time_full_space  # noqa: E402
 
 
-def floor_stepper(f, latent: int, width: int, seed: int = 0):
-    """NumPy stepper of a minimal untrained autoencoder + integrator on the scene of the open trajectories.h5."""
+def floor_stepper(f, latent: int, width: int, coordinates=None, seed: int = 0):
+    """NumPy stepper of a minimal untrained autoencoder + integrator on the scene of the open trajectories.h5
+    (``coordinates``: the autoencoder's, as the config's ``autoencoder.coordinates``)."""
     torch.manual_seed(seed)
-    coords = coordinates_for(f, None)
+    coords = coordinates_for(f, coordinates)
     test = load_sequences(f, "test")
     name, seq = next(iter(test.items()))
     ae = Autoencoder(coords.dim, latent, [width], None).eval()
@@ -43,9 +45,9 @@ def floor_stepper(f, latent: int, width: int, seed: int = 0):
     return runtime.NumpyStepper(runtime.fold_networks(ae, integ, coords)), name, seq
 
 
-def bench(path, latent: int, width: int, rounds: int, frames: int, repeats: int) -> dict:
+def bench(path, latent: int, width: int, rounds: int, frames: int, repeats: int, coordinates=None) -> dict:
     with h5py.File(path, "r") as f:
-        stepper, name, seq = floor_stepper(f, latent, width)
+        stepper, name, seq = floor_stepper(f, latent, width, coordinates)
         dof = int(f["rest_positions"].size)
         z = np.zeros(latent, np.float32)
         p = np.asarray(seq["bc"][-1], np.float32)
@@ -59,10 +61,16 @@ def bench(path, latent: int, width: int, rounds: int, frames: int, repeats: int)
             "step_for_1000x_us": full_ms, "floor_speedup_rounds": " ".join(f"{a / b:.0f}" for a, b in zip(full, step))}  # fmt: skip
 
 
+def stepper_mode(path, coordinates) -> str:
+    with h5py.File(path, "r") as f:
+        return coordinates_for(f, coordinates).mode
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scenes", nargs="+")
     ap.add_argument("--results", default="results")
+    ap.add_argument("--config", default="config/config.yaml")
     ap.add_argument("--latent", type=int, default=2)
     ap.add_argument("--width", type=int, default=8)
     ap.add_argument("--rounds", type=int, default=3)
@@ -70,12 +78,17 @@ def main():
     ap.add_argument("--repeats", type=int, default=500)
     args = ap.parse_args()
     torch.set_num_threads(1)
+    cfg = load_config(args.config)
     rows = []
     for scene in args.scenes:
         path = os.path.join(args.results, "sim", scene, "trajectories.h5")
         if not os.path.exists(path):
             raise SystemExit(f"{path}: missing; run `snakemake --cores 2 {path}` first")
-        rows.append({"scene": scene, **bench(path, args.latent, args.width, args.rounds, args.full_frames, args.repeats)})
+        if scene not in cfg["scenes"]:
+            raise SystemExit(f"{args.config}: no scene '{scene}'")
+        coordinates = cfg["scenes"][scene]["autoencoder"].get("coordinates")
+        row = bench(path, args.latent, args.width, args.rounds, args.full_frames, args.repeats, coordinates)
+        rows.append({"scene": scene, "coordinates": stepper_mode(path, coordinates), **row})
         print(pd.DataFrame(rows[-1:]).to_string(index=False, float_format=lambda v: f"{v:.4g}"), flush=True)
     print(f"\nlatent {args.latent}, one hidden layer of {args.width} (decoder and integrator), medians of {args.rounds} rounds:")
     print(pd.DataFrame(rows).to_markdown(index=False, floatfmt=".4g"))
