@@ -211,10 +211,13 @@ def test_numpy_step_does_not_allocate(mode, layout, monkeypatch):
     else:
         coords = RelativeCoordinates(2000, [0, 1, 2], mode)
     torch.manual_seed(0)
-    ae = Autoencoder(coords.dim, R, [32, 32], pca_dim=32).eval()
+    ae = Autoencoder(coords.dim, R, [32, 32], pca_dim=32)
+    with torch.no_grad():  # a live branch (a zero one folds away: decoder_linear)
+        ae.dec_branch.out.weight.normal_(0.0, 0.1)
+    ae.eval()
     integ = LatentIntegrator(R, K, [32, 32]).eval()
     st = rt.NumpyStepper(rt.fold_networks(ae, integ, coords), np.float32)
-    assert st.layout == layout
+    assert st.layout == layout and len(st.dec_W) == 2
     args = [a.numpy() for a in _inputs(coords)]
     st.step(*args)  # first call
     tracemalloc.start()
@@ -224,6 +227,42 @@ def test_numpy_step_does_not_allocate(mode, layout, monkeypatch):
     peak = tracemalloc.get_traced_memory()[1] - base
     tracemalloc.stop()
     assert peak < 4096, peak
+
+
+@pytest.mark.parametrize("mode", ["roots", "mean", "hard_mean"])
+def test_a_branch_that_outputs_zero_folds_to_the_pca_layer(mode):
+    """An autoencoder that kept its PCA start (branch output layer exactly zero) folds to the PCA layer's first r
+    columns alone: the same frames and Jvp as the module, without the hidden layers; a branch with one nonzero
+    output weight keeps them."""
+    coords = _coords(mode)
+    torch.manual_seed(3)
+    ae = Autoencoder(coords.dim, R, [16, 16, 8], pca_dim=12)
+    ae.init_pca(torch.randn(64, coords.dim) * torch.linspace(0.2, 2.0, coords.dim))
+    with torch.no_grad():  # hidden layers that would matter if the output layer were not zero
+        for blk in ae.dec_branch.blocks:
+            blk[0].weight.normal_(0.0, 1.0)
+            blk[1].running_mean.normal_(0.0, 0.1)
+    ae.eval()
+    integ = LatentIntegrator(R, K, [8]).eval()
+    folded = rt.fold_networks(ae, integ, coords)
+    assert folded["header"]["decoder_linear"] and folded["header"]["decoder_skips"] == [] and "dec_W0" not in folded
+    assert folded["dec_Wout"].shape == (coords.dim, R)
+    args = _inputs(coords, seed=5, dtype=torch.float64)
+    z_ref, x_ref = _reference(copy.deepcopy(ae).double(), copy.deepcopy(integ).double(), coords, args)
+    st = rt.NumpyStepper(folded, np.float64)
+    z, x = st.step(*(a.numpy() for a in args))
+    zt, xt = rt.TorchStepper(rt.torchscript_module(folded, torch.float64)).step(*args)
+    for a, b in ((z, z_ref), (x, x_ref), (zt.numpy(), z_ref), (xt.numpy(), x_ref)):
+        assert np.allclose(a, b, rtol=0, atol=1e-12)
+    vertex = int(coords.free[-1])
+    row = int(np.flatnonzero(coords.encoded_vertices.numpy() == vertex)[0])
+    v = torch.linspace(-1.0, 1.0, R, dtype=torch.float64)
+    du_ref = rt.jvp_vertex_torch(copy.deepcopy(ae).double(), torch.as_tensor(z_ref), v, row)[1]
+    assert np.allclose(st.jvp_vertex(z_ref, v.numpy(), vertex)[1], du_ref.detach().numpy(), rtol=0, atol=1e-12)
+    with torch.no_grad():
+        ae.dec_branch.out.weight[0, 0] = 1e-3
+    live = rt.fold_networks(ae, integ, coords)
+    assert not live["header"]["decoder_linear"] and len(live["header"]["decoder_skips"]) == 3
 
 
 @pytest.mark.parametrize("mode", ["roots", "mean", "hard_mean"])

@@ -92,22 +92,30 @@ def fold_decoder(ae, coords) -> dict:
 
     Returns the ``dec_*`` layers, the coordinate index arrays and a ``header``
     (with ``integrator_layers = 0``: a decoder-only runtime, e.g. for reduced
-    solvers, whose :meth:`NumpyStepper.integrate` is unavailable).
+    solvers, whose :meth:`NumpyStepper.integrate` is unavailable).  Where the
+    residual branch's output layer is exactly zero (``decoder_linear``: an
+    autoencoder that kept its PCA start), only the PCA layer's first r columns
+    are kept: the same map, without the branch's dead layers.
     """
     r = int(ae.latent_dim)
     if coords.dim != ae.input_dim:
         raise ValueError(f"coordinates encode {coords.dim} values, the autoencoder expects {ae.input_dim}")
     out: dict = {}
-    # hidden layers (Linear + BatchNorm folded, SiLU, identity skip where widths match)
     br = ae.dec_branch
-    skips = [bool(s) for s in br.skip]
-    for i, block in enumerate(br.blocks):
-        out[f"dec_W{i}"], out[f"dec_b{i}"] = _fold_linear_bn(block[0], block[1])
     Wp, bp = _np(ae.pca_out.weight), _np(ae.pca_out.bias)  # (d, p), (d,)
     Wo, bo = _np(br.out.weight), _np(br.out.bias)  # (p, w_L), (p,)
     d, p = Wp.shape
     wl = Wo.shape[1]
-    if not len(br.blocks):  # no hidden layer: the branch is one linear map of z
+    # A branch whose output layer is exactly zero adds nothing (an autoencoder that kept its PCA start, or an
+    # untrained one): the decoder is the linear map z -> W_p[:, :r] z + b_p, and its hidden layers are skipped.
+    linear = bool(len(br.blocks)) and not Wo.any() and not bo.any()
+    # hidden layers (Linear + BatchNorm folded, SiLU, identity skip where widths match)
+    skips = [] if linear else [bool(s) for s in br.skip]
+    for i, block in enumerate([] if linear else br.blocks):
+        out[f"dec_W{i}"], out[f"dec_b{i}"] = _fold_linear_bn(block[0], block[1])
+    if linear:
+        out["dec_Wout"], out["dec_bout"] = np.ascontiguousarray(Wp[:, :r]), bp
+    elif not len(br.blocks):  # no hidden layer: the branch is one linear map of z
         out["dec_Wout"], out["dec_bout"] = Wp[:, :r] + Wp @ Wo, Wp @ bo + bp
     elif d * (r + wl) <= p * (r + wl) + d * p:  # one (d, r + w_L) matrix on [z; h_L]
         out["dec_Wout"], out["dec_bout"] = np.concatenate([Wp[:, :r], Wp @ Wo], axis=1), Wp @ bo + bp
@@ -127,6 +135,7 @@ def fold_decoder(ae, coords) -> dict:
         "integrator_layers": 0,
         "decoder_skips": skips,
         "decoder_mid": "dec_Wmid" in out,
+        "decoder_linear": linear,
         "encoded_dim": int(coords.dim),
         "n_vertices": int(coords.n),
         "mode": coords.mode,
