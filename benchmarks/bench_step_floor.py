@@ -5,10 +5,11 @@
 
 For each scene, from its simulated trajectories (``<results>/sim/<scene>/trajectories.h5``; run
 ``snakemake --cores 2 results/sim/<scene>/trajectories.h5`` first), an untrained network far smaller
-than any scene needs (latent ``--latent``, one hidden layer of ``--width`` in the decoder and in the
-integrator, no separate PCA layer; the coordinates of the scene's config): its NumPy step still decodes every DoF through the output layer,
-so its time is a floor under every trained model's step on that mesh. Timed in the same process as
-full-space Newton frames of the scene's first test sequence (``train.time_full_space``, as the rollout
+than any scene needs (latent ``--latent``, one hidden layer of ``--width`` in the integrator; the
+decoder's branch is untrained, its output layer zero, so the runtime folds it to a linear decoder of
+``--latent`` columns; the coordinates of the scene's config): its NumPy step still decodes every DoF
+through the output layer, so its time is a floor under every trained model's step on that mesh.
+Timed in the same process as full-space Newton frames of the scene's first test sequence (``train.time_full_space``, as the rollout
 stage times them), in interleaved rounds, one thread. Prints the full-space ms, the floor step in us,
 the floor's speed-up, and the step a 1000x speed-up would need.
 """
@@ -90,7 +91,7 @@ def main():
         row = bench(path, args.latent, args.width, args.rounds, args.full_frames, args.repeats, coordinates)
         rows.append({"scene": scene, "coordinates": stepper_mode(path, coordinates), **row})
         print(pd.DataFrame(rows[-1:]).to_string(index=False, float_format=lambda v: f"{v:.4g}"), flush=True)
-    print(f"\nlatent {args.latent}, one hidden layer of {args.width} (decoder and integrator), medians of {args.rounds} rounds:")
+    print(f"\nlatent {args.latent}, a linear decoder, one hidden layer of {args.width} in the integrator, medians of {args.rounds} rounds:")
     print(pd.DataFrame(rows).to_markdown(index=False, floatfmt=".4g"))
 
 
