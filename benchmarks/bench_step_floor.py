@@ -43,12 +43,12 @@ def floor_stepper(f, latent: int, width: int, coordinates=None, seed: int = 0):
     name, seq = next(iter(test.items()))
     ae = Autoencoder(coords.dim, latent, [width], None).eval()
     integ = LatentIntegrator(latent, np.asarray(seq["bc"]).shape[-1], [width]).eval()
-    return runtime.NumpyStepper(runtime.fold_networks(ae, integ, coords)), name, seq
+    return runtime.NumpyStepper(runtime.fold_networks(ae, integ, coords)), name, seq, coords.mode
 
 
 def bench(path, latent: int, width: int, rounds: int, frames: int, repeats: int, coordinates=None) -> dict:
     with h5py.File(path, "r") as f:
-        stepper, name, seq = floor_stepper(f, latent, width, coordinates)
+        stepper, name, seq, mode = floor_stepper(f, latent, width, coordinates)
         dof = int(f["rest_positions"].size)
         z = np.zeros(latent, np.float32)
         p = np.asarray(seq["bc"][-1], np.float32)
@@ -58,13 +58,8 @@ def bench(path, latent: int, width: int, rounds: int, frames: int, repeats: int,
             full.append(time_full_space(f, name, frames)["full_ms"])
             step.append(runtime.time_step(stepper, z, z, p, p, p, xD, repeats=repeats)["step_ms"])
     full_ms, step_ms = float(np.median(full)), float(np.median(step))
-    return {"dof": dof, "sequence": name, "full_ms": full_ms, "floor_step_us": 1e3 * step_ms, "floor_speedup": full_ms / step_ms,
+    return {"coordinates": mode, "dof": dof, "sequence": name, "full_ms": full_ms, "floor_step_us": 1e3 * step_ms, "floor_speedup": full_ms / step_ms,
             "step_for_1000x_us": full_ms, "floor_speedup_rounds": " ".join(f"{a / b:.0f}" for a, b in zip(full, step))}  # fmt: skip
-
-
-def stepper_mode(path, coordinates) -> str:
-    with h5py.File(path, "r") as f:
-        return coordinates_for(f, coordinates).mode
 
 
 def main():
@@ -89,7 +84,7 @@ def main():
             raise SystemExit(f"{args.config}: no scene '{scene}'")
         coordinates = cfg["scenes"][scene]["autoencoder"].get("coordinates")
         row = bench(path, args.latent, args.width, args.rounds, args.full_frames, args.repeats, coordinates)
-        rows.append({"scene": scene, "coordinates": stepper_mode(path, coordinates), **row})
+        rows.append({"scene": scene, **row})
         print(pd.DataFrame(rows[-1:]).to_string(index=False, float_format=lambda v: f"{v:.4g}"), flush=True)
     print(f"\nlatent {args.latent}, a linear decoder, one hidden layer of {args.width} in the integrator, medians of {args.rounds} rounds:")
     print(pd.DataFrame(rows).to_markdown(index=False, floatfmt=".4g"))

@@ -220,10 +220,7 @@ def table1(df: pd.DataFrame, sized=()) -> pd.DataFrame:
         paper-size one.
     """
     rows = []
-    order = ["self_supervised"] + [m for m in sized if m != "self_supervised"]
-    own = df[df["method"].isin(order)]
-    own = own.assign(_order=own["method"].map(order.index)).sort_values("_order", kind="stable")
-    for (scene, method), g in own.groupby(["scene", "method"], sort=False):
+    for scene, method, _, g in _own_models(df, sized):
         paper = li2025_table1(scene)
         row = dict(
             scene=scene,
@@ -240,11 +237,18 @@ def table1(df: pd.DataFrame, sized=()) -> pd.DataFrame:
             row.update(paper_dof=paper[0], paper_latent=paper[1], paper_full_ms=paper[2], paper_integrate_ms=paper[3],
                        paper_decode_ms=paper[4], paper_total_ms=paper[5], paper_speedup=paper[2] / paper[5])  # fmt: skip
         rows.append(row)
-    out = pd.DataFrame(rows)
-    if len(out):  # the scenes in the metrics' order
-        scenes = list(dict.fromkeys(df["scene"]))
-        out = out.sort_values("scene", key=lambda c: c.map(scenes.index), kind="stable").reset_index(drop=True)
-    return out
+    return pd.DataFrame(rows)
+
+
+def _own_models(df: pd.DataFrame, sized=()):
+    """(scene, method, the scene's rows, the method's rows) of each scene's self-supervised integrator and then its
+    ``sized`` variants (see :func:`table1`), scenes in the metrics' order; methods a scene did not run are left out."""
+    methods = ["self_supervised"] + [m for m in sized if m != "self_supervised"]
+    for scene, g in df.groupby("scene", sort=False):
+        for method in methods:
+            own = g[g["method"] == method]
+            if not own.empty:
+                yield scene, method, g, own
 
 
 def table2(df: pd.DataFrame, layers: dict | None = None, sized=()) -> pd.DataFrame:
@@ -254,13 +258,9 @@ def table2(df: pd.DataFrame, layers: dict | None = None, sized=()) -> pd.DataFra
     layers : optional {scene: (decoder layers, integrator layers)} strings of our networks, and
         {(scene, method): ...} for the ``sized`` variants (see :func:`table1`), which get rows of their own.
     """
-    rows = []
-    for scene, g in df.groupby("scene", sort=False):
-        for method in ["self_supervised"] + [m for m in sized if m != "self_supervised"]:
-            own = g[g["method"] == method]
-            if not own.empty:
-                rows.append(_table2_row(scene, method, g, own, (layers or {}).get(scene if method == "self_supervised" else (scene, method))))
-    return pd.DataFrame(rows)
+    layers = layers or {}
+    return pd.DataFrame([_table2_row(scene, method, g, own, layers.get(scene if method == "self_supervised" else (scene, method)))
+                         for scene, method, g, own in _own_models(df, sized)])  # fmt: skip
 
 
 def _table2_row(scene: str, method: str, g: pd.DataFrame, own: pd.DataFrame, layers) -> dict:
