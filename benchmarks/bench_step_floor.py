@@ -7,11 +7,12 @@ For each scene, from its simulated trajectories (``<results>/sim/<scene>/traject
 ``snakemake --cores 2 results/sim/<scene>/trajectories.h5`` first), an untrained network far smaller
 than any scene needs (latent ``--latent``, one hidden layer of ``--width`` in the integrator; the
 decoder's branch is untrained, its output layer zero, so the runtime folds it to a linear decoder of
-``--latent`` columns; the coordinates of the scene's config): its NumPy step still decodes every DoF
+``--latent`` columns; the coordinates of the scene's config): its step still decodes every DoF
 through the output layer, so its time is a floor under every trained model's step on that mesh.
 Timed in the same process as full-space Newton frames of the scene's first test sequence (``train.time_full_space``, as the rollout
 stage times them), in interleaved rounds, one thread. Prints the full-space ms, the floor step in us,
-the floor's speed-up, and the step a 1000x speed-up would need.
+the floor's speed-up, and the step a 1000x speed-up would need, for the NumPy runtime and the compiled
+one (``latentsim.runtime_compiled``, one numba kernel call per step).
 """
 
 from __future__ import annotations
@@ -28,14 +29,14 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 import torch  # noqa: E402
 
-from latentsim import runtime  # noqa: E402
+from latentsim import runtime, runtime_compiled  # noqa: E402
 from latentsim.config import load_config  # noqa: E402
 from latentsim.latent import Autoencoder, LatentIntegrator  # noqa: E402
 from latentsim.train import coordinates_for, load_sequences, time_full_space  # noqa: E402
 
 
 def floor_stepper(f, latent: int, width: int, coordinates=None, seed: int = 0):
-    """NumPy stepper of a minimal untrained autoencoder + integrator on the scene of the open trajectories.h5
+    """Steppers (NumPy, and compiled where numba imports) of a minimal untrained autoencoder + integrator on the scene of the open trajectories.h5
     (``coordinates``: the autoencoder's, as the config's ``autoencoder.coordinates``)."""
     torch.manual_seed(seed)
     coords = coordinates_for(f, coordinates)
@@ -43,23 +44,33 @@ def floor_stepper(f, latent: int, width: int, coordinates=None, seed: int = 0):
     name, seq = next(iter(test.items()))
     ae = Autoencoder(coords.dim, latent, [width], None).eval()
     integ = LatentIntegrator(latent, np.asarray(seq["bc"]).shape[-1], [width]).eval()
-    return runtime.NumpyStepper(runtime.fold_networks(ae, integ, coords)), name, seq, coords.mode
+    folded = runtime.fold_networks(ae, integ, coords)
+    steppers = {"numpy": runtime.NumpyStepper(folded)}
+    if runtime_compiled.available():
+        steppers["compiled"] = runtime_compiled.CompiledStepper(folded)
+    return steppers, name, seq, coords.mode
 
 
 def bench(path, latent: int, width: int, rounds: int, frames: int, repeats: int, coordinates=None) -> dict:
+    """Full-space ms and each runtime's floor step (us) and speed-up, medians of interleaved rounds."""
     with h5py.File(path, "r") as f:
-        stepper, name, seq, mode = floor_stepper(f, latent, width, coordinates)
+        steppers, name, seq, mode = floor_stepper(f, latent, width, coordinates)
         dof = int(f["rest_positions"].size)
         z = np.zeros(latent, np.float32)
         p = np.asarray(seq["bc"][-1], np.float32)
-        xD = np.asarray(seq["dirichlet_positions"][-1], np.float64)
-        full, step = [], []
+        xD = np.ascontiguousarray(seq["dirichlet_positions"][-1], np.float64)
+        full, step = [], {k: [] for k in steppers}
         for _ in range(rounds):
             full.append(time_full_space(f, name, frames)["full_ms"])
-            step.append(runtime.time_step(stepper, z, z, p, p, p, xD, repeats=repeats)["step_ms"])
-    full_ms, step_ms = float(np.median(full)), float(np.median(step))
-    return {"coordinates": mode, "dof": dof, "sequence": name, "full_ms": full_ms, "floor_step_us": 1e3 * step_ms, "floor_speedup": full_ms / step_ms,
-            "step_for_1000x_us": full_ms, "floor_speedup_rounds": " ".join(f"{a / b:.0f}" for a, b in zip(full, step))}  # fmt: skip
+            for k, st in steppers.items():
+                step[k].append(runtime.time_step(st, z, z, p, p, p, xD, repeats=repeats)["step_ms"])
+    full_ms = float(np.median(full))
+    row = {"coordinates": mode, "dof": dof, "sequence": name, "full_ms": full_ms, "step_for_1000x_us": 1e3 * full_ms / 1000}
+    for k, s in step.items():
+        step_ms = float(np.median(s))
+        row[f"{k}_floor_us"] = 1e3 * step_ms
+        row[f"{k}_floor_speedup"] = full_ms / step_ms
+    return row
 
 
 def main():

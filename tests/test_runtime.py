@@ -16,6 +16,7 @@ import pytest
 import torch
 
 from latentsim import runtime as rt
+from latentsim import runtime_compiled as rc
 from latentsim.latent import (
     Autoencoder,
     LatentIntegrator,
@@ -301,3 +302,122 @@ def test_time_step_reports_each_part():
     t = rt.time_step(st, *(a.numpy() for a in _inputs(coords)), repeats=5, warmup=1)
     assert set(t) == {"integrate_ms", "decode_ms", "step_ms"}
     assert all(v > 0 and np.isfinite(v) for v in t.values())
+
+
+# ---------------------------------------------------------------------------
+# the compiled runtime (latentsim.runtime_compiled): one numba kernel call per step
+# ---------------------------------------------------------------------------
+needs_numba = pytest.mark.skipif(not rc.available(), reason="numba is not installed")
+
+
+def _big_coords(mode: str, rod: int = 40) -> RelativeCoordinates:
+    """2,000 vertices: many output segments; rods of ``rod`` vertices (longer than a segment when rod > 128),
+    or scattered Dirichlet vertices (several copy-back runs)."""
+    if mode == "roots":
+        roots = list(range(0, 2000, rod))
+        return RelativeCoordinates(2000, roots, "roots", root_of=[v - v % rod for v in range(2000)])
+    return RelativeCoordinates(2000, [0, 1, 2, 10, 11, 500, 1999], mode)
+
+
+def _decoder(coords, kind: str) -> Autoencoder:
+    """An eval-mode autoencoder whose folded decoder takes each of the runtime's paths."""
+    torch.manual_seed(4)
+    widths, pca = {"hidden": ([32, 32, 16], 48), "mid": ([32, 32], 8), "linear": ([16], 24), "no_hidden": ([], 24)}[kind]
+    ae = Autoencoder(coords.dim, R, widths, pca_dim=pca)
+    ae.init_pca(torch.randn(64, coords.dim) * torch.linspace(0.2, 2.0, coords.dim) + 0.1)
+    with torch.no_grad():
+        if kind != "linear":  # a live branch, with BatchNorm statistics that matter
+            ae.dec_branch.out.weight.normal_(0.0, 0.2)
+            ae.dec_branch.out.bias.normal_(0.0, 0.1)
+        for blk in ae.dec_branch.blocks:
+            blk[1].running_mean.normal_(0.0, 0.1)
+            blk[1].running_var.uniform_(0.5, 2.0)
+    return ae.eval()
+
+
+@needs_numba
+@pytest.mark.parametrize(("mode", "layout"), LAYOUTS)
+def test_compiled_runtime_matches_the_modules(mode, layout, monkeypatch):
+    """float64: the compiled step, integrate and decode equal the PyTorch modules to round-off in every coordinate
+    mode and output layout; the prescribed vertices are re-applied exactly; float32 agrees with the NumPy runtime."""
+    _force_layout(monkeypatch, layout)
+    ae, integ, coords = _trained_modules(mode)
+    folded = rt.fold_networks(ae, integ, coords)
+    args = _inputs(coords, dtype=torch.float64)
+    z_ref, x_ref = _reference(copy.deepcopy(ae).double(), copy.deepcopy(integ).double(), coords, args)
+    cs = rc.CompiledStepper(folded, np.float64)
+    assert cs.layout == layout
+    a = [t.numpy() for t in args]
+    z, x = cs.step(*a)
+    assert np.allclose(z, z_ref, rtol=0, atol=1e-12) and np.allclose(x, x_ref, rtol=0, atol=1e-12)
+    zi = cs.integrate(*a[:5]).copy()
+    assert np.allclose(zi, z_ref, rtol=0, atol=1e-12)
+    assert np.allclose(cs.decode(zi, a[-1]), x_ref, rtol=0, atol=1e-12)
+    if mode != "mean":
+        assert np.array_equal(x[coords.dirichlet.numpy()], a[-1])
+    a32 = [t.numpy() for t in _inputs(coords)]
+    z32, x32 = rc.CompiledStepper(folded, np.float32).step(*a32)
+    zn, xn = rt.NumpyStepper(folded, np.float32).step(*a32)
+    assert z32.dtype == np.float32 and x32.dtype == np.float64
+    assert np.abs(z32 - zn).max() < 1e-5 and np.abs(x32 - xn).max() < 1e-5 * np.abs(xn).max()
+
+
+@needs_numba
+@pytest.mark.parametrize("kind", ["hidden", "mid", "linear", "no_hidden"])
+@pytest.mark.parametrize(("mode", "rod"), [("roots", 40), ("roots", 250), ("mean", 0), ("hard_mean", 0)])
+def test_compiled_runtime_on_large_meshes(kind, mode, rod):
+    """2,000 vertices (the output in many segments, rods longer than a segment, Dirichlet vertices in several
+    runs), each folded decoder shape: the compiled decode equals the NumPy runtime's."""
+    coords = _big_coords(mode, rod or 40)
+    ae = _decoder(coords, kind)
+    integ = LatentIntegrator(R, K, [16]).eval()
+    folded = rt.fold_networks(ae, integ, coords)
+    assert folded["header"]["decoder_linear"] == (kind == "linear")
+    assert folded["header"]["decoder_mid"] == (kind == "mid")
+    cs, ns = rc.CompiledStepper(folded, np.float64), rt.NumpyStepper(folded, np.float64)
+    assert cs.segments > 2000 * 3 // 384 and (mode != "hard_mean" or cs.dirichlet_runs == 4)  # [0, 1, 2], [10, 11], [500], [1999]
+    a = [t.numpy() for t in _inputs(coords, seed=8, dtype=torch.float64)]
+    z, x = cs.step(*a)
+    zn, xn = ns.step(*a)
+    assert np.allclose(z, zn, rtol=0, atol=1e-12)
+    assert np.allclose(x, xn, rtol=0, atol=1e-11)
+    assert np.abs(xn).max() > 0.1
+
+
+@needs_numba
+@pytest.mark.parametrize("mode", ["roots", "hard_mean"])
+def test_compiled_rollout_writes_each_frame_and_keeps_nan(mode, tmp_path):
+    """A rollout through the exported file writes every frame into its own row (z_out/x_out) and equals the NumPy
+    runtime's; a NaN weight gives NaN latents and positions (fastmath keeps NaNs: a diverging rollout must stop)."""
+    ae, integ, coords = _trained_modules(mode, seed=5)
+    rt.export_runtime(ae, integ, coords, tmp_path / "runtime.npz")
+    cs, ns = rc.load_runtime(tmp_path / "runtime.npz"), rt.load_runtime(tmp_path / "runtime.npz")
+    g = torch.Generator().manual_seed(6)
+    T = 15
+    bc = torch.randn(T, K, generator=g).numpy()
+    xD = torch.randn(T, coords.dirichlet.numel(), 3, generator=g, dtype=torch.float64).numpy()
+    z0, z1 = (torch.randn(R, generator=g).numpy() for _ in range(2))
+    out_c, out_n = rt.rollout_runtime(cs, z0, z1, bc, xD), rt.rollout_runtime(ns, z0, z1, bc, xD)
+    assert np.isfinite(out_c["positions"]).all()
+    assert np.abs(out_c["latents"] - out_n["latents"]).max() < 1e-5
+    assert np.abs(out_c["positions"] - out_n["positions"]).max() < 1e-5 * np.abs(out_n["positions"]).max()
+    assert not np.allclose(out_c["positions"][5], out_c["positions"][6])  # distinct frames, not one buffer
+    folded = rt.fold_networks(ae, integ, coords)
+    folded["int_W0"][0, 0] = np.nan
+    z, x = rc.CompiledStepper(folded).step(*[t.numpy() for t in _inputs(coords)])
+    assert np.isnan(z).all() and np.isnan(x[coords.free.numpy()]).all()
+
+
+@needs_numba
+def test_compiled_runtime_refuses_what_it_cannot_do():
+    ae, integ, coords = _trained_modules("mean", seed=2)
+    dec_only = rc.CompiledStepper(rt.fold_decoder(ae, coords))
+    a = [t.numpy() for t in _inputs(coords)]
+    with pytest.raises(ValueError, match="decoder only"):
+        dec_only.step(*a)
+    assert dec_only.decode(a[0], a[-1]).shape == (coords.n, 3)
+    cs = rc.CompiledStepper(rt.fold_networks(ae, integ, coords))
+    with pytest.raises(ValueError, match="C-contiguous float64"):
+        cs.step(*a, x_out=np.empty((coords.n, 6))[:, :3])
+    with pytest.raises(ValueError, match="C-contiguous float64"):
+        cs.decode(a[0], a[-1], out=np.empty((coords.n, 3), np.float32))

@@ -101,7 +101,8 @@ def evaluate_scene(scene: str, trajectories, rollouts):
                     # same-run timing of full-space frames when the rollout stage measured it
                     full_ms = float(fr.attrs.get("full_ms", np.median(gt["frame_ms"][1:])))
                     latent_ms = float(g.attrs["step_ms"])
-                    parts = {k: float(g.attrs.get(k, np.nan)) for k in ("integrate_ms", "decode_ms", "jvp_torch_ms", "jvp_forward_ms")}
+                    parts = {k: float(g.attrs.get(k, np.nan))
+                             for k in ("integrate_ms", "decode_ms", "numpy_step_ms", "compiled_step_ms", "jvp_torch_ms", "jvp_forward_ms")}  # fmt: skip
                     rows.append(
                         dict(
                             scene=scene,
@@ -118,6 +119,7 @@ def evaluate_scene(scene: str, trajectories, rollouts):
                             end_motion_truth=end_motion_truth,
                             full_ms=full_ms,
                             latent_ms=latent_ms,
+                            runtime=str(g.attrs.get("runtime", "")),
                             **parts,
                             speedup=full_ms / latent_ms,
                             dof=int(rest.size),
@@ -231,6 +233,8 @@ def table1(df: pd.DataFrame, sized=()) -> pd.DataFrame:
             integrate_ms=g["integrate_ms"].mean(),
             decode_ms=g["decode_ms"].mean(),
             total_ms=g["latent_ms"].mean(),
+            runtime=" ".join(sorted(set(g["runtime"].astype(str)))) if "runtime" in g else "",
+            numpy_ms=g["numpy_step_ms"].mean() if "numpy_step_ms" in g else np.nan,
         )
         row["speedup"] = row["full_ms"] / row["total_ms"]
         if paper is not None:

@@ -13,7 +13,7 @@ import h5py
 import numpy as np
 import torch
 
-from . import latent, runtime, stability
+from . import latent, runtime, runtime_compiled, stability
 from .evaluate import bbox_diagonal
 from .io import atomic_h5, require, write_dataset
 from .scene import potential_from_artefact
@@ -132,8 +132,8 @@ def time_steppers(steppers: dict, z1, z0, p, xD, repeats: int) -> dict:
     out: dict = {}
     p = np.asarray(p, dtype=np.float32)
     for name, st in steppers.items():
-        if name == "numpy":
-            args = (np.asarray(z1, np.float32), np.asarray(z0, np.float32), p, p, p, np.asarray(xD, np.float64))
+        if isinstance(st, (runtime.NumpyStepper, runtime_compiled.CompiledStepper)):
+            args = (np.asarray(z1, np.float32), np.asarray(z0, np.float32), p, p, p, np.ascontiguousarray(xD, np.float64))
         else:
             pt = torch.as_tensor(p)
             args = (torch.as_tensor(z1, dtype=torch.float32), torch.as_tensor(z0, dtype=torch.float32), pt, pt, pt, torch.as_tensor(xD, dtype=torch.float64))
@@ -201,7 +201,8 @@ def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out, m
     the file's ``method`` attribute; ``mode`` records its loss.
     ``runtime_paths``: (``.npz``, ``.pt``) files to export the deployable
     runtime to (:mod:`latentsim.runtime`).  One latent step is timed with the
-    NumPy runtime, TorchScript and eager PyTorch, and a few full-space Newton
+    NumPy runtime, the compiled one (:mod:`latentsim.runtime_compiled`, where
+    numba imports), TorchScript and eager PyTorch, and a few full-space Newton
     frames in the same process, so the speed-up is a same-run ratio.
     """
     ae = latent.load_autoencoder(ae_path)
@@ -225,6 +226,8 @@ def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out, m
         runtime.export_runtime(ae, integ, coords, pt)
         steppers["numpy"] = runtime.load_runtime(npz)
         steppers["torchscript"] = runtime.load_runtime(pt)
+        if runtime_compiled.available():
+            steppers["compiled"] = runtime_compiled.load_runtime(npz)
     with atomic_h5(out, config=settings) as g:
         for k, v in attrs.items():
             g.attrs[k] = v

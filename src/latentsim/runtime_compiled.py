@@ -1,0 +1,318 @@
+"""Compiled latent runtime: one frame as one numba kernel call.
+
+The same folded weights as :class:`latentsim.runtime.NumpyStepper` (an exported
+``.npz`` runtime), stepped by a single compiled function instead of a dozen
+NumPy calls.  At the scenes' sizes a NumPy call costs about as much as the
+arithmetic it does (0.5-1.5 us each), so the NumPy step has a floor of 13-57 us
+whatever the network (``benchmarks/bench_step_floor.py``); here a step costs
+one call (~0.6 us) plus its arithmetic and memory traffic.
+
+Layout (built from a :class:`NumpyStepper`, which decides the output layout):
+
+- ``F`` (network dtype): every layer as its augmented ``[W^T; b^T]`` matrix
+  (``(in + 1, out)``, row-major), integrator layers, decoder hidden layers, the
+  optional mid layer, and the output layer (over all ``n`` vertices in the
+  ``full`` layout, over the free ones in ``scatter``);
+- ``I`` (int64): a header (:data:`_H`), one row ``(offset, in, out, flags)``
+  per layer, then the coordinates' index lists.
+
+Each layer is evaluated as ``y = A[in] + sum_i h_i A[i]``: the inner loop runs
+over the contiguous outputs (vectorised).  The output layer runs over
+*segments* of at most ``_CHUNK`` values that share one origin (the Dirichlet
+mean, or one rod's root: a rod's vertices are consecutive), so each segment is
+summed in a buffer that stays in L1 and written to the float64 positions with a
+constant added; the prescribed vertices are copied back in runs of consecutive
+indices.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from latentsim.runtime import NumpyStepper, _read_npz
+
+try:  # numba is pinned in envs/requirements.txt; without it this runtime is simply not offered
+    import numba
+    from numba import njit
+except ImportError:  # pragma: no cover - depends on the install
+    numba = None
+
+    def njit(*_a, **_k):
+        """Stand-in decorator: keeps the module importable; nothing below is called."""
+        return lambda f: f
+
+
+__all__ = ["CompiledStepper", "available", "load_runtime"]
+
+# fastmath without "nnan"/"ninf": a diverging rollout must still produce the NaN that stops it
+_FAST = {"reassoc", "contract", "arcp", "nsz", "afn"}
+_JIT = {"cache": True, "nogil": True, "boundscheck": False, "fastmath": _FAST, "error_model": "numpy"}
+_CHUNK = 384  # output values per segment at most (a multiple of 3: whole vertices)
+_SILU_CLAMP = -80.0  # exp(80) is finite in float32; silu(a) ~ 0 below
+
+# the header of I: (name, index)
+_R, _K, _NINT, _NDEC, _MID, _RESID, _SCATTER, _W, _D, _TABLE, _SEG, _NSEG, _FREE, _SLOT, _DRUN, _NDRUN, _M = range(17)
+_HLEN = 17
+# the per-layer flags
+F_SILU, F_SKIP = 1, 2
+
+
+def available() -> bool:
+    """True when numba imports."""
+    return numba is not None
+
+
+@njit(inline="always", **_JIT)
+def _affine(F, off, nin, nout, S, src, dst, flags):
+    """S[dst:dst+nout] = act(A[nin] + sum_i S[src+i] A[i]) (+ S[src:src+nout] with a skip).
+
+    Written on array views (``A[i]``, ``y``): with offsets into the flat arrays in
+    the index, the loops do not vectorise (3-10x slower).
+    """
+    A = F[off : off + (nin + 1) * nout].reshape((nin + 1, nout))
+    h = S[src : src + nin]
+    y = S[dst : dst + nout]
+    bias, a, h0 = A[nin], A[0], h[0]
+    for o in range(nout):
+        y[o] = bias[o] + h0 * a[o]
+    for i in range(1, nin):
+        a, hi = A[i], h[i]
+        for o in range(nout):
+            y[o] += hi * a[o]
+    if flags & F_SILU:
+        for o in range(nout):
+            t = y[o]
+            if t < _SILU_CLAMP:  # False for a NaN, which must reach the output (a diverging rollout stops on it)
+                t = _SILU_CLAMP
+            y[o] = t / (1.0 + np.exp(-t))
+    if flags & F_SKIP:
+        for o in range(nout):
+            y[o] += h[o]
+
+
+@njit(**_JIT)
+def _kernel(F, I, S, z1, z2, p0, p1, p2, xD, x, zout, what):
+    """One frame. what: 1 integrate (z1.. -> zout), 2 decode (z1 -> x), 3 both (zout, then x).
+
+    Scratch S: [a (w) | b (w) | z, h_L (r + w) | segment buffer (_CHUNK)].
+    """
+    r, k, w, D, T = I[_R], I[_K], I[_W], I[_D], I[_TABLE]
+    n_int, n_dec, mid = I[_NINT], I[_NDEC], I[_MID]
+    a, b, zh = 0, w, 2 * w
+    if what & 1:
+        for i in range(r):
+            S[a + i] = z1[i]
+            S[a + r + i] = z2[i]
+        for i in range(k):
+            S[a + 2 * r + i] = p0[i]
+            S[a + 2 * r + k + i] = p1[i]
+            S[a + 2 * r + 2 * k + i] = p2[i]
+        src, dst = a, b
+        for l in range(n_int):
+            row = T + 4 * l
+            _affine(F, I[row], I[row + 1], I[row + 2], S, src, dst, I[row + 3])
+            src, dst = dst, src
+        for i in range(r):
+            zi = S[src + i]
+            if I[_RESID]:
+                zi += z1[i]
+            zout[i] = zi
+    if not what & 2:
+        return
+    for i in range(r):
+        S[zh + i] = zout[i] if what & 1 else z1[i]
+    # decoder hidden layers from z; the last writes h_L behind z, so the output layer reads [z; h_L]
+    src = zh
+    for l in range(n_dec):
+        row = T + 4 * (n_int + l)
+        dst = zh + r if l == n_dec - 1 else (a if src != a else b)
+        _affine(F, I[row], I[row + 1], I[row + 2], S, src, dst, I[row + 3])
+        src = dst
+    src = zh
+    if mid:
+        row = T + 4 * (n_int + n_dec)
+        _affine(F, I[row], I[row + 1], I[row + 2], S, zh, a, I[row + 3])
+        src = a
+    row = T + 4 * (n_int + n_dec + mid)
+    off, nin = I[row], I[row + 1]
+    A = F[off : off + (nin + 1) * D].reshape((nin + 1, D))
+    h = S[src : src + nin]
+    buf = S[3 * w + r : 3 * w + r + _CHUNK]
+    # the Dirichlet mean, the origin of the segments that have no root of their own
+    m = I[_M]
+    o0 = o1 = o2 = 0.0
+    if m:
+        for j in range(m):
+            o0 += xD[j, 0]
+            o1 += xD[j, 1]
+            o2 += xD[j, 2]
+        o0, o1, o2 = o0 / m, o1 / m, o2 / m
+    xf, xDf = x.reshape(-1), xD.reshape(-1)
+    seg = I[_SEG]
+    h0 = h[0]
+    for g in range(I[_NSEG]):
+        c0, c1, sl = I[seg + 3 * g], I[seg + 3 * g + 1], I[seg + 3 * g + 2]
+        nc = c1 - c0
+        u = buf[:nc]
+        bias, av = A[nin, c0:c1], A[0, c0:c1]
+        for j in range(nc):
+            u[j] = bias[j] + h0 * av[j]
+        for i in range(1, nin):
+            av, hi = A[i, c0:c1], h[i]
+            for j in range(nc):
+                u[j] += hi * av[j]
+        q0, q1, q2 = (xD[sl, 0], xD[sl, 1], xD[sl, 2]) if sl >= 0 else (o0, o1, o2)
+        if I[_SCATTER]:  # the free vertices' rows, each to its vertex
+            fr = I[_FREE]
+            for j in range(0, nc, 3):
+                f = (c0 + j) // 3
+                v = I[fr + f]
+                if I[_SLOT] >= 0:  # roots: each free vertex's own root
+                    s = I[I[_SLOT] + f]
+                    q0, q1, q2 = xD[s, 0], xD[s, 1], xD[s, 2]
+                x[v, 0] = u[j] + q0
+                x[v, 1] = u[j + 1] + q1
+                x[v, 2] = u[j + 2] + q2
+        else:
+            xo = xf[c0:c1].reshape((nc // 3, 3))
+            for j in range(nc // 3):
+                xo[j, 0] = u[3 * j] + q0
+                xo[j, 1] = u[3 * j + 1] + q1
+                xo[j, 2] = u[3 * j + 2] + q2
+    # the prescribed vertices themselves, in runs (vertex, slot, count) of consecutive indices
+    dr = I[_DRUN]
+    for g in range(I[_NDRUN]):
+        v0, j0, cnt = 3 * I[dr + 3 * g], 3 * I[dr + 3 * g + 1], 3 * I[dr + 3 * g + 2]
+        xo, xi = xf[v0 : v0 + cnt], xDf[j0 : j0 + cnt]
+        for j in range(cnt):  # a loop: numba's slice assignment checks and buffers (2x slower here)
+            xo[j] = xi[j]
+
+
+def _runs(keys: np.ndarray, cap: int) -> list:
+    """Split 0..len(keys) into [start, end) runs of equal consecutive keys, each at most cap long."""
+    out, start = [], 0
+    for i in range(1, len(keys) + 1):
+        if i == len(keys) or keys[i] != keys[start] or i - start == cap:
+            out.append((start, i))
+            start = i
+    return out
+
+
+def _index_runs(dst: np.ndarray, src: np.ndarray) -> np.ndarray:
+    """(dst0, src0, count) rows covering dst[i] <- src[i] where both step by one."""
+    rows, start = [], 0
+    for i in range(1, len(dst) + 1):
+        if i == len(dst) or dst[i] != dst[i - 1] + 1 or src[i] != src[i - 1] + 1:
+            rows.append((dst[start], src[start], i - start))
+            start = i
+    return np.asarray(rows, np.int64).reshape(-1, 3)
+
+
+class CompiledStepper:
+    """The folded latent step as one numba kernel call per frame.
+
+    Same interface and results as :class:`latentsim.runtime.NumpyStepper` (to
+    rounding: the sums run in another order): :meth:`integrate`, :meth:`decode`,
+    :meth:`step`; the returned arrays are internal buffers unless ``out=`` is
+    given.  Inputs should be C-contiguous arrays of the network dtype (``z``,
+    ``p``) and float64 (``xD``): they go to the kernel as they are (another
+    dtype or layout compiles another specialisation).  The first call of each
+    specialisation compiles (cached on disk).
+    """
+
+    def __init__(self, folded: dict, dtype=np.float32):
+        if not available():
+            raise RuntimeError("the compiled runtime needs numba (pinned in envs/requirements.txt)")
+        ref = NumpyStepper(folded, dtype)  # validates the header and decides the output layout
+        self.header, self.dtype = ref.header, ref.dtype
+        self.r, self.k, self.n, self.mode, self.layout = ref.r, ref.k, ref.n, ref.mode, ref.layout
+        self.n_integrator_layers = len(ref._int_A)
+        scatter = ref.hard and ref.layout == "scatter"
+        out_A = ref._full_A if ref.hard and not scatter else ref._out_A
+        layers = [(A, F_SILU) for A in ref._int_A[:-1]] + [(ref._int_A[-1], 0)] if ref._int_A else []
+        layers += [(A, F_SILU | (F_SKIP if s else 0)) for A, s in zip(ref._dec_A, ref.skips)]
+        if ref.mid:
+            layers.append((ref._mid_A, 0))
+        layers.append((out_A, 0))
+        w = max([2 * self.r + 3 * self.k] + [max(A.shape[0] - 1, A.shape[1]) for A, _ in layers[:-1]])
+        D = out_A.shape[1]
+        dirichlet = np.asarray(ref.dirichlet, np.int64)
+        m = len(dirichlet)
+        # segments of the output layer: (first value, end, root slot or -1 for the Dirichlet mean)
+        roots = ref.mode == "roots"
+        if roots and not scatter:  # over all vertices: a root is its own root
+            slot = np.empty(self.n, np.int64)
+            slot[ref.free] = ref.root_slot
+            slot[dirichlet] = np.arange(m)
+        else:  # the mean (or per-vertex roots in the scatter loop)
+            slot = np.full(D // 3, -1, np.int64)
+        seg = np.asarray([(3 * s, 3 * e, slot[s]) for s, e in _runs(slot, _CHUNK // 3)], np.int64).reshape(-1, 3)
+        free = ref.free if scatter else np.zeros(0, np.int64)
+        vslot = ref.root_slot if roots and scatter else np.zeros(0, np.int64)
+        # the prescribed vertices are copied back unless the output layer already gives them (roots, full)
+        copy_back = ref.hard and not (roots and not scatter)
+        druns = _index_runs(dirichlet, np.arange(m)) if copy_back else np.zeros((0, 3), np.int64)
+        offsets, pos = [], 0
+        for A, _ in layers:
+            offsets.append(pos)
+            pos += A.size
+        self._F = np.empty(pos, dtype=self.dtype)
+        for (A, _), off in zip(layers, offsets):
+            self._F[off : off + A.size] = A.reshape(-1)
+        table = np.array([[off, A.shape[0] - 1, A.shape[1], fl] for (A, fl), off in zip(layers, offsets)], np.int64)
+        hdr = np.zeros(_HLEN, np.int64)
+        hdr[[_R, _K, _NINT, _NDEC, _MID, _RESID, _SCATTER, _W, _D]] = [self.r, self.k, self.n_integrator_layers, len(ref._dec_A),
+                                                                       int(ref.mid), int(ref.residual), int(scatter), w, D]  # fmt: skip
+        hdr[_M] = m if not roots else 0  # the mean origin: not used with roots
+        parts, at = [hdr, table.reshape(-1)], _HLEN + table.size
+        hdr[_TABLE] = _HLEN
+        for key, arr in ((_SEG, seg), (_FREE, free), (_SLOT, vslot), (_DRUN, druns)):
+            hdr[key] = at if arr.size or key != _SLOT else -1
+            parts.append(arr.reshape(-1))
+            at += arr.size
+        hdr[_NSEG], hdr[_NDRUN] = len(seg), len(druns)
+        self._I = np.concatenate(parts).astype(np.int64)
+        self.segments, self.dirichlet_runs = len(seg), len(druns)
+        self._S = np.zeros(3 * w + self.r + _CHUNK, dtype=self.dtype)
+        self._z = np.zeros(self.r, dtype=self.dtype)
+        self._x = np.zeros((self.n, 3))
+        self._zero_k = np.zeros(self.k, dtype=self.dtype)
+        self._xD0 = np.zeros((m, 3))
+        self._x0 = np.zeros((1, 3))
+
+    def integrate(self, z_prev, z_prev2, p, p_prev, p_prev2, out=None) -> np.ndarray:
+        """z_t (r,) from z_{t-1}, z_{t-2} (r,) and p_t, p_{t-1}, p_{t-2} (k,)."""
+        if not self.n_integrator_layers:
+            raise ValueError("this runtime holds a decoder only (no integrator layers)")
+        z = self._z if out is None else out
+        _kernel(self._F, self._I, self._S, z_prev, z_prev2, p, p_prev, p_prev2, self._xD0, self._x0, z, 1)
+        return z
+
+    def _check_x(self, x, name: str) -> None:
+        if not (x.flags.c_contiguous and x.shape == (self.n, 3) and x.dtype == np.float64):
+            raise ValueError(f"{name}: need a C-contiguous float64 ({self.n}, 3) array, got {x.dtype} {x.shape}")
+
+    def decode(self, z, xD, out=None) -> np.ndarray:
+        """Positions (n, 3) float64 of latent z (r,) with Dirichlet positions xD (m, 3)."""
+        if out is not None:
+            self._check_x(out, "out")
+        x = self._x if out is None else out
+        k0 = self._zero_k
+        _kernel(self._F, self._I, self._S, z, z, k0, k0, k0, xD, x, self._z, 2)
+        return x
+
+    def step(self, z_prev, z_prev2, p, p_prev, p_prev2, xD, z_out=None, x_out=None):
+        """One frame: (z_t (r,), x_t (n, 3)); see :meth:`integrate`, :meth:`decode`."""
+        if not self.n_integrator_layers:
+            raise ValueError("this runtime holds a decoder only (no integrator layers)")
+        if x_out is not None:
+            self._check_x(x_out, "x_out")
+        z = self._z if z_out is None else z_out
+        x = self._x if x_out is None else x_out
+        _kernel(self._F, self._I, self._S, z_prev, z_prev2, p, p_prev, p_prev2, xD, x, z, 3)
+        return z, x
+
+
+def load_runtime(path, dtype=np.float32) -> CompiledStepper:
+    """The compiled stepper of an exported ``.npz`` runtime (:func:`latentsim.runtime.export_runtime`)."""
+    return CompiledStepper(_read_npz(path), dtype=dtype)
