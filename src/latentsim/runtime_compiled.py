@@ -63,22 +63,38 @@ def available() -> bool:
 
 
 @njit(inline="always", **_JIT)
-def _affine(F, off, nin, nout, S, src, dst, flags):
-    """S[dst:dst+nout] = act(A[nin] + sum_i S[src+i] A[i]) (+ S[src:src+nout] with a skip).
+def _accumulate(A, h, nin, c0, c1, y):
+    """y[:] = A[nin, c0:c1] + sum_i h[i] A[i, c0:c1], four rows of A per pass over y.
 
-    Written on array views (``A[i]``, ``y``): with offsets into the flat arrays in
-    the index, the loops do not vectorise (3-10x slower).
+    The loops run over array views (``A[i, c0:c1]``): with offsets into the flat
+    arrays in the index they do not vectorise (3-10x slower); four rows a pass
+    load and store y a quarter as often (1.09 -> 0.71 us for 34 x 576).
     """
+    nc = c1 - c0
+    bias = A[nin, c0:c1]
+    for j in range(nc):
+        y[j] = bias[j]
+    i = 0
+    while i + 4 <= nin:
+        a0, a1, a2, a3 = A[i, c0:c1], A[i + 1, c0:c1], A[i + 2, c0:c1], A[i + 3, c0:c1]
+        g0, g1, g2, g3 = h[i], h[i + 1], h[i + 2], h[i + 3]
+        for j in range(nc):
+            y[j] += g0 * a0[j] + g1 * a1[j] + g2 * a2[j] + g3 * a3[j]
+        i += 4
+    while i < nin:
+        a, g = A[i, c0:c1], h[i]
+        for j in range(nc):
+            y[j] += g * a[j]
+        i += 1
+
+
+@njit(inline="always", **_JIT)
+def _affine(F, off, nin, nout, S, src, dst, flags):
+    """S[dst:dst+nout] = act(A[nin] + sum_i S[src+i] A[i]) (+ S[src:src+nout] with a skip)."""
     A = F[off : off + (nin + 1) * nout].reshape((nin + 1, nout))
     h = S[src : src + nin]
     y = S[dst : dst + nout]
-    bias, a, h0 = A[nin], A[0], h[0]
-    for o in range(nout):
-        y[o] = bias[o] + h0 * a[o]
-    for i in range(1, nin):
-        a, hi = A[i], h[i]
-        for o in range(nout):
-            y[o] += hi * a[o]
+    _accumulate(A, h, nin, 0, nout, y)
     if flags & F_SILU:
         for o in range(nout):
             t = y[o]
@@ -149,18 +165,11 @@ def _kernel(F, I, S, z1, z2, p0, p1, p2, xD, x, zout, what):
         o0, o1, o2 = o0 / m, o1 / m, o2 / m
     xf, xDf = x.reshape(-1), xD.reshape(-1)
     seg = I[_SEG]
-    h0 = h[0]
     for g in range(I[_NSEG]):
         c0, c1, sl = I[seg + 3 * g], I[seg + 3 * g + 1], I[seg + 3 * g + 2]
         nc = c1 - c0
         u = buf[:nc]
-        bias, av = A[nin, c0:c1], A[0, c0:c1]
-        for j in range(nc):
-            u[j] = bias[j] + h0 * av[j]
-        for i in range(1, nin):
-            av, hi = A[i, c0:c1], h[i]
-            for j in range(nc):
-                u[j] += hi * av[j]
+        _accumulate(A, h, nin, c0, c1, u)
         q0, q1, q2 = (xD[sl, 0], xD[sl, 1], xD[sl, 2]) if sl >= 0 else (o0, o1, o2)
         if I[_SCATTER]:  # the free vertices' rows, each to its vertex
             fr = I[_FREE]
