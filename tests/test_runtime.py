@@ -421,3 +421,19 @@ def test_compiled_runtime_refuses_what_it_cannot_do():
         cs.step(*a, x_out=np.empty((coords.n, 6))[:, :3])
     with pytest.raises(ValueError, match="C-contiguous float64"):
         cs.decode(a[0], a[-1], out=np.empty((coords.n, 3), np.float32))
+
+
+@needs_numba
+def test_float32_silu_without_libm_is_float32_accurate():
+    """The float32 kernel's SiLU (exp as a Taylor polynomial squared 8 times) is within float32's epsilon of the
+    float64 closed form over [-80, 80], exact beyond (t for t > 80, ~0 below -80), and keeps NaN."""
+    t = np.concatenate([np.linspace(-80.0, 80.0, 200_001), [-1e4, -100.0, 100.0, 1e4, np.nan]]).astype(np.float32)
+    y = t.copy()
+    rc._silu32(y, len(y))
+    t64 = t.astype(np.float64)
+    with np.errstate(over="ignore"):
+        ref = t64 / (1.0 + np.exp(-t64))
+    inside = np.abs(t64) <= 80
+    rel = np.abs(y[inside] - ref[inside]) / np.maximum(np.abs(ref[inside]), np.finfo(np.float32).tiny)
+    assert rel.max() < np.finfo(np.float32).eps
+    assert y[-3] == 100.0 and y[-2] == 1e4 and abs(y[-4]) < 1e-30 and abs(y[-5]) < 1e-30 and np.isnan(y[-1])

@@ -509,6 +509,35 @@ def test_neural_modes_baseline_steps_in_the_scenes_neural_modes(tiny_run):
     assert "neural_modes_reduced" in set(table["method"])
 
 
+@pytest.mark.parametrize("scene", ["tiny_cloth", "tiny_rods"])
+def test_compiled_runtime_replays_the_rollout_and_is_timed(tiny_run, scene):
+    """The rollout stage timed the compiled runtime beside the others; loaded from the exported runtime.npz
+    alone, it replays the stored rollout (from its first two latents and the boundary conditions) to float32
+    rounding; the floor benchmark runs on the scene's trajectories and times both runtimes."""
+    from latentsim import runtime, runtime_compiled
+
+    work, _ = tiny_run
+    out = work / f"results/rollout/{scene}/self_supervised"
+    with h5py.File(out / "rollout.h5") as g:
+        name, seq = next(iter(g["sequences"].items()))
+        assert seq.attrs["runtime"] in ("numpy", "compiled", "torchscript", "eager")
+        assert 0 < seq.attrs["compiled_step_ms"] < seq.attrs["eager_step_ms"]
+        Z, bc, xD, X = (seq[k][()] for k in ("latents", "bc", "dirichlet_positions", "positions"))
+    T = min(20, len(Z))
+    stepper = runtime_compiled.load_runtime(out / "runtime.npz")
+    res = runtime.rollout_runtime(stepper, Z[0], Z[1], bc[:T], np.ascontiguousarray(xD[:T]))
+    scale = np.abs(X[:T]).max()
+    assert np.abs(res["positions"] - X[:T]).max() < 1e-4 * scale
+    assert np.abs(np.diff(X[:T], axis=0)).max() > 1e-3 * scale  # the frames move: a replay, not a constant
+    bench = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks/bench_step_floor.py"), scene, "--results", str(work / "results"), "--config", str(TINY),
+         "--rounds", "1", "--full-frames", "2", "--repeats", "5"],
+        capture_output=True, text=True, timeout=300, env=dict(os.environ, PYTHONPATH=str(ROOT / "src")),
+    )  # fmt: skip
+    assert bench.returncode == 0, bench.stderr
+    assert "compiled_floor_speedup" in bench.stdout and scene in bench.stdout
+
+
 @pytest.mark.parametrize("caption", sorted((ROOT / "workflow" / "report").glob("*.rst")), ids=lambda p: p.name)
 def test_report_captions_are_valid_restructuredtext(caption):
     """snakemake --report renders every caption as reStructuredText: a bare |x| is a substitution

@@ -51,8 +51,8 @@ _CHUNK = 384  # output values per segment at most (a multiple of 3: whole vertic
 _SILU_CLAMP = -80.0  # exp(80) is finite in float32; silu(a) ~ 0 below
 
 # the header of I: (name, index)
-_R, _K, _NINT, _NDEC, _MID, _RESID, _SCATTER, _W, _D, _TABLE, _SEG, _NSEG, _FREE, _SLOT, _DRUN, _NDRUN, _M = range(17)
-_HLEN = 17
+_R, _K, _NINT, _NDEC, _MID, _RESID, _SCATTER, _W, _D, _TABLE, _SEG, _NSEG, _FREE, _SLOT, _DRUN, _NDRUN, _M, _FAST32 = range(18)
+_HLEN = 18
 # the per-layer flags
 F_SILU, F_SKIP = 1, 2
 
@@ -89,13 +89,36 @@ def _accumulate(A, h, nin, c0, c1, y):
 
 
 @njit(inline="always", **_JIT)
-def _affine(F, off, nin, nout, S, src, dst, flags):
+def _silu32(y, n):
+    """y[:n] = y / (1 + exp(-y)) for a float32 network, with exp evaluated in float64 as
+    (Taylor_8(a / 256))^256, a = -y clamped to [-80, 80]: no library call, so the loop
+    vectorises (4.1 -> 0.9 ns a value); relative error below 7.4e-8 over [-80, 80], under
+    float32's epsilon (1.2e-7; the libm path's 5.9e-8).  A NaN stays NaN (comparisons are
+    false for it, and it propagates through the polynomial)."""
+    for o in range(n):
+        t = np.float64(y[o])
+        a = -t
+        if a > 80.0:
+            a = 80.0
+        if a < -80.0:
+            a = -80.0
+        q = a * (1.0 / 256.0)
+        e = 1.0 + q * (1.0 + q * (1.0 / 2 + q * (1.0 / 6 + q * (1.0 / 24 + q * (1.0 / 120 + q * (1.0 / 720 + q * (1.0 / 5040 + q / 40320)))))))
+        for _ in range(8):
+            e = e * e
+        y[o] = t / (1.0 + e)
+
+
+@njit(inline="always", **_JIT)
+def _affine(F, off, nin, nout, S, src, dst, flags, fast32):
     """S[dst:dst+nout] = act(A[nin] + sum_i S[src+i] A[i]) (+ S[src:src+nout] with a skip)."""
     A = F[off : off + (nin + 1) * nout].reshape((nin + 1, nout))
     h = S[src : src + nin]
     y = S[dst : dst + nout]
     _accumulate(A, h, nin, 0, nout, y)
-    if flags & F_SILU:
+    if flags & F_SILU and fast32:
+        _silu32(y, nout)
+    elif flags & F_SILU:
         for o in range(nout):
             t = y[o]
             if t < _SILU_CLAMP:  # False for a NaN, which must reach the output (a diverging rollout stops on it)
@@ -126,7 +149,7 @@ def _kernel(F, I, S, z1, z2, p0, p1, p2, xD, x, zout, what):
         src, dst = a, b
         for l in range(n_int):
             row = T + 4 * l
-            _affine(F, I[row], I[row + 1], I[row + 2], S, src, dst, I[row + 3])
+            _affine(F, I[row], I[row + 1], I[row + 2], S, src, dst, I[row + 3], I[_FAST32])
             src, dst = dst, src
         for i in range(r):
             zi = S[src + i]
@@ -142,12 +165,12 @@ def _kernel(F, I, S, z1, z2, p0, p1, p2, xD, x, zout, what):
     for l in range(n_dec):
         row = T + 4 * (n_int + l)
         dst = zh + r if l == n_dec - 1 else (a if src != a else b)
-        _affine(F, I[row], I[row + 1], I[row + 2], S, src, dst, I[row + 3])
+        _affine(F, I[row], I[row + 1], I[row + 2], S, src, dst, I[row + 3], I[_FAST32])
         src = dst
     src = zh
     if mid:
         row = T + 4 * (n_int + n_dec)
-        _affine(F, I[row], I[row + 1], I[row + 2], S, zh, a, I[row + 3])
+        _affine(F, I[row], I[row + 1], I[row + 2], S, zh, a, I[row + 3], I[_FAST32])
         src = a
     row = T + 4 * (n_int + n_dec + mid)
     off, nin = I[row], I[row + 1]
@@ -273,6 +296,7 @@ class CompiledStepper:
         hdr[[_R, _K, _NINT, _NDEC, _MID, _RESID, _SCATTER, _W, _D]] = [self.r, self.k, self.n_integrator_layers, len(ref._dec_A),
                                                                        int(ref.mid), int(ref.residual), int(scatter), w, D]  # fmt: skip
         hdr[_M] = m if not roots else 0  # the mean origin: not used with roots
+        hdr[_FAST32] = int(self.dtype == np.float32)  # float32 networks: SiLU without a libm call (_silu32)
         parts, at = [hdr, table.reshape(-1)], _HLEN + table.size
         hdr[_TABLE] = _HLEN
         for key, arr in ((_SEG, seg), (_FREE, free), (_SLOT, vslot), (_DRUN, druns)):
