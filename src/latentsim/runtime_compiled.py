@@ -13,16 +13,16 @@ Layout (built from a :class:`NumpyStepper`, which decides the output layout):
   (``(in + 1, out)``, row-major), integrator layers, decoder hidden layers, the
   optional mid layer, and the output layer (over all ``n`` vertices in the
   ``full`` layout, over the free ones in ``scatter``);
-- ``I`` (int64): a header (:data:`_H`), one row ``(offset, in, out, flags)``
-  per layer, then the coordinates' index lists.
+- ``I`` (int64): a header (the ``_R``... indices below), one row
+  ``(offset, in, out, flags)`` per layer, then the output's chunks and runs and
+  the coordinates' index lists.
 
 Each layer is evaluated as ``y = A[in] + sum_i h_i A[i]``: the inner loop runs
-over the contiguous outputs (vectorised).  The output layer runs over
-*segments* of at most ``_CHUNK`` values that share one origin (the Dirichlet
-mean, or one rod's root: a rod's vertices are consecutive), so each segment is
-summed in a buffer that stays in L1 and written to the float64 positions with a
-constant added; the prescribed vertices are copied back in runs of consecutive
-indices.
+over the contiguous outputs (vectorised).  The output layer is summed in chunks
+of ``_CHUNK`` values, in a buffer that stays in L1; each chunk is then written to
+the float64 positions in *runs* that share one origin (the Dirichlet mean, or one
+rod's root: a rod's vertices are consecutive), a constant added per run; the
+prescribed vertices are copied back in runs of consecutive indices.
 """
 
 from __future__ import annotations
@@ -51,8 +51,8 @@ _CHUNK = 384  # output values per segment at most (a multiple of 3: whole vertic
 _SILU_CLAMP = -80.0  # exp(80) is finite in float32; silu(a) ~ 0 below
 
 # the header of I: (name, index)
-_R, _K, _NINT, _NDEC, _MID, _RESID, _SCATTER, _W, _D, _TABLE, _SEG, _NSEG, _FREE, _SLOT, _DRUN, _NDRUN, _M, _FAST32 = range(18)
-_HLEN = 18
+_R, _K, _NINT, _NDEC, _MID, _RESID, _SCATTER, _W, _D, _TABLE, _SEG, _NSEG, _FREE, _SLOT, _DRUN, _NDRUN, _M, _FAST32, _CHK, _NCHK = range(20)
+_HLEN = 20
 # the per-layer flags
 F_SILU, F_SKIP = 1, 2
 
@@ -187,15 +187,15 @@ def _kernel(F, I, S, z1, z2, p0, p1, p2, xD, x, zout, what):
             o2 += xD[j, 2]
         o0, o1, o2 = o0 / m, o1 / m, o2 / m
     xf, xDf = x.reshape(-1), xD.reshape(-1)
-    seg = I[_SEG]
-    for g in range(I[_NSEG]):
-        c0, c1, sl = I[seg + 3 * g], I[seg + 3 * g + 1], I[seg + 3 * g + 2]
+    ck, sg = I[_CHK], I[_SEG]
+    for g in range(I[_NCHK]):
+        c0, c1, r0, r1 = I[ck + 4 * g], I[ck + 4 * g + 1], I[ck + 4 * g + 2], I[ck + 4 * g + 3]
         nc = c1 - c0
         u = buf[:nc]
         _accumulate(A, h, nin, c0, c1, u)
-        q0, q1, q2 = (xD[sl, 0], xD[sl, 1], xD[sl, 2]) if sl >= 0 else (o0, o1, o2)
         if I[_SCATTER]:  # the free vertices' rows, each to its vertex
             fr = I[_FREE]
+            q0, q1, q2 = o0, o1, o2
             for j in range(0, nc, 3):
                 f = (c0 + j) // 3
                 v = I[fr + f]
@@ -205,12 +205,16 @@ def _kernel(F, I, S, z1, z2, p0, p1, p2, xD, x, zout, what):
                 x[v, 0] = u[j] + q0
                 x[v, 1] = u[j + 1] + q1
                 x[v, 2] = u[j + 2] + q2
-        else:
-            xo = xf[c0:c1].reshape((nc // 3, 3))
-            for j in range(nc // 3):
-                xo[j, 0] = u[3 * j] + q0
-                xo[j, 1] = u[3 * j + 1] + q1
-                xo[j, 2] = u[3 * j + 2] + q2
+            continue
+        for rr in range(r0, r1):  # the chunk's runs of one origin: the mean, or one rod's root
+            s0, s1, sl = I[sg + 3 * rr], I[sg + 3 * rr + 1], I[sg + 3 * rr + 2]
+            q0, q1, q2 = (xD[sl, 0], xD[sl, 1], xD[sl, 2]) if sl >= 0 else (o0, o1, o2)
+            nv = (s1 - s0) // 3
+            xo, uo = xf[s0:s1].reshape((nv, 3)), u[s0 - c0 : s1 - c0]
+            for j in range(nv):
+                xo[j, 0] = uo[3 * j] + q0
+                xo[j, 1] = uo[3 * j + 1] + q1
+                xo[j, 2] = uo[3 * j + 2] + q2
     # the prescribed vertices themselves, in runs (vertex, slot, count) of consecutive indices
     dr = I[_DRUN]
     for g in range(I[_NDRUN]):
@@ -228,6 +232,25 @@ def _runs(keys: np.ndarray, cap: int) -> list:
             out.append((start, i))
             start = i
     return out
+
+
+def _chunks(D: int, runs: list) -> tuple[np.ndarray, np.ndarray]:
+    """Cut the output's D values into chunks of _CHUNK and the runs (start, end, slot) at the chunks' bounds.
+
+    Returns (chunk rows (c0, c1, first run, end run), run rows (start, end, slot)): each chunk is summed once
+    into the L1 buffer, then each of its runs written with its own origin.
+    """
+    chunks, out, k = [], [], 0
+    for c0 in range(0, D, _CHUNK):
+        c1, first = min(c0 + _CHUNK, D), len(out)
+        while k < len(runs) and runs[k][0] < c1:
+            s0, s1, sl = runs[k]
+            out.append((max(s0, c0), min(s1, c1), sl))
+            if s1 > c1:  # the run goes on in the next chunk
+                break
+            k += 1
+        chunks.append((c0, c1, first, len(out)))
+    return np.asarray(chunks, np.int64).reshape(-1, 4), np.asarray(out, np.int64).reshape(-1, 3)
 
 
 def _index_runs(dst: np.ndarray, src: np.ndarray) -> np.ndarray:
@@ -278,7 +301,7 @@ class CompiledStepper:
             slot[dirichlet] = np.arange(m)
         else:  # the mean (or per-vertex roots in the scatter loop)
             slot = np.full(D // 3, -1, np.int64)
-        seg = np.asarray([(3 * s, 3 * e, slot[s]) for s, e in _runs(slot, _CHUNK // 3)], np.int64).reshape(-1, 3)
+        chunks, seg = _chunks(D, [(3 * s, 3 * e, slot[s]) for s, e in _runs(slot, len(slot))])
         free = ref.free if scatter else np.zeros(0, np.int64)
         vslot = ref.root_slot if roots and scatter else np.zeros(0, np.int64)
         # the prescribed vertices are copied back unless the output layer already gives them (roots, full)
@@ -299,13 +322,13 @@ class CompiledStepper:
         hdr[_FAST32] = int(self.dtype == np.float32)  # float32 networks: SiLU without a libm call (_silu32)
         parts, at = [hdr, table.reshape(-1)], _HLEN + table.size
         hdr[_TABLE] = _HLEN
-        for key, arr in ((_SEG, seg), (_FREE, free), (_SLOT, vslot), (_DRUN, druns)):
+        for key, arr in ((_CHK, chunks), (_SEG, seg), (_FREE, free), (_SLOT, vslot), (_DRUN, druns)):
             hdr[key] = at if arr.size or key != _SLOT else -1
             parts.append(arr.reshape(-1))
             at += arr.size
-        hdr[_NSEG], hdr[_NDRUN] = len(seg), len(druns)
+        hdr[_NCHK], hdr[_NSEG], hdr[_NDRUN] = len(chunks), len(seg), len(druns)
         self._I = np.concatenate(parts).astype(np.int64)
-        self.segments, self.dirichlet_runs = len(seg), len(druns)
+        self.chunks, self.segments, self.dirichlet_runs = len(chunks), len(seg), len(druns)
         self._S = np.zeros(3 * w + self.r + _CHUNK, dtype=self.dtype)
         self._z = np.zeros(self.r, dtype=self.dtype)
         self._x = np.zeros((self.n, 3))
