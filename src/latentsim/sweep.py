@@ -4,7 +4,8 @@ Each sweep point trains the scene's autoencoder and self-supervised latent
 integrator at one latent dimension and one pair of layer widths (everything
 else as the scene's config says), rolls the integrator out on the test
 sequences and records the error against the full simulation, the frames
-survived and the time of one step with the deployable NumPy runtime.  With
+survived and the time of one step with the fastest deployable runtime (NumPy, or the
+compiled one where numba imports).  With
 ``stress`` on, it also runs the scene's stress conditions (those of the
 rollout stage's stability map, :func:`latentsim.stability.stress_test`): a test
 sequence alone cannot tell a model that holds from one that fails at twice the
@@ -23,10 +24,10 @@ import numpy as np
 import pandas as pd
 import torch
 
-from . import latent, runtime, stability
+from . import latent, runtime, runtime_compiled, stability
 from .evaluate import bbox_diagonal, vertex_errors, write_table
 from .scene import potential_from_artefact
-from .train import coordinates_for, load_sequences
+from .train import coordinates_for, load_sequences, time_steppers
 
 
 def point_label(latent_dim: int, size: int) -> str:
@@ -40,6 +41,12 @@ def parse_label(label: str) -> tuple[int, int]:
     if not (r.startswith("r") and s.startswith("s")):
         raise ValueError(f"sweep point label {label!r}: expected r<latent_dim>_s<size index>")
     return int(r[1:]), int(s[1:])
+
+
+def widths_label(widths) -> str:
+    """Hidden widths as the sweep's tables write them: ``"32 32"``, or ``"linear"`` for none (a linear
+    autoencoder; an empty string would read back from the CSV as NaN and drop out of a groupby)."""
+    return " ".join(map(str, widths)) or "linear"
 
 
 def parameter_count(module: torch.nn.Module) -> int:
@@ -99,7 +106,10 @@ def measure_point(point: dict, rollout: dict, stress: bool = True) -> pd.DataFra
     """Roll out, time and stress-test a trained point (:func:`train_point`); one row per test sequence."""
     ae, integ, coords, train, tests, rest = (point[k] for k in ("ae", "integrator", "coords", "train", "tests", "rest"))
     diag = bbox_diagonal(rest)
-    stepper = runtime.NumpyStepper(runtime.fold_networks(ae, integ, coords))
+    folded = runtime.fold_networks(ae, integ, coords)
+    steppers = {"numpy": runtime.NumpyStepper(folded)}
+    if runtime_compiled.available():  # as the rollout stage: the fastest deployable runtime is timed
+        steppers["compiled"] = runtime_compiled.CompiledStepper(folded)
     rows = []
     for name, s in tests.items():
         x, xD = torch.as_tensor(s["positions"]), torch.as_tensor(s["dirichlet_positions"])
@@ -109,15 +119,13 @@ def measure_point(point: dict, rollout: dict, stress: bool = True) -> pd.DataFra
         T, div = len(x), int(res["diverged_frame"])
         ok = slice(0, T if div < 0 else div)
         mean_e, max_e = vertex_errors(res["positions"].numpy()[ok], s["positions"][ok], diag)
-        p = np.asarray(s["bc"][-1], dtype=np.float32)
-        timing = runtime.time_step(stepper, z[1].numpy(), z[0].numpy(), p, p, p, np.asarray(s["dirichlet_positions"][-1]),
-                                   repeats=int(rollout["timing_repeats"]))  # fmt: skip
+        timing = time_steppers(steppers, z[1], z[0], s["bc"][-1], s["dirichlet_positions"][-1], int(rollout["timing_repeats"]))
         rows.append(dict(
-            latent_dim=point["latent_dim"], autoencoder_widths=" ".join(map(str, point["autoencoder_widths"])),
-            integrator_widths=" ".join(map(str, point["integrator_widths"])), decoder_parameters=parameter_count(ae.dec_branch) + parameter_count(ae.pca_out),
+            latent_dim=point["latent_dim"], autoencoder_widths=widths_label(point["autoencoder_widths"]),
+            integrator_widths=widths_label(point["integrator_widths"]), decoder_parameters=parameter_count(ae.dec_branch) + parameter_count(ae.pca_out),
             integrator_parameters=parameter_count(integ), sequence=name, frames=T, diverged_frame=div,
             mean_error=float(mean_e.mean()) if len(mean_e) else np.nan, max_error=float(max_e.max()) if len(max_e) else np.nan,
-            step_ms=timing["step_ms"], train_seconds=point["train_seconds"],
+            step_ms=timing["step_ms"], runtime=timing["runtime"], train_seconds=point["train_seconds"],
         ))  # fmt: skip
     st = dict(rollout.get("stability", {}))
     failed, n_conditions = [], 0
@@ -151,7 +159,9 @@ def choose(df: pd.DataFrame, tolerance: float) -> pd.DataFrame:
     # a CSV reads back an empty failure list as NaN (a float column when every entry is empty)
     df["stress_failures"] = df["stress_failures"].astype("string").fillna("") if "stress_failures" in df else ""
     keys = ["latent_dim", "autoencoder_widths", "integrator_widths"]
-    g = df.groupby(keys, sort=False).agg(
+    for k in keys[1:]:  # "16" reads back from a CSV as a number, "32 32" as a string
+        df[k] = df[k].astype(str)
+    g = df.groupby(keys, sort=False, dropna=False).agg(
         parameters=("parameters", "first"), mean_error=("mean_error", "max"), max_error=("max_error", "max"),
         diverged=("diverged_frame", lambda d: bool((d >= 0).any())), step_ms=("step_ms", "median"), train_seconds=("train_seconds", "first"),
         stress_conditions=("stress_conditions", "first"), stress_failed=("stress_failed", "first"), stress_failures=("stress_failures", "first"),
@@ -194,7 +204,7 @@ def sweep_chart(table: pd.DataFrame, tolerance: float, scene: str, path, method:
         v = v[np.isfinite(v) & (v > 0)]
         return len(v) > 1 and v.max() / v.min() >= 10.0
 
-    for ax, ylabel, col in zip(axes, ("worst mean vertex error / bbox diagonal", "ms per latent step (NumPy runtime)"), ("mean_error", "step_ms")):
+    for ax, ylabel, col in zip(axes, ("worst mean vertex error / bbox diagonal", "ms per latent step (fastest runtime)"), ("mean_error", "step_ms")):
         if wide(table["parameters"]):
             ax.set_xscale("log")
         if wide(table[col]):
