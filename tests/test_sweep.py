@@ -107,3 +107,18 @@ def test_sizes_table_compares_with_the_papers_size_where_the_sweep_trained_it(tm
         t = sizes_table({scene: own}, {scene: path}).set_index("scene")
         assert t.loc[scene, "reference_point"] == "latent 4; 200 200 200 / 32 32"  # the paper's (Table 2), not the largest
         assert t.loc[scene, "reference_error"] == pytest.approx(0.004) and t.loc[scene, "chosen_latent"] == 2
+
+
+def test_linear_and_single_width_points_survive_a_csv_round_trip(tmp_path):
+    """A linear autoencoder's point ("linear") and a one-layer one ("16", which a CSV reads back as a number)
+    keep their own rows through the CSV the stage writes; the linear one, smallest and within the tolerance,
+    is chosen."""
+    from latentsim.sweep import widths_label
+
+    assert widths_label([]) == "linear" and widths_label([32, 32]) == "32 32"
+    df = _rows([(2, "32 32", 900, [0.001], False), (2, "16", 300, [0.003], False), (2, widths_label([]), 60, [0.008], False)])
+    path = tmp_path / "metrics.csv"
+    df.to_csv(path, index=False)
+    t = choose(pd.read_csv(path), tolerance=0.01)
+    assert sorted(t["autoencoder_widths"]) == ["16", "32 32", "linear"]
+    assert t.loc[t["chosen"], "autoencoder_widths"].tolist() == ["linear"]
