@@ -47,10 +47,10 @@ __all__ = ["CompiledStepper", "available", "load_runtime"]
 # fastmath without "nnan"/"ninf": a diverging rollout must still produce the NaN that stops it
 _FAST = {"reassoc", "contract", "arcp", "nsz", "afn"}
 _JIT = {"cache": True, "nogil": True, "boundscheck": False, "fastmath": _FAST, "error_model": "numpy"}
-_CHUNK = 384  # output values per segment at most (a multiple of 3: whole vertices)
+_CHUNK = 384  # output values per chunk (a multiple of 3: whole vertices)
 _SILU_CLAMP = -80.0  # exp(80) is finite in float32; silu(a) ~ 0 below
 
-# the header of I: (name, index)
+# the header of I: the index of each entry
 _R, _K, _NINT, _NDEC, _MID, _RESID, _SCATTER, _W, _D, _TABLE, _SEG, _NSEG, _FREE, _SLOT, _DRUN, _NDRUN, _M, _FAST32, _CHK, _NCHK = range(20)
 _HLEN = 20
 # the per-layer flags
