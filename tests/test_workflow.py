@@ -147,6 +147,8 @@ def test_tiny_run_writes_tables_and_figures(tiny_run):
         assert (work / f"logs/sim/{scene}.log").read_text()
         assert (work / f"results/benchmarks/sim/{scene}.tsv").exists()
     assert (work / "results/evaluation/speed_accuracy.png").stat().st_size > 1000
+    assert list((work / "results/integrator").rglob("integrator.pt"))
+    assert not list((work / "results/integrator").rglob("checkpoint.pt"))  # a finished training leaves none
     choice = pd.read_csv(work / "results/sweep/tiny_cloth/choice.csv")
     assert sorted(choice["latent_dim"]) == [2, 4] and choice["chosen"].sum() <= 1
     assert (choice["method"] == "self_supervised").all()  # the loss its points trained with (sweep.method)

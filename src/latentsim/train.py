@@ -7,6 +7,7 @@ outputs), calls :mod:`latentsim.latent`, and writes its artefacts atomically.
 from __future__ import annotations
 
 import logging
+import os
 import time
 
 import h5py
@@ -121,6 +122,10 @@ def train_integrator(trajectories, ae_path, settings: dict, seed: int, device: s
         g.attrs["start_epoch"] = int(history["start_epoch"])
         write_dataset(g, "loss", np.asarray(history["loss"], dtype=np.float64))
         write_dataset(g, "latent_mse", np.asarray(history["latent_mse"], dtype=np.float64))
+    # the checkpoint serves a killed training only: left behind, a forced rerun of the same training would
+    # resume at its last epoch and record a training time of a second
+    if checkpoint is not None and os.path.exists(checkpoint):
+        os.remove(checkpoint)
 
 
 def time_steppers(steppers: dict, z1, z0, p, xD, repeats: int) -> dict:
