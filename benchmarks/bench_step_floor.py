@@ -44,11 +44,7 @@ def floor_stepper(f, latent: int, width: int, coordinates=None, seed: int = 0):
     name, seq = next(iter(test.items()))
     ae = Autoencoder(coords.dim, latent, [width], None).eval()
     integ = LatentIntegrator(latent, np.asarray(seq["bc"]).shape[-1], [width]).eval()
-    folded = runtime.fold_networks(ae, integ, coords)
-    steppers = {"numpy": runtime.NumpyStepper(folded)}
-    if runtime_compiled.available():
-        steppers["compiled"] = runtime_compiled.CompiledStepper(folded)
-    return steppers, name, seq, coords.mode
+    return runtime_compiled.deployable_steppers(runtime.fold_networks(ae, integ, coords)), name, seq, coords.mode
 
 
 def bench(path, latent: int, width: int, rounds: int, frames: int, repeats: int, coordinates=None) -> dict:
@@ -65,7 +61,7 @@ def bench(path, latent: int, width: int, rounds: int, frames: int, repeats: int,
             for k, st in steppers.items():
                 step[k].append(runtime.time_step(st, z, z, p, p, p, xD, repeats=repeats)["step_ms"])
     full_ms = float(np.median(full))
-    row = {"coordinates": mode, "dof": dof, "sequence": name, "full_ms": full_ms, "step_for_1000x_us": 1e3 * full_ms / 1000}
+    row = {"coordinates": mode, "dof": dof, "sequence": name, "full_ms": full_ms, "step_for_1000x_us": full_ms}  # full_ms / 1000 in us
     for k, s in step.items():
         step_ms = float(np.median(s))
         row[f"{k}_floor_us"] = 1e3 * step_ms

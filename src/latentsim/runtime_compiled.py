@@ -42,7 +42,7 @@ except ImportError:  # pragma: no cover - depends on the install
         return lambda f: f
 
 
-__all__ = ["CompiledStepper", "available", "load_runtime"]
+__all__ = ["CompiledStepper", "available", "deployable_steppers", "load_runtime"]
 
 # fastmath without "nnan"/"ninf": a diverging rollout must still produce the NaN that stops it
 _FAST = {"reassoc", "contract", "arcp", "nsz", "afn"}
@@ -372,3 +372,12 @@ class CompiledStepper:
 def load_runtime(path, dtype=np.float32) -> CompiledStepper:
     """The compiled stepper of an exported ``.npz`` runtime (:func:`latentsim.runtime.export_runtime`)."""
     return CompiledStepper(_read_npz(path), dtype=dtype)
+
+
+def deployable_steppers(folded: dict, dtype=np.float32) -> dict:
+    """{"numpy": NumpyStepper, "compiled": CompiledStepper (where numba imports)} of one folded runtime:
+    the deployable steppers that the rollout stage, the sweep and the floor benchmark time side by side."""
+    steppers = {"numpy": NumpyStepper(folded, dtype)}
+    if available():
+        steppers["compiled"] = CompiledStepper(folded, dtype)
+    return steppers

@@ -106,10 +106,8 @@ def measure_point(point: dict, rollout: dict, stress: bool = True) -> pd.DataFra
     """Roll out, time and stress-test a trained point (:func:`train_point`); one row per test sequence."""
     ae, integ, coords, train, tests, rest = (point[k] for k in ("ae", "integrator", "coords", "train", "tests", "rest"))
     diag = bbox_diagonal(rest)
-    folded = runtime.fold_networks(ae, integ, coords)
-    steppers = {"numpy": runtime.NumpyStepper(folded)}
-    if runtime_compiled.available():  # as the rollout stage: the fastest deployable runtime is timed
-        steppers["compiled"] = runtime_compiled.CompiledStepper(folded)
+    # as the rollout stage: the fastest deployable runtime is timed
+    steppers = runtime_compiled.deployable_steppers(runtime.fold_networks(ae, integ, coords))
     rows = []
     for name, s in tests.items():
         x, xD = torch.as_tensor(s["positions"]), torch.as_tensor(s["dirichlet_positions"])

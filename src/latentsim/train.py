@@ -229,10 +229,8 @@ def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out, m
         npz, pt = runtime_paths
         runtime.export_runtime(ae, integ, coords, npz)
         runtime.export_runtime(ae, integ, coords, pt)
-        steppers["numpy"] = runtime.load_runtime(npz)
+        steppers.update(runtime_compiled.deployable_steppers(runtime._read_npz(npz)))  # numpy, compiled: from the file
         steppers["torchscript"] = runtime.load_runtime(pt)
-        if runtime_compiled.available():
-            steppers["compiled"] = runtime_compiled.load_runtime(npz)
     with atomic_h5(out, config=settings) as g:
         for k, v in attrs.items():
             g.attrs[k] = v
