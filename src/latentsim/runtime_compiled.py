@@ -51,8 +51,8 @@ _CHUNK = 384  # output values per chunk (a multiple of 3: whole vertices)
 _SILU_CLAMP = -80.0  # exp(80) is finite in float32; silu(a) ~ 0 below
 
 # the header of I: the index of each entry
-_R, _K, _NINT, _NDEC, _MID, _RESID, _SCATTER, _W, _D, _TABLE, _SEG, _NSEG, _FREE, _SLOT, _DRUN, _NDRUN, _M, _FAST32, _CHK, _NCHK = range(20)
-_HLEN = 20
+_R, _K, _NINT, _NDEC, _MID, _RESID, _SCATTER, _W, _D, _TABLE, _SEG, _NSEG, _FREE, _SLOT, _DRUN, _NDRUN, _M, _FAST32, _CHK, _NCHK, _FUSED = range(21)
+_HLEN = 21
 # the per-layer flags
 F_SILU, F_SKIP = 1, 2
 
@@ -178,15 +178,27 @@ def _kernel(F, I, S, z1, z2, p0, p1, p2, xD, x, zout, what):
     h = S[src : src + nin]
     buf = S[3 * w + r : 3 * w + r + _CHUNK]
     # the Dirichlet mean, the origin of the segments that have no root of their own
-    m = I[_M]
+    m, fused = I[_M], I[_FUSED]
     o0 = o1 = o2 = 0.0
-    if m:
+    xf, xDf = x.reshape(-1), xD.reshape(-1)
+    dr = I[_DRUN]
+    if fused:  # the prescribed vertices are the mean's and are copied back: one pass over xD does both
+        for g in range(I[_NDRUN]):
+            v0, j0, cnt = I[dr + 3 * g], I[dr + 3 * g + 1], I[dr + 3 * g + 2]
+            xo, xi = x[v0 : v0 + cnt], xD[j0 : j0 + cnt]
+            for j in range(cnt):
+                t0, t1, t2 = xi[j, 0], xi[j, 1], xi[j, 2]
+                xo[j, 0], xo[j, 1], xo[j, 2] = t0, t1, t2
+                o0 += t0
+                o1 += t1
+                o2 += t2
+        o0, o1, o2 = o0 / m, o1 / m, o2 / m
+    elif m:
         for j in range(m):
             o0 += xD[j, 0]
             o1 += xD[j, 1]
             o2 += xD[j, 2]
         o0, o1, o2 = o0 / m, o1 / m, o2 / m
-    xf, xDf = x.reshape(-1), xD.reshape(-1)
     ck, sg = I[_CHK], I[_SEG]
     for g in range(I[_NCHK]):
         c0, c1, r0, r1 = I[ck + 4 * g], I[ck + 4 * g + 1], I[ck + 4 * g + 2], I[ck + 4 * g + 3]
@@ -194,17 +206,20 @@ def _kernel(F, I, S, z1, z2, p0, p1, p2, xD, x, zout, what):
         u = buf[:nc]
         _accumulate(A, h, nin, c0, c1, u)
         if I[_SCATTER]:  # the free vertices' rows, each to its vertex
-            fr = I[_FREE]
-            q0, q1, q2 = o0, o1, o2
-            for j in range(0, nc, 3):
-                f = (c0 + j) // 3
-                v = I[fr + f]
-                if I[_SLOT] >= 0:  # roots: each free vertex's own root
-                    s = I[I[_SLOT] + f]
-                    q0, q1, q2 = xD[s, 0], xD[s, 1], xD[s, 2]
-                x[v, 0] = u[j] + q0
-                x[v, 1] = u[j + 1] + q1
-                x[v, 2] = u[j + 2] + q2
+            vs = I[I[_FREE] + c0 // 3 : I[_FREE] + c1 // 3]
+            if I[_SLOT] >= 0:  # roots: each free vertex's own root
+                ss = I[I[_SLOT] + c0 // 3 : I[_SLOT] + c1 // 3]
+                for f in range(nc // 3):
+                    v, s = vs[f], ss[f]
+                    x[v, 0] = u[3 * f] + xD[s, 0]
+                    x[v, 1] = u[3 * f + 1] + xD[s, 1]
+                    x[v, 2] = u[3 * f + 2] + xD[s, 2]
+            else:
+                for f in range(nc // 3):
+                    v = vs[f]
+                    x[v, 0] = u[3 * f] + o0
+                    x[v, 1] = u[3 * f + 1] + o1
+                    x[v, 2] = u[3 * f + 2] + o2
             continue
         for rr in range(r0, r1):  # the chunk's runs of one origin: the mean, or one rod's root
             s0, s1, sl = I[sg + 3 * rr], I[sg + 3 * rr + 1], I[sg + 3 * rr + 2]
@@ -215,8 +230,9 @@ def _kernel(F, I, S, z1, z2, p0, p1, p2, xD, x, zout, what):
                 xo[j, 0] = uo[3 * j] + q0
                 xo[j, 1] = uo[3 * j + 1] + q1
                 xo[j, 2] = uo[3 * j + 2] + q2
+    if fused:
+        return
     # the prescribed vertices themselves, in runs (vertex, slot, count) of consecutive indices
-    dr = I[_DRUN]
     for g in range(I[_NDRUN]):
         v0, j0, cnt = 3 * I[dr + 3 * g], 3 * I[dr + 3 * g + 1], 3 * I[dr + 3 * g + 2]
         xo, xi = xf[v0 : v0 + cnt], xDf[j0 : j0 + cnt]
@@ -319,6 +335,9 @@ class CompiledStepper:
         hdr[[_R, _K, _NINT, _NDEC, _MID, _RESID, _SCATTER, _W, _D]] = [self.r, self.k, self.n_integrator_layers, len(ref._dec_A),
                                                                        int(ref.mid), int(ref.residual), int(scatter), w, D]  # fmt: skip
         hdr[_M] = m if not roots else 0  # the mean origin: not used with roots
+        # hard_mean, scattered: the mean summed while copying the prescribed vertices back, before the free
+        # ones are written (in the full layout the output layer also writes the prescribed ones: copied after)
+        hdr[_FUSED] = int(copy_back and scatter and not roots and m > 0)
         hdr[_FAST32] = int(self.dtype == np.float32)  # float32 networks: SiLU without a libm call (_silu32)
         parts, at = [hdr, table.reshape(-1)], _HLEN + table.size
         hdr[_TABLE] = _HLEN
@@ -329,6 +348,7 @@ class CompiledStepper:
         hdr[_NCHK], hdr[_NSEG], hdr[_NDRUN] = len(chunks), len(seg), len(druns)
         self._I = np.concatenate(parts).astype(np.int64)
         self.chunks, self.segments, self.dirichlet_runs = len(chunks), len(seg), len(druns)
+        self.fused_mean = bool(hdr[_FUSED])  # the mean summed in the copy-back pass (hard_mean, scattered)
         self._S = np.zeros(3 * w + self.r + _CHUNK, dtype=self.dtype)
         self._z = np.zeros(self.r, dtype=self.dtype)
         self._x = np.zeros((self.n, 3))
