@@ -13,6 +13,12 @@ Timed in the same process as full-space Newton frames of the scene's first test 
 stage times them), in interleaved rounds, one thread. Prints the full-space ms, the floor step in us,
 the floor's speed-up, and the step a 1000x speed-up would need, for the NumPy runtime and the compiled
 one (``latentsim.runtime_compiled``, one numba kernel call per step).
+
+Below both (at ``--latent 2``, the default and the smallest latent any scene uses), ``bare``: a latent-2
+linear decoder's arithmetic alone, ``x = A[2] + z_0 A[0] + z_1 A[1]`` over every DoF in one compiled pass
+(float32 weights, float64 positions; no integrator, no origins, no prescribed vertices, one call). A step
+that decodes the scene's DoF from a latent of 2 or more does at least this work, so ``bare_floor_speedup``
+bounds what any such network can reach on this machine.
 """
 
 from __future__ import annotations
@@ -24,6 +30,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("MKL_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+import time  # noqa: E402
+
 import h5py  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
@@ -33,6 +41,39 @@ from latentsim import runtime, runtime_compiled  # noqa: E402
 from latentsim.config import load_config  # noqa: E402
 from latentsim.latent import Autoencoder, LatentIntegrator  # noqa: E402
 from latentsim.train import coordinates_for, load_sequences, time_full_space  # noqa: E402
+
+
+try:
+    from numba import njit  # noqa: E402
+except ImportError:  # pragma: no cover - numba is pinned; without it the bare bound is not printed
+    njit = None
+
+if njit is not None:
+
+    @njit(boundscheck=False, fastmath={"reassoc", "contract", "arcp", "nsz", "afn"}, cache=True)
+    def _bare_decode(A, z, x):
+        """x[:] = A[2] + z[0] A[0] + z[1] A[1]: a latent-2 linear decoder's arithmetic and memory traffic in one
+        pass over contiguous rows (it vectorises), nothing else."""
+        a0, a1, b = A[0], A[1], A[2]
+        z0, z1 = z[0], z[1]
+        for j in range(x.shape[0]):
+            x[j] = b[j] + z0 * a0[j] + z1 * a1[j]
+
+
+def time_bare(dof: int, repeats: int, seed: int = 0) -> float | None:
+    """Median us of :func:`_bare_decode` on ``dof`` outputs (one call at a time, as ``runtime.time_step``)."""
+    if njit is None:
+        return None
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((3, dof)).astype(np.float32)
+    z, x = rng.standard_normal(2).astype(np.float32), np.empty(dof)
+    _bare_decode(A, z, x)
+    ts = []
+    for _ in range(max(int(repeats), 1)):
+        t0 = time.perf_counter()
+        _bare_decode(A, z, x)
+        ts.append(time.perf_counter() - t0)
+    return 1e6 * float(np.median(ts))
 
 
 def floor_stepper(f, latent: int, width: int, coordinates=None, seed: int = 0):
@@ -56,10 +97,14 @@ def bench(path, latent: int, width: int, rounds: int, frames: int, repeats: int,
         p = np.asarray(seq["bc"][-1], np.float32)
         xD = np.ascontiguousarray(seq["dirichlet_positions"][-1], np.float64)
         full, step = [], {k: [] for k in steppers}
+        if njit is not None and latent == 2:
+            step["bare"] = []
         for _ in range(rounds):
             full.append(time_full_space(f, name, frames)["full_ms"])
             for k, st in steppers.items():
                 step[k].append(runtime.time_step(st, z, z, p, p, p, xD, repeats=repeats)["step_ms"])
+            if "bare" in step:
+                step["bare"].append(1e-3 * time_bare(dof, repeats))
     full_ms = float(np.median(full))
     row = {"coordinates": mode, "dof": dof, "sequence": name, "full_ms": full_ms, "step_for_1000x_us": full_ms}  # full_ms / 1000 in us
     for k, s in step.items():
