@@ -1,13 +1,17 @@
-"""The NumPy latent runtime against an earlier revision's, on the pipeline's trained runtimes.
+"""A latent runtime against an earlier revision's, on the pipeline's trained runtimes.
 
-Loads ``src/latentsim/runtime.py`` as it was at ``--against`` (``git show``) beside the working
-tree's, and times one whole latent step (integration + decoding to every vertex) of each scene's
-exported runtime (``<results>/rollout/<scene>/<method>/runtime.npz``) with both.  The two alternate
-in rounds, so that the shared machine's noise hits both alike; the figures are medians over the
-rounds of each round's median.  One thread, float32 networks, as the rollout stage times them.
+Loads ``src/latentsim/runtime.py`` (``--runtime numpy``, the default) or ``runtime_compiled.py``
+(``--runtime compiled``) as it was at ``--against`` (``git show``) beside the working tree's, and
+times one whole latent step (integration + decoding to every vertex) of each scene's exported
+runtime (``<results>/rollout/<scene>/<method>/runtime.npz``, or the files given with ``--npz``)
+with both.  The two alternate in rounds, so that the shared machine's noise hits both alike; the
+figures are medians over the rounds of each round's median.  One thread, float32 networks, as the
+rollout stage times them.
 
     python benchmarks/bench_runtime_ab.py --against 068298f [--results results] [--scenes armadillo cloth]
     python benchmarks/bench_runtime_ab.py --against HEAD~1 --rounds 7 --repeats 2000
+    python benchmarks/bench_step_floor.py bunny_ears hair_rotation --export floors   # untrained floor networks
+    python benchmarks/bench_runtime_ab.py --runtime compiled --against 9e32a90 --npz floors/*.npz
 
 Prints, per scene: the relative-coordinate mode, the decode layout, both step times [us], their
 ratio, and the largest difference between the two runtimes' decoded positions.
@@ -33,15 +37,28 @@ import pandas as pd  # noqa: E402
 from latentsim import runtime as current  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-RUNTIME = "src/latentsim/runtime.py"
+RUNTIMES = {"numpy": "src/latentsim/runtime.py", "compiled": "src/latentsim/runtime_compiled.py"}
 
 
-def load_revision(rev: str, root: Path = ROOT):
-    """``latentsim.runtime`` as it was at git revision ``rev``, as a separate module."""
+def current_module(kind: str = "numpy"):
+    """The working tree's runtime module of that kind."""
+    if kind == "compiled":
+        from latentsim import runtime_compiled
+
+        if not runtime_compiled.available():
+            raise SystemExit("--runtime compiled needs numba (pinned in envs/requirements.txt)")
+        return runtime_compiled
+    return current
+
+
+def load_revision(rev: str, root: Path = ROOT, kind: str = "numpy"):
+    """The runtime module of that kind (``latentsim.runtime`` or ``latentsim.runtime_compiled``) as it was at git
+    revision ``rev``, as a separate module."""
+    source = RUNTIMES[kind]
     try:
-        text = subprocess.run(["git", "show", f"{rev}:{RUNTIME}"], cwd=root, check=True, capture_output=True, text=True).stdout
+        text = subprocess.run(["git", "show", f"{rev}:{source}"], cwd=root, check=True, capture_output=True, text=True).stdout
     except subprocess.CalledProcessError as e:
-        raise SystemExit(f"git show {rev}:{RUNTIME} failed: {e.stderr.strip()}") from e
+        raise SystemExit(f"git show {rev}:{source} failed: {e.stderr.strip()}") from e
     path = Path(tempfile.mkdtemp()) / "runtime_rev.py"
     path.write_text(text)
     spec = importlib.util.spec_from_file_location("latentsim._runtime_rev", path)
@@ -60,9 +77,9 @@ def compare(npz, old, new=current, rounds: int = 5, repeats: int = 1000, seed: i
     """Time one step of the runtime file ``npz`` with modules ``old`` and ``new``, alternating."""
     a, b = old.load_runtime(npz), new.load_runtime(npz)
     rng = np.random.default_rng(seed)
-    z = (0.1 * rng.standard_normal(a.r)).astype(np.float32)
-    p = rng.standard_normal(a.k).astype(np.float32)
-    xD = np.ascontiguousarray(rng.standard_normal((len(a.dirichlet), 3)))
+    z = (0.1 * rng.standard_normal(b.r)).astype(np.float32)
+    p = rng.standard_normal(b.k).astype(np.float32)
+    xD = np.ascontiguousarray(rng.standard_normal((len(b.dirichlet), 3)))  # an older compiled stepper may not list them
     xa = a.step(z, z, p, p, p, xD)[1].copy()
     xb = b.step(z, z, p, p, p, xD)[1].copy()
     ta, tb = [], []
@@ -82,21 +99,26 @@ def main(argv=None) -> pd.DataFrame:
     ap.add_argument("--scenes", nargs="*", help="default: every scene with a runtime file")
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--repeats", type=int, default=1000)
+    ap.add_argument("--runtime", choices=sorted(RUNTIMES), default="numpy", help="which runtime module to compare")
+    ap.add_argument("--npz", nargs="+", type=Path, help="runtime files to time instead of the pipeline's (named by their stem)")
     args = ap.parse_args(argv)
-    base = Path(args.results) / "rollout"
-    scenes = args.scenes or sorted(p.parent.parent.name for p in base.glob(f"*/{args.method}/runtime.npz"))
-    if not scenes:
-        raise SystemExit(f"no {base}/<scene>/{args.method}/runtime.npz: run the rollout stage first")
-    old = load_revision(args.against)
+    if args.npz:
+        files = {p.stem: p for p in args.npz}
+    else:
+        base = Path(args.results) / "rollout"
+        scenes = args.scenes or sorted(p.parent.parent.name for p in base.glob(f"*/{args.method}/runtime.npz"))
+        if not scenes:
+            raise SystemExit(f"no {base}/<scene>/{args.method}/runtime.npz: run the rollout stage first")
+        files = {scene: base / scene / args.method / "runtime.npz" for scene in scenes}
+    old, new = load_revision(args.against, kind=args.runtime), current_module(args.runtime)
     rows = []
-    for scene in scenes:
-        npz = base / scene / args.method / "runtime.npz"
+    for scene, npz in files.items():
         if not npz.exists():
             raise SystemExit(f"{npz}: no such runtime file")
-        rows.append({"scene": scene, **compare(npz, old, rounds=args.rounds, repeats=args.repeats)})
+        rows.append({"scene": scene, **compare(npz, old, new, rounds=args.rounds, repeats=args.repeats)})
         print(f"{scene}: {rows[-1]}", file=sys.stderr)
     df = pd.DataFrame(rows)
-    print(f"one step, us (median of {args.rounds} alternating rounds of {args.repeats}); old = {args.against}")
+    print(f"one step, us, {args.runtime} runtime (median of {args.rounds} alternating rounds of {args.repeats}); old = {args.against}")
     print(df.to_markdown(index=False, floatfmt=".3g"))
     return df
 

@@ -1,7 +1,7 @@
 """The floor of a latent step against a full-space frame: can any network reach 1000x on a scene?
 
     python benchmarks/bench_step_floor.py cloth hair_rotation hair_translation bunny_ears armadillo \\
-        [--results results] [--config config/config.yaml] [--latent 2] [--width 8]
+        [--results results] [--config config/config.yaml] [--latent 2] [--width 8] [--export DIR]
 
 For each scene, from its simulated trajectories (``<results>/sim/<scene>/trajectories.h5``; run
 ``snakemake --cores 2 results/sim/<scene>/trajectories.h5`` first), an untrained network far smaller
@@ -76,22 +76,25 @@ def time_bare(dof: int, repeats: int, seed: int = 0) -> float | None:
     return 1e6 * float(np.median(ts))
 
 
-def floor_stepper(f, latent: int, width: int, coordinates=None, seed: int = 0):
+def floor_stepper(f, latent: int, width: int, coordinates=None, seed: int = 0, export=None):
     """Steppers (NumPy, and compiled where numba imports) of a minimal untrained autoencoder + integrator on the scene of the open trajectories.h5
-    (``coordinates``: the autoencoder's, as the config's ``autoencoder.coordinates``)."""
+    (``coordinates``: the autoencoder's, as the config's ``autoencoder.coordinates``); ``export``: also write it as
+    a runtime file there (``runtime.export_runtime``), for ``bench_runtime_ab.py --npz``."""
     torch.manual_seed(seed)
     coords = coordinates_for(f, coordinates)
     test = load_sequences(f, "test")
     name, seq = next(iter(test.items()))
     ae = Autoencoder(coords.dim, latent, [width], None).eval()
     integ = LatentIntegrator(latent, np.asarray(seq["bc"]).shape[-1], [width]).eval()
+    if export is not None:
+        runtime.export_runtime(ae, integ, coords, export)
     return runtime_compiled.deployable_steppers(runtime.fold_networks(ae, integ, coords)), name, seq, coords.mode
 
 
-def bench(path, latent: int, width: int, rounds: int, frames: int, repeats: int, coordinates=None) -> dict:
+def bench(path, latent: int, width: int, rounds: int, frames: int, repeats: int, coordinates=None, export=None) -> dict:
     """Full-space ms and each runtime's floor step (us) and speed-up, medians of interleaved rounds."""
     with h5py.File(path, "r") as f:
-        steppers, name, seq, mode = floor_stepper(f, latent, width, coordinates)
+        steppers, name, seq, mode = floor_stepper(f, latent, width, coordinates, export=export)
         dof = int(f["rest_positions"].size)
         z = np.zeros(latent, np.float32)
         p = np.asarray(seq["bc"][-1], np.float32)
@@ -124,6 +127,7 @@ def main():
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--full-frames", type=int, default=20)
     ap.add_argument("--repeats", type=int, default=500)
+    ap.add_argument("--export", metavar="DIR", help="also write each scene's floor network as DIR/<scene>.npz")
     args = ap.parse_args()
     torch.set_num_threads(1)
     cfg = load_config(args.config)
@@ -135,7 +139,8 @@ def main():
         if scene not in cfg["scenes"]:
             raise SystemExit(f"{args.config}: no scene '{scene}'")
         coordinates = cfg["scenes"][scene]["autoencoder"].get("coordinates")
-        row = bench(path, args.latent, args.width, args.rounds, args.full_frames, args.repeats, coordinates)
+        export = os.path.join(args.export, f"{scene}.npz") if args.export else None
+        row = bench(path, args.latent, args.width, args.rounds, args.full_frames, args.repeats, coordinates, export)
         rows.append({"scene": scene, **row})
         print(pd.DataFrame(rows[-1:]).to_string(index=False, float_format=lambda v: f"{v:.4g}"), flush=True)
     print(f"\nlatent {args.latent}, a linear decoder, one hidden layer of {args.width} in the integrator, medians of {args.rounds} rounds:")

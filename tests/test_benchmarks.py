@@ -64,3 +64,13 @@ def test_runtime_ab_times_a_revisions_runtime_beside_the_working_trees(tmp_path)
     row = ab.compare(tmp_path / "runtime.npz", old, rounds=2, repeats=5)
     assert row["mode"] == "mean" and np.isfinite(row["speedup"]) and row["old_us"] > 0 and row["new_us"] > 0
     assert row["max_dx"] < 1e-5
+    # --runtime compiled: runtime_compiled.py from git beside the working tree's, on a file named with --npz
+    from latentsim import runtime_compiled
+
+    if runtime_compiled.available():
+        old_c = ab.load_revision("HEAD", kind="compiled")
+        assert old_c is not runtime_compiled and hasattr(old_c, "CompiledStepper")
+        row = ab.compare(tmp_path / "runtime.npz", old_c, ab.current_module("compiled"), rounds=2, repeats=5)
+        assert row["old_us"] > 0 and row["new_us"] > 0 and row["max_dx"] < 1e-5
+        df = ab.main(["--against", "HEAD", "--runtime", "compiled", "--npz", str(tmp_path / "runtime.npz"), "--rounds", "1", "--repeats", "3"])
+        assert df["scene"].tolist() == ["runtime"] and df.loc[0, "max_dx"] < 1e-5

@@ -533,11 +533,13 @@ def test_compiled_runtime_replays_the_rollout_and_is_timed(tiny_run, scene):
     assert np.abs(np.diff(X[:T], axis=0)).max() > 1e-3 * scale  # the frames move: a replay, not a constant
     bench = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks/bench_step_floor.py"), scene, "--results", str(work / "results"), "--config", str(TINY),
-         "--rounds", "1", "--full-frames", "2", "--repeats", "5"],
+         "--rounds", "1", "--full-frames", "2", "--repeats", "5", "--export", str(work / "floors")],
         capture_output=True, text=True, timeout=300, env=dict(os.environ, PYTHONPATH=str(ROOT / "src")),
     )  # fmt: skip
     assert bench.returncode == 0, bench.stderr
-    assert "compiled_floor_speedup" in bench.stdout and scene in bench.stdout
+    assert "compiled_floor_speedup" in bench.stdout and "bare_floor_speedup" in bench.stdout and scene in bench.stdout
+    floor = runtime_compiled.load_runtime(work / "floors" / f"{scene}.npz")  # the floor network, as a runtime file
+    assert floor.r == 2 and floor.n == X.shape[1]
 
 
 @pytest.mark.parametrize("caption", sorted((ROOT / "workflow" / "report").glob("*.rst")), ids=lambda p: p.name)

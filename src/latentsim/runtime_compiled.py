@@ -307,7 +307,7 @@ class CompiledStepper:
         layers.append((out_A, 0))
         w = max([2 * self.r + 3 * self.k] + [max(A.shape[0] - 1, A.shape[1]) for A, _ in layers[:-1]])
         D = out_A.shape[1]
-        dirichlet = np.asarray(ref.dirichlet, np.int64)
+        dirichlet = self.dirichlet = np.asarray(ref.dirichlet, np.int64)
         m = len(dirichlet)
         # segments of the output layer: (first value, end, root slot or -1 for the Dirichlet mean)
         roots = ref.mode == "roots"
