@@ -25,12 +25,11 @@ from __future__ import annotations
 
 import argparse
 import os
+from functools import partial
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("MKL_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-
-import time  # noqa: E402
 
 import h5py  # noqa: E402
 import numpy as np  # noqa: E402
@@ -43,12 +42,8 @@ from latentsim.latent import Autoencoder, LatentIntegrator  # noqa: E402
 from latentsim.train import coordinates_for, load_sequences, time_full_space  # noqa: E402
 
 
-try:
-    from numba import njit  # noqa: E402
-except ImportError:  # pragma: no cover - numba is pinned; without it the bare bound is not printed
-    njit = None
-
-if njit is not None:
+if runtime_compiled.available():  # numba is pinned; without it the bare bound is not printed
+    from numba import njit
 
     @njit(boundscheck=False, fastmath={"reassoc", "contract", "arcp", "nsz", "afn"}, cache=True)
     def _bare_decode(A, z, x):
@@ -60,20 +55,12 @@ if njit is not None:
             x[j] = b[j] + z0 * a0[j] + z1 * a1[j]
 
 
-def time_bare(dof: int, repeats: int, seed: int = 0) -> float | None:
-    """Median us of :func:`_bare_decode` on ``dof`` outputs (one call at a time, as ``runtime.time_step``)."""
-    if njit is None:
-        return None
+def time_bare_ms(dof: int, repeats: int, seed: int = 0) -> float:
+    """Median ms of :func:`_bare_decode` on ``dof`` outputs, one call at a time (``runtime.time_jvp``)."""
     rng = np.random.default_rng(seed)
     A = rng.standard_normal((3, dof)).astype(np.float32)
     z, x = rng.standard_normal(2).astype(np.float32), np.empty(dof)
-    _bare_decode(A, z, x)
-    ts = []
-    for _ in range(max(int(repeats), 1)):
-        t0 = time.perf_counter()
-        _bare_decode(A, z, x)
-        ts.append(time.perf_counter() - t0)
-    return 1e6 * float(np.median(ts))
+    return runtime.time_jvp(partial(_bare_decode, A, z, x), repeats=repeats)  # partial: no Python frame per call
 
 
 def floor_stepper(f, latent: int, width: int, coordinates=None, seed: int = 0, export=None):
@@ -100,14 +87,14 @@ def bench(path, latent: int, width: int, rounds: int, frames: int, repeats: int,
         p = np.asarray(seq["bc"][-1], np.float32)
         xD = np.ascontiguousarray(seq["dirichlet_positions"][-1], np.float64)
         full, step = [], {k: [] for k in steppers}
-        if njit is not None and latent == 2:
+        if runtime_compiled.available() and latent == 2:
             step["bare"] = []
         for _ in range(rounds):
             full.append(time_full_space(f, name, frames)["full_ms"])
             for k, st in steppers.items():
                 step[k].append(runtime.time_step(st, z, z, p, p, p, xD, repeats=repeats)["step_ms"])
             if "bare" in step:
-                step["bare"].append(1e-3 * time_bare(dof, repeats))
+                step["bare"].append(time_bare_ms(dof, repeats))
     full_ms = float(np.median(full))
     row = {"coordinates": mode, "dof": dof, "sequence": name, "full_ms": full_ms, "step_for_1000x_us": full_ms}  # full_ms / 1000 in us
     for k, s in step.items():
