@@ -62,16 +62,16 @@ from latentsim.latent import (
     load_autoencoder,
     load_integrator,
 )
-from latentsim.paper import LI2025_TABLE1, LI2025_TABLE2
-from latentsim.prepare import prepare_mesh
-from latentsim.reduced import (
+from latentsim.report.paper import LI2025_TABLE1, LI2025_TABLE2
+from latentsim.stages.mesh import prepare_mesh
+from latentsim.solve.reduced import (
     DecoderSubspace,
     ReducedImplicitEuler,
     ReducedSettings,
     reduced_rollout,
 )
 from latentsim.scene import BC_DIM, bc_parameters, build_potential, dirichlet_trajectory
-from latentsim.simulate import read_mesh_arrays
+from latentsim.stages.simulate import read_mesh_arrays
 
 ROOT = Path(__file__).resolve().parents[1]
 

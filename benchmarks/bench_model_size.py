@@ -25,8 +25,8 @@ import torch  # noqa: E402
 
 from latentsim import runtime  # noqa: E402
 from latentsim.config import integrator_settings, load_config  # noqa: E402
-from latentsim.sweep import measure_point, train_point  # noqa: E402
-from latentsim.train import time_full_space  # noqa: E402
+from latentsim.latent.sweep import measure_point, train_point  # noqa: E402
+from latentsim.stages.train import time_full_space  # noqa: E402
 
 
 def main():

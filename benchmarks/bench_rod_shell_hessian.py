@@ -21,10 +21,10 @@ import time
 import numpy as np
 import torch
 
-from latentsim.energy import kernels
-from latentsim.energy.base import autograd_gradient_hessian
-from latentsim.energy.rods import RodBend, RodStretch, rod_stiffness, rod_topology
-from latentsim.energy.shells import ShellHinge, ShellMembraneStVK, hinges_from_triangles
+from latentsim.physics import kernels
+from latentsim.physics.base import autograd_gradient_hessian
+from latentsim.physics.rods import RodBend, RodStretch, rod_stiffness, rod_topology
+from latentsim.physics.shells import ShellHinge, ShellMembraneStVK, hinges_from_triangles
 
 
 def grid(nx, ny, size=1.0):

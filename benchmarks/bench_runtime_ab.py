@@ -43,7 +43,7 @@ RUNTIMES = {"numpy": "src/latentsim/runtime.py", "compiled": "src/latentsim/runt
 def current_module(kind: str = "numpy"):
     """The working tree's runtime module of that kind."""
     if kind == "compiled":
-        from latentsim import runtime_compiled
+        from latentsim.runtime import compiled as runtime_compiled
 
         if not runtime_compiled.available():
             raise SystemExit("--runtime compiled needs numba (pinned in envs/requirements.txt)")
@@ -52,7 +52,7 @@ def current_module(kind: str = "numpy"):
 
 
 def load_revision(rev: str, root: Path = ROOT, kind: str = "numpy"):
-    """The runtime module of that kind (``latentsim.runtime`` or ``latentsim.runtime_compiled``) as it was at git
+    """The runtime module of that kind (``latentsim.runtime`` or ``latentsim.runtime.compiled``) as it was at git
     revision ``rev``, as a separate module."""
     source = RUNTIMES[kind]
     try:

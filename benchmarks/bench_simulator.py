@@ -46,11 +46,11 @@ import numpy as np
 import torch
 
 from latentsim.config import load_config
-from latentsim.prepare import prepare_mesh
+from latentsim.stages.mesh import prepare_mesh
 from latentsim.scene import bc_parameters, build_potential, dirichlet_trajectory
-from latentsim.simulate import read_mesh_arrays
-from latentsim.solver import ImplicitEuler, NewtonSettings
-from latentsim.sparse import BandedUpper
+from latentsim.stages.simulate import read_mesh_arrays
+from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings
+from latentsim.solve.sparse import BandedUpper
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_MS = {"hair_rotation": 268.0, "hair_translation": 208.0, "cloth": 18.83, "armadillo": 136.8, "bunny_ears": 112.6}
@@ -138,7 +138,7 @@ def compare_solvers(pattern, U, g, repeats=3):
     """ms of factorisation + solve of the same SPD matrix by each available method."""
     import scipy.sparse.linalg
 
-    from latentsim.sparse import LinearSolver, symmetric_from_upper
+    from latentsim.solve.sparse import LinearSolver, symmetric_from_upper
 
     out = {}
     methods = ["pardiso", "splu"] + (["banded"] if pattern.bandwidth <= LinearSolver.BANDED_MAX else [])
@@ -172,7 +172,7 @@ def against_artefact(path, frames):
     import h5py
 
     from latentsim.io import read_config_attr
-    from latentsim.simulate import simulate_sequence
+    from latentsim.stages.simulate import simulate_sequence
 
     with h5py.File(path, "r") as f:
         cfg = read_config_attr(f)

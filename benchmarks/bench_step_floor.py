@@ -12,7 +12,7 @@ through the output layer, so its time is a floor under every trained model's ste
 Timed in the same process as full-space Newton frames of the scene's first test sequence (``train.time_full_space``, as the rollout
 stage times them), in interleaved rounds, one thread. Prints the full-space ms, the floor step in us,
 the floor's speed-up, and the step a 1000x speed-up would need, for the NumPy runtime and the compiled
-one (``latentsim.runtime_compiled``, one numba kernel call per step).
+one (``latentsim.runtime.compiled``, one numba kernel call per step).
 
 Below both (at ``--latent 2``, the default and the smallest latent any scene uses), ``bare``: a latent-2
 linear decoder's arithmetic alone, ``x = A[2] + z_0 A[0] + z_1 A[1]`` over every DoF in one compiled pass
@@ -36,10 +36,11 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 import torch  # noqa: E402
 
-from latentsim import runtime, runtime_compiled  # noqa: E402
+from latentsim import runtime  # noqa: E402
+from latentsim.runtime import compiled as runtime_compiled
 from latentsim.config import load_config  # noqa: E402
 from latentsim.latent import Autoencoder, LatentIntegrator  # noqa: E402
-from latentsim.train import coordinates_for, load_sequences, time_full_space  # noqa: E402
+from latentsim.stages.train import coordinates_for, load_sequences, time_full_space  # noqa: E402
 
 
 if runtime_compiled.available():  # numba is pinned; without it the bare bound is not printed

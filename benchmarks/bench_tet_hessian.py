@@ -16,9 +16,9 @@ import time
 import numpy as np
 import torch
 
-from latentsim.energy import kernels
-from latentsim.energy.base import autograd_gradient_hessian
-from latentsim.energy.tets import StVKTets, rotation_variant_svd
+from latentsim.physics import kernels
+from latentsim.physics.base import autograd_gradient_hessian
+from latentsim.physics.tets import StVKTets, rotation_variant_svd
 
 
 def load_mesh(path):

@@ -24,7 +24,8 @@ import h5py
 import numpy as np
 import pandas as pd
 
-from latentsim import plots, render
+from latentsim.report import plots
+from latentsim.report import render
 
 
 def _frames_to_show(T: int, diverged: int, k=4) -> list[int]:

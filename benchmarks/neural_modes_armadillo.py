@@ -5,7 +5,7 @@
     nice python benchmarks/neural_modes_armadillo.py --samples 260         # 180 / 20 / 60, the same split ratios
 
 The pipeline's rules nm_ground_truth and nm_energy_table do this for every scene whose
-``nm_study.energy`` is enabled; this script calls the same functions (``latentsim.nm_energy``) with the
+``nm_study.energy`` is enabled; this script calls the same functions (``latentsim.neural_modes.energy_study``) with the
 sample count from the command line.  Samples modal coordinates uniformly in the scene's modal box,
 solves the ground truth of each (Eq. 9: minimum elastic energy with l^T y = 0, the held feet fixed;
 constrained Newton) and splits them in order 900 / 100 / 300 (train / validation / test; scaled with
@@ -28,9 +28,10 @@ import numpy as np
 import torch
 
 from latentsim import neural_modes as nm
-from latentsim import nm_energy, nm_sheet
+from latentsim.neural_modes import energy_study as nm_energy
+from latentsim.neural_modes import sheet as nm_sheet
 from latentsim.config import load_config
-from latentsim.nm_pipeline import read_linear_modes, scene_potential
+from latentsim.stages.neural_modes import read_linear_modes, scene_potential
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = "nm_armadillo"

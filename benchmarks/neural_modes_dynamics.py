@@ -4,12 +4,12 @@
 
 The pipeline's rule nm_dynamics does this for every scene whose ``nm_study.dynamics`` is enabled (and
 writes the rolled-out positions and ParaView series); this script calls the same function
-(``latentsim.nm_dynamics.subspace_dynamics``) and prints its rows.  Needs, per scene, the full simulation
+(``latentsim.neural_modes.dynamics.subspace_dynamics``) and prints its rows.  Needs, per scene, the full simulation
 (results/sim/{scene}/trajectories.h5) and the trained Neural Modes (results/neural_modes/{scene}/
 neural_modes.pt, rule nm_train).  Replays the first test sequence's prescribed Dirichlet motion in the
-subspace with the reduced implicit-Euler solver (latentsim.reduced): Neural Modes with L-BFGS (as the
+subspace with the reduced implicit-Euler solver (latentsim.solve.reduced): Neural Modes with L-BFGS (as the
 paper) and with Gauss-Newton on the reduced Hessian J^T H J (the paper's future work), and the linear
-modes alone with Gauss-Newton, each with every element and with a cubature (latentsim.cubature) fitted
+modes alone with Gauss-Newton, each with every element and with a cubature (latentsim.solve.cubature) fitted
 to each subspace's reduced elastic forces at poses drawn in the scene's Neural Modes training box
 (data-free, like the modes).  Prints ms/step (median and mean), iterations per step, the position error
 against the full simulation (mean and max over frames of the RMS vertex error, relative to the rest
@@ -32,7 +32,7 @@ import torch
 
 from latentsim.config import load_config
 from latentsim.neural_modes import load_neural_modes
-from latentsim.nm_dynamics import subspace_dynamics
+from latentsim.neural_modes.dynamics import subspace_dynamics
 
 ROOT = Path(__file__).resolve().parents[1]
 

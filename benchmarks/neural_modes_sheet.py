@@ -6,7 +6,7 @@
 
 The pipeline's stages (rules nm_ground_truth, nm_sheet_study, nm_sheet_tables; the nm_sheet scene's
 ``nm_study.sheet`` block) do the same with the scene's mesh and settings; this script calls the same
-functions (``latentsim.nm_sheet``) on the shared square.obj with sizes from the command line.  The sheet
+functions (``latentsim.neural_modes.sheet``) on the shared square.obj with sizes from the command line.  The sheet
 is the Neural Modes square (121 vertices, 200 triangles, free-floating as in the paper's released sheet
 setup), with the material of the ``nm_sheet`` scene in config/config.yaml and its ``neural_modes`` block
 (modes, box, widths, lambda, eta).  Ground truth (Eq. 9) is solved once per set of sizes and cached in
@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from latentsim import neural_modes as nm
-from latentsim import nm_sheet
+from latentsim.neural_modes import sheet as nm_sheet
 from latentsim.config import load_config
 from latentsim.mesh import read_mesh
 from latentsim.scene import build_potential

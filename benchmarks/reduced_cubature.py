@@ -4,7 +4,7 @@
 
 Needs the scene's full simulation and autoencoder (rules simulate, train_autoencoder).  For the PCA
 subspace and the autoencoder's decoder (Fulton et al. 2019), fits a cubature of the elastic forces
-(latentsim.cubature) at the projections of the training frames, as the pipeline's baselines do with
+(latentsim.solve.cubature) at the projections of the training frames, as the pipeline's baselines do with
 ``reduced.cubature_tolerance``, and rolls the first test sequence out from its first two frames.
 Tolerance 0 evaluates every element.  Prints, per run: cubature elements, its force error on the
 training poses, fit seconds, ms/step (median), iterations/step, the RMS vertex error / bbox diagonal
@@ -26,11 +26,12 @@ import h5py
 import numpy as np
 import torch
 
-from latentsim import latent, reduced
-from latentsim.baselines import fit_subspace_cubature, make_subspace
-from latentsim.cubature import cubature_potential
+from latentsim import latent
+from latentsim.solve import reduced
+from latentsim.latent.baselines import fit_subspace_cubature, make_subspace
+from latentsim.solve.cubature import cubature_potential
 from latentsim.scene import potential_from_artefact
-from latentsim.train import coordinates_for, load_sequences, time_full_space
+from latentsim.stages.train import coordinates_for, load_sequences, time_full_space
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -22,7 +22,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from . import __version__
+from latentsim import __version__
 
 
 @contextlib.contextmanager

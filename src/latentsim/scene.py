@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .energy.dynamics import IncrementalPotential
+from latentsim.physics.incremental_potential import IncrementalPotential
 
 BC_DIM = 6
 
@@ -109,7 +109,7 @@ def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity
     Y = float(material["youngs_modulus"])
     rho = float(material["density"])
     if model == "rods":
-        from .energy import rods
+        from latentsim.physics import rods
 
         edges = torch.as_tensor(np.asarray(arrays["edges"], dtype=np.int64))
         triples = torch.as_tensor(np.asarray(arrays["triples"], dtype=np.int64))
@@ -118,7 +118,7 @@ def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity
         terms = [rods.RodStretch(X, active(edges), ks), rods.RodBend(X, active(triples), kb)]
         masses = rods.lumped_masses_rods(X, edges, rho, r)
     elif model == "shell":
-        from .energy import shells
+        from latentsim.physics import shells
 
         tris = torch.as_tensor(np.asarray(arrays["triangles"], dtype=np.int64))
         h = float(material["thickness"])
@@ -132,7 +132,7 @@ def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity
         ]
         masses = shells.lumped_masses_shell(X, tris, rho, h)
     elif model == "tets":
-        from .energy import tets
+        from latentsim.physics import tets
 
         T = torch.as_tensor(np.asarray(arrays["tets"], dtype=np.int64))
         terms = [tets.StVKTets(X, active(T), Y, float(material["poisson_ratio"]))]

@@ -3,10 +3,10 @@ import json
 
 from snakemake.exceptions import WorkflowError
 
-from latentsim import nm_pipeline
-from latentsim.baselines import BASELINES
-from latentsim.evaluate import layers_text
-from latentsim.sweep import parse_label, point_label
+from latentsim.stages import neural_modes as nm_pipeline
+from latentsim.latent.baselines import BASELINES
+from latentsim.report.evaluate import layers_text
+from latentsim.latent.sweep import parse_label, point_label
 from latentsim.config import (
     ConfigError,
     autoencoder_dir,

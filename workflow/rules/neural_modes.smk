@@ -2,8 +2,8 @@
 # and the paper's evaluation studies that a scene's nm_study block switches on.
 from functools import partial
 
-from latentsim import nm_pipeline
-from latentsim.nm_dynamics import DYNAMICS_METHODS
+from latentsim.stages import neural_modes as nm_pipeline
+from latentsim.neural_modes.dynamics import DYNAMICS_METHODS
 
 NM_SCENES = sorted(s for s in SCENES if config["scenes"][s].get("paper") == "wang2024")
 

@@ -1,6 +1,6 @@
-"""Stage: per-scene evaluation of the rollout against the full simulation (see latentsim.evaluate)."""
-from latentsim.evaluate import evaluate_scene, plot_curves, reconstruction_table, speed_accuracy_rows, stress_table, write_table
-from latentsim.plots import speed_accuracy_chart
+"""Stage: per-scene evaluation of the rollout against the full simulation (see latentsim.report.evaluate)."""
+from latentsim.report.evaluate import evaluate_scene, plot_curves, reconstruction_table, speed_accuracy_rows, stress_table, write_table
+from latentsim.report.plots import speed_accuracy_chart
 from latentsim.utils import run_stage
 
 

@@ -1,5 +1,5 @@
-"""Stage: Neural Modes conditioned on a sheet's aspect ratio, Sec. 4.3 / Fig. A2 (see latentsim.nm_pipeline.aspect_stage)."""
-from latentsim.nm_pipeline import aspect_stage
+"""Stage: Neural Modes conditioned on a sheet's aspect ratio, Sec. 4.3 / Fig. A2 (see latentsim.stages.neural_modes.aspect_stage)."""
+from latentsim.stages.neural_modes import aspect_stage
 from latentsim.utils import progress_enabled, run_stage
 
 

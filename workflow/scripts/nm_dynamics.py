@@ -1,5 +1,5 @@
-"""Stage: subspace dynamics of Neural Modes and linear modes (see latentsim.nm_pipeline.dynamics_stage)."""
-from latentsim.nm_pipeline import dynamics_stage
+"""Stage: subspace dynamics of Neural Modes and linear modes (see latentsim.stages.neural_modes.dynamics_stage)."""
+from latentsim.stages.neural_modes import dynamics_stage
 from latentsim.utils import progress_enabled, run_stage
 
 

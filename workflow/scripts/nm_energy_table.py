@@ -1,5 +1,5 @@
-"""Stage: Table 5, PCA+AE against Neural Modes on a solid (see latentsim.nm_pipeline.energy_table_stage)."""
-from latentsim.nm_pipeline import energy_table_stage
+"""Stage: Table 5, PCA+AE against Neural Modes on a solid (see latentsim.stages.neural_modes.energy_table_stage)."""
+from latentsim.stages.neural_modes import energy_table_stage
 from latentsim.utils import progress_enabled, run_stage
 
 

@@ -1,5 +1,5 @@
-"""Stage: ground truth (Eq. 9) of a Neural Modes study's sample sets (see latentsim.nm_pipeline.ground_truth_stage)."""
-from latentsim.nm_pipeline import ground_truth_stage
+"""Stage: ground truth (Eq. 9) of a Neural Modes study's sample sets (see latentsim.stages.neural_modes.ground_truth_stage)."""
+from latentsim.stages.neural_modes import ground_truth_stage
 from latentsim.utils import progress_enabled, run_stage
 
 

@@ -1,5 +1,5 @@
-"""Stage: keyframing in modal coordinates, Fig. 6 (see latentsim.nm_pipeline.keyframes_stage)."""
-from latentsim.nm_pipeline import keyframes_stage
+"""Stage: keyframing in modal coordinates, Fig. 6 (see latentsim.stages.neural_modes.keyframes_stage)."""
+from latentsim.stages.neural_modes import keyframes_stage
 from latentsim.utils import run_stage
 
 

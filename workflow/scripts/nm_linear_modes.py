@@ -1,5 +1,5 @@
-"""Stage: linear modes of a wang2024 scene (see latentsim.nm_pipeline.linear_modes_stage)."""
-from latentsim.nm_pipeline import linear_modes_stage
+"""Stage: linear modes of a wang2024 scene (see latentsim.stages.neural_modes.linear_modes_stage)."""
+from latentsim.stages.neural_modes import linear_modes_stage
 from latentsim.utils import run_stage
 
 

@@ -1,5 +1,5 @@
-"""Stage: the Neural Modes sheet study, every method along its training (see latentsim.nm_pipeline.sheet_study_stage)."""
-from latentsim.nm_pipeline import sheet_study_stage
+"""Stage: the Neural Modes sheet study, every method along its training (see latentsim.stages.neural_modes.sheet_study_stage)."""
+from latentsim.stages.neural_modes import sheet_study_stage
 from latentsim.utils import progress_enabled, run_stage
 
 

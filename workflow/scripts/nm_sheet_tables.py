@@ -1,5 +1,5 @@
-"""Stage: Tables 2, 3, 4, A1 and Figs. 2, 3, 4 of the sheet study (see latentsim.nm_pipeline.sheet_tables_stage)."""
-from latentsim.nm_pipeline import sheet_tables_stage
+"""Stage: Tables 2, 3, 4, A1 and Figs. 2, 3, 4 of the sheet study (see latentsim.stages.neural_modes.sheet_tables_stage)."""
+from latentsim.stages.neural_modes import sheet_tables_stage
 from latentsim.utils import run_stage
 
 

@@ -1,5 +1,5 @@
-"""Stage: Neural Modes summary across scenes (see latentsim.nm_pipeline.summary_stage)."""
-from latentsim.nm_pipeline import summary_stage
+"""Stage: Neural Modes summary across scenes (see latentsim.stages.neural_modes.summary_stage)."""
+from latentsim.stages.neural_modes import summary_stage
 from latentsim.utils import run_stage
 
 

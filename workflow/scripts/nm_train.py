@@ -1,5 +1,5 @@
-"""Stage: Neural Modes training (see latentsim.nm_pipeline.train_stage)."""
-from latentsim.nm_pipeline import train_stage
+"""Stage: Neural Modes training (see latentsim.stages.neural_modes.train_stage)."""
+from latentsim.stages.neural_modes import train_stage
 from latentsim.utils import run_stage
 
 

@@ -1,5 +1,5 @@
-"""Stage: mesh preparation (see latentsim.prepare)."""
-from latentsim.prepare import prepare_mesh
+"""Stage: mesh preparation (see latentsim.stages.mesh)."""
+from latentsim.stages.mesh import prepare_mesh
 from latentsim.utils import run_stage
 
 

@@ -1,5 +1,5 @@
-"""Stage: full-space simulation (see latentsim.simulate)."""
-from latentsim.simulate import simulate_scene
+"""Stage: full-space simulation (see latentsim.stages.simulate)."""
+from latentsim.stages.simulate import simulate_scene
 from latentsim.utils import progress_enabled, run_stage
 
 

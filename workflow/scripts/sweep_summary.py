@@ -1,8 +1,8 @@
-"""Stage: the sizing sweep's choice and chart (see latentsim.sweep.choose)."""
+"""Stage: the sizing sweep's choice and chart (see latentsim.latent.sweep.choose)."""
 import pandas as pd
 
-from latentsim.evaluate import write_table
-from latentsim.sweep import choose, sweep_chart
+from latentsim.report.evaluate import write_table
+from latentsim.latent.sweep import choose, sweep_chart
 from latentsim.utils import run_stage
 
 

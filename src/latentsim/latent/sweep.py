@@ -1,0 +1,218 @@
+"""Model no more than a scene needs: a sizing sweep over latent dimension and network size.
+
+Each sweep point trains the scene's autoencoder and self-supervised latent
+integrator at one latent dimension and one pair of layer widths (everything
+else as the scene's config says), rolls the integrator out on the test
+sequences and records the error against the full simulation, the frames
+survived and the time of one step with the fastest deployable runtime (NumPy, or the
+compiled one where numba imports).  With
+``stress`` on, it also runs the scene's stress conditions (those of the
+rollout stage's stability map, :func:`latentsim.latent.stability.stress_test`): a test
+sequence alone cannot tell a model that holds from one that fails at twice the
+boundary speed (the armadillo's 64-wide latent-12 point did).  The summary
+picks the smallest model (fewest parameters) whose mean vertex error stays
+within the scene's tolerance on every test sequence without diverging, and
+that survives every stress condition.
+"""
+
+from __future__ import annotations
+
+import time
+
+import h5py
+import numpy as np
+import pandas as pd
+import torch
+
+from latentsim import latent
+from latentsim import runtime
+from latentsim.runtime import compiled as runtime_compiled
+from latentsim.latent import stability
+from latentsim.report.evaluate import bbox_diagonal, vertex_errors, write_table
+from latentsim.scene import potential_from_artefact
+from latentsim.stages.train import coordinates_for, load_sequences, time_steppers
+
+
+def point_label(latent_dim: int, size: int) -> str:
+    """Wildcard value of a sweep point: ``r{latent_dim}_s{size index}``."""
+    return f"r{int(latent_dim)}_s{int(size)}"
+
+
+def parse_label(label: str) -> tuple[int, int]:
+    """Inverse of :func:`point_label`."""
+    r, s = label.split("_")
+    if not (r.startswith("r") and s.startswith("s")):
+        raise ValueError(f"sweep point label {label!r}: expected r<latent_dim>_s<size index>")
+    return int(r[1:]), int(s[1:])
+
+
+def widths_label(widths) -> str:
+    """Hidden widths as the sweep's tables write them: ``"32 32"``, or ``"linear"`` for none (a linear
+    autoencoder; an empty string would read back from the CSV as NaN and drop out of a groupby)."""
+    return " ".join(map(str, widths)) or "linear"
+
+
+def parameter_count(module: torch.nn.Module) -> int:
+    return int(sum(p.numel() for p in module.parameters()))
+
+
+def sweep_point(trajectories, autoencoder: dict, integrator: dict, rollout: dict, seed: int, out_csv, device="cpu",
+                stress: bool = True) -> pd.DataFrame:  # fmt: skip
+    """Train, roll out and measure one model size; one CSV row per test sequence.
+
+    Parameters
+    ----------
+    trajectories : the simulator's ``trajectories.h5``.
+    autoencoder, integrator : full settings of this point (the scene's, with
+        latent_dim and widths replaced).
+    rollout : the scene's rollout settings (``max_extent``, ``timing_repeats``,
+        ``stability``).
+    stress : run the stress conditions of ``rollout["stability"]`` (unless
+        that says ``enabled: false``) on the first test sequence.  Every row
+        gets ``stress_conditions`` (how many ran), ``stress_failed`` (how many
+        the model did not survive) and ``stress_failures`` (``name@frame``).
+    """
+    point = train_point(trajectories, autoencoder, integrator, seed, device=device)
+    df = measure_point(point, rollout, stress=stress)
+    write_table(df, out_csv)
+    return df
+
+
+def train_point(trajectories, autoencoder: dict, integrator: dict, seed: int, device="cpu") -> dict:
+    """Train one model size on a scene's training sequences (see :func:`sweep_point`).
+
+    Returns the eval-mode autoencoder ``ae`` and integrator ``integrator`` (on
+    the CPU), their ``coords``, the scene's ``train`` and ``tests`` sequences,
+    ``rest`` positions, ``dirichlet`` indices, ``dt``, and ``train_seconds``;
+    :func:`measure_point` takes it.
+    """
+    ae_cfg = dict(autoencoder)
+    with h5py.File(trajectories, "r") as f:
+        coords = coordinates_for(f, ae_cfg.pop("coordinates", None))
+        train = load_sequences(f, "train")
+        tests = load_sequences(f, "test")
+        potential = potential_from_artefact(f)
+        rest = f["rest_positions"][()]
+        dirichlet, dt = f["dirichlet"][()], float(f.attrs["dt"])
+    U = torch.cat([coords.encode(torch.as_tensor(s["positions"]), torch.as_tensor(s["dirichlet_positions"])) for s in train.values()])
+    ae_cfg["pca_dim"] = ae_cfg.get("pca_dim") or None
+    t0 = time.perf_counter()
+    ae, _ = latent.fit_autoencoder(U.to(torch.float32), ae_cfg, seed=seed, device=device)
+    ae = ae.cpu().eval()
+    integ, _ = latent.fit_integrator(ae, coords, potential, list(train.values()), dict(integrator), seed=seed, device=device)
+    return dict(ae=ae, integrator=integ.cpu().eval(), coords=coords, train=train, tests=tests, rest=rest, dirichlet=dirichlet, dt=dt,
+                train_seconds=time.perf_counter() - t0, latent_dim=int(autoencoder["latent_dim"]),
+                autoencoder_widths=list(autoencoder["widths"]), integrator_widths=list(integrator["widths"]))  # fmt: skip
+
+
+def measure_point(point: dict, rollout: dict, stress: bool = True) -> pd.DataFrame:
+    """Roll out, time and stress-test a trained point (:func:`train_point`); one row per test sequence."""
+    ae, integ, coords, train, tests, rest = (point[k] for k in ("ae", "integrator", "coords", "train", "tests", "rest"))
+    diag = bbox_diagonal(rest)
+    # as the rollout stage: the fastest deployable runtime is timed
+    steppers = runtime_compiled.deployable_steppers(runtime.fold_networks(ae, integ, coords))
+    rows = []
+    for name, s in tests.items():
+        x, xD = torch.as_tensor(s["positions"]), torch.as_tensor(s["dirichlet_positions"])
+        z = latent.encode_positions(ae, coords, x[:2], xD[:2])
+        res = latent.rollout(integ, ae, coords, z[0], z[1], torch.as_tensor(s["bc"]), xD,
+                             max_extent=float(rollout["max_extent"]), rest_positions=torch.as_tensor(rest))  # fmt: skip
+        T, div = len(x), int(res["diverged_frame"])
+        ok = slice(0, T if div < 0 else div)
+        mean_e, max_e = vertex_errors(res["positions"].numpy()[ok], s["positions"][ok], diag)
+        timing = time_steppers(steppers, z[1], z[0], s["bc"][-1], s["dirichlet_positions"][-1], int(rollout["timing_repeats"]))
+        rows.append(dict(
+            latent_dim=point["latent_dim"], autoencoder_widths=widths_label(point["autoencoder_widths"]),
+            integrator_widths=widths_label(point["integrator_widths"]), decoder_parameters=parameter_count(ae.dec_branch) + parameter_count(ae.pca_out),
+            integrator_parameters=parameter_count(integ), sequence=name, frames=T, diverged_frame=div,
+            mean_error=float(mean_e.mean()) if len(mean_e) else np.nan, max_error=float(max_e.max()) if len(max_e) else np.nan,
+            step_ms=timing["step_ms"], runtime=timing["runtime"], train_seconds=point["train_seconds"],
+        ))  # fmt: skip
+    st = dict(rollout.get("stability", {}))
+    failed, n_conditions = [], 0
+    if stress and st.get("enabled", True) and tests:
+        train_frames = max(len(s["positions"]) for s in train.values())
+        for c, res in stability.stress_test(integ, ae, coords, next(iter(tests.values())), rest, point["dirichlet"], point["dt"], train_frames, st,
+                                            float(rollout["max_extent"])):  # fmt: skip
+            n_conditions += 1
+            if res["survived"] < res["frames"]:
+                failed.append(f"{c.name}@{res['survived']}")
+    for row in rows:
+        row.update(stress_conditions=n_conditions, stress_failed=len(failed), stress_failures=" ".join(failed))
+    df = pd.DataFrame(rows)
+    df["parameters"] = df["decoder_parameters"] + df["integrator_parameters"]
+    return df
+
+
+def choose(df: pd.DataFrame, tolerance: float) -> pd.DataFrame:
+    """One row per sweep point (worst sequence), with ``passes`` and the ``chosen`` smallest passing point.
+
+    A point passes when no test sequence diverged, every sequence's mean
+    vertex error / bbox diagonal is at most ``tolerance`` and it failed no
+    stress condition (points measured without them, ``stress_conditions`` 0
+    or the columns absent, are judged on the test sequences alone); among
+    passing points the one with the fewest parameters (then the lowest latent
+    dimension, then the fastest step) is chosen.
+    """
+    df = df.copy()
+    for col in ("stress_conditions", "stress_failed"):
+        df[col] = df[col].fillna(0).astype(int) if col in df else 0
+    # a CSV reads back an empty failure list as NaN (a float column when every entry is empty)
+    df["stress_failures"] = df["stress_failures"].astype("string").fillna("") if "stress_failures" in df else ""
+    keys = ["latent_dim", "autoencoder_widths", "integrator_widths"]
+    for k in keys[1:]:  # "16" reads back from a CSV as a number, "32 32" as a string
+        df[k] = df[k].astype(str)
+    g = df.groupby(keys, sort=False, dropna=False).agg(
+        parameters=("parameters", "first"), mean_error=("mean_error", "max"), max_error=("max_error", "max"),
+        diverged=("diverged_frame", lambda d: bool((d >= 0).any())), step_ms=("step_ms", "median"), train_seconds=("train_seconds", "first"),
+        stress_conditions=("stress_conditions", "first"), stress_failed=("stress_failed", "first"), stress_failures=("stress_failures", "first"),
+    ).reset_index()  # fmt: skip
+    g["within_tolerance"] = (~g["diverged"]) & (g["mean_error"] <= tolerance)
+    g["passes"] = g["within_tolerance"] & (g["stress_failed"] == 0)
+    g["chosen"] = False
+    ok = g[g["passes"]].sort_values(["parameters", "latent_dim", "step_ms"])
+    if len(ok):
+        g.loc[ok.index[0], "chosen"] = True
+    return g
+
+
+def sweep_chart(table: pd.DataFrame, tolerance: float, scene: str, path, method: str = "self_supervised") -> None:
+    """Error and ms per step against parameter count, one marker per latent dimension; the choice circled.
+
+    ``method``: whose loss the points trained with (the config's ``sweep.method``), named in the title.
+    """
+    import matplotlib.pyplot as plt
+
+    from latentsim.report.plots import save_figure
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for k, (r, g) in enumerate(table.groupby("latent_dim")):
+        colour = f"C{k % 10}"
+        for diverged, h in g.groupby("diverged"):
+            axes[0].scatter(h["parameters"], h["mean_error"].clip(lower=1e-12), edgecolors=colour,
+                            facecolors="none" if diverged else colour, label=f"latent {r}" + (" (diverged)" if diverged else ""))  # fmt: skip
+        axes[1].scatter(g["parameters"], g["step_ms"], color=colour, label=f"latent {r}")
+    stressed = table[table["stress_failed"] > 0] if "stress_failed" in table else table.iloc[:0]
+    if len(stressed):
+        axes[0].scatter(stressed["parameters"], stressed["mean_error"], marker="x", s=80, color="r", label="fails a stress condition")
+    pick = table[table["chosen"]]
+    if len(pick):
+        axes[0].scatter(pick["parameters"], pick["mean_error"], s=250, facecolors="none", edgecolors="k", label="chosen")
+        axes[1].scatter(pick["parameters"], pick["step_ms"], s=250, facecolors="none", edgecolors="k", label="chosen")
+    axes[0].axhline(tolerance, color="r", ls="--", label="tolerance")
+    def wide(v):  # log axes only where the values span a decade or more
+        v = np.asarray(v, dtype=float)
+        v = v[np.isfinite(v) & (v > 0)]
+        return len(v) > 1 and v.max() / v.min() >= 10.0
+
+    for ax, ylabel, col in zip(axes, ("worst mean vertex error / bbox diagonal", "ms per latent step (fastest runtime)"), ("mean_error", "step_ms")):
+        if wide(table["parameters"]):
+            ax.set_xscale("log")
+        if wide(table[col]):
+            ax.set_yscale("log")
+        ax.set_xlabel("parameters (decoder + integrator)")
+        ax.set_ylabel(ylabel)
+        ax.legend(fontsize=7)
+    fig.suptitle(f"{scene}: sizing sweep, {method} loss (hollow: diverged on a test sequence; x: failed a stress condition)")
+    fig.tight_layout()
+    save_figure(fig, path)

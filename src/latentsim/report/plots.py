@@ -1,0 +1,514 @@
+"""Charts for the cross-method evaluation (matplotlib, Agg backend, no display).
+
+Every function takes plain arrays, a :class:`pandas.DataFrame` or artefact
+paths, writes one image atomically (:func:`latentsim.io.atomic_path`; the
+format follows the path's suffix, PNG by default) and returns what it drew, so
+tests and callers can check the numbers without reading pixels.
+
+- :func:`pareto_front`: non-dominated (faster *and* more accurate) points;
+- :func:`speed_accuracy_chart`: log ms/frame against log error per method,
+  Pareto front marked; one scene or small multiples across scenes;
+- :func:`stability_heatmap`: method x condition -> frames survived, with the
+  end boundary-condition error; diverged cells hatched;
+- :func:`energy_curves`: kinetic energy (and incremental potential) over time,
+  ground truth against methods (:func:`energy_curves_from_files` recomputes
+  the kinetic energy from trajectory files);
+- :func:`training_curves`: loss histories of several runs on one log axis.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+
+import h5py
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
+from matplotlib.lines import Line2D
+from matplotlib.ticker import NullFormatter
+
+from latentsim.io import ArtefactError, atomic_path, require
+
+__all__ = [
+    "energy_curves",
+    "energy_curves_from_files",
+    "method_colours",
+    "pareto_front",
+    "speed_accuracy_chart",
+    "stability_heatmap",
+    "training_curves",
+]
+
+
+def save_figure(fig, path, dpi=100):
+    """Save ``fig`` atomically to ``path`` (format from the suffix) and close it."""
+    path = Path(path)
+    fmt = path.suffix.lstrip(".").lower() or "png"
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format=fmt)
+    plt.close(fig)
+    return path
+
+
+def _require_columns(df: pd.DataFrame, columns, what: str):
+    missing = [c for c in columns if c not in df.columns]
+    if missing:
+        raise KeyError(f"{what}: DataFrame lacks column(s) {missing}; has {list(df.columns)}")
+
+
+def method_colours(methods) -> dict:
+    """Stable colour per method name (sorted order through the tab10/tab20 cycle)."""
+    names = sorted({str(m) for m in methods})
+    cmap = plt.get_cmap("tab10" if len(names) <= 10 else "tab20")
+    return {m: cmap(i % cmap.N) for i, m in enumerate(names)}
+
+
+# --------------------------------------------------------------------------- Pareto front
+
+
+def pareto_front(times, errors) -> np.ndarray:
+    """Mask of the non-dominated points (lower-left front: fast and accurate).
+
+    Point ``i`` is dominated when another point ``j`` is no slower and no less
+    accurate, and strictly better in one of the two.  Identical points do not
+    dominate each other (duplicates are all on the front).  Points whose time
+    or error is NaN or infinite (e.g. a diverged method) are never on the front
+    and dominate nothing.
+
+    Parameters
+    ----------
+    times : (p,) float
+        Cost per point, e.g. ms per frame.
+    errors : (p,) float
+        Error per point.
+
+    Returns
+    -------
+    on_front : (p,) bool
+    """
+    t = np.asarray(times, dtype=float).ravel()
+    e = np.asarray(errors, dtype=float).ravel()
+    if t.shape != e.shape:
+        raise ValueError(f"pareto_front: times {t.shape} and errors {e.shape} differ in length")
+    ok = np.isfinite(t) & np.isfinite(e)
+    tv, ev = t[ok], e[ok]
+    # dominated[i] = any_j (t_j <= t_i & e_j <= e_i & (t_j < t_i | e_j < e_i))
+    no_worse = (tv[None, :] <= tv[:, None]) & (ev[None, :] <= ev[:, None])
+    better = (tv[None, :] < tv[:, None]) | (ev[None, :] < ev[:, None])
+    dominated = (no_worse & better).any(axis=1)
+    mask = np.zeros(t.shape, dtype=bool)
+    mask[np.flatnonzero(ok)] = ~dominated
+    return mask
+
+
+# --------------------------------------------------------------------------- speed vs accuracy
+
+
+def _aggregate_methods(df: pd.DataFrame, error: str) -> pd.DataFrame:
+    """One row per (scene, method): median ms, mean error, earliest divergence."""
+    agg = {"ms_per_frame": ("ms_per_frame", "median"), error: (error, lambda s: s.mean(skipna=False))}
+    if "diverged_frame" in df.columns:
+        agg["diverged_frame"] = ("diverged_frame", lambda s: int(s[s >= 0].min()) if (s >= 0).any() else -1)
+    if "max_error" in df.columns and error != "max_error":
+        agg["max_error"] = ("max_error", lambda s: s.max(skipna=False))
+    if "sequence" in df.columns:
+        agg["sequences"] = ("sequence", "nunique")
+    out = df.groupby(["scene", "method"], sort=True).agg(**agg).reset_index()
+    if "diverged_frame" not in out.columns:
+        out["diverged_frame"] = -1
+    return out
+
+
+def _draw_speed_accuracy(ax, pts: pd.DataFrame, error: str, colours: dict, annotate=True):
+    """Scatter one scene's points on ``ax``; returns the points with ``on_front``."""
+    pts = pts.copy()
+    t = pts["ms_per_frame"].to_numpy(float)
+    e = pts[error].to_numpy(float)
+    diverged = pts["diverged_frame"].to_numpy() >= 0
+    # a diverged method's error covers only its frames before divergence: not comparable
+    eligible_e = np.where(diverged, np.nan, e)
+    pts["on_front"] = pareto_front(t, eligible_e)
+    positive = np.isfinite(e) & (e > 0)
+    floor = np.nanmin(e[positive]) / 3 if positive.any() else 1e-6
+    emax = pts["max_error"].to_numpy(float) if "max_error" in pts.columns else np.full(len(pts), np.nan)
+    top = np.concatenate([e[positive], emax[np.isfinite(emax) & (emax > 0)]])
+    ceil = top.max() * 3 if len(top) else 1.0
+    # exact (zero-error) rows sit on the bottom edge, failed (NaN) rows on the top edge
+    y = np.where(positive, e, np.where(e == 0, floor, ceil))
+    placed = []  # (log10 ms, log10 error) of the labels so far: a label near one moves up a line
+    for i, r in enumerate(pts.itertuples(index=False)):
+        c = colours[str(r.method)]
+        marker = "o" if positive[i] else ("v" if e[i] == 0 else "X")
+        face = "none" if diverged[i] else c
+        ax.scatter([t[i]], [y[i]], s=60, marker=marker, facecolors=face, edgecolors=[c], linewidths=1.5, zorder=3, clip_on=False)
+        if positive[i] and np.isfinite(emax[i]) and emax[i] > e[i]:
+            # whisker up to the max error (over frames and vertices)
+            ax.plot([t[i], t[i]], [e[i], emax[i]], color=c, lw=1.0, alpha=0.6, zorder=1)
+            ax.plot([t[i]], [emax[i]], marker="_", ms=8, color=c, alpha=0.8, zorder=1)
+        if pts["on_front"].iloc[i]:
+            ax.scatter([t[i]], [y[i]], s=190, marker="o", facecolors="none", edgecolors="k", linewidths=1.0, zorder=2, clip_on=False)
+        # small multiples name only the divergences (colours name the methods)
+        label = str(r.method) if annotate else ""
+        if diverged[i]:
+            label += f" (diverged @ {int(r.diverged_frame)})" if annotate else f"diverged @ {int(r.diverged_frame)}"
+        elif e[i] == 0 and annotate:
+            label += " (exact)"
+        if label:
+            at = (np.log10(max(t[i], 1e-300)), np.log10(max(y[i], 1e-300)))
+            near = sum(abs(at[0] - p[0]) < 0.5 and abs(at[1] - p[1]) < 0.25 for p in placed)
+            placed.append(at)
+            ax.annotate(label, (t[i], y[i]), xytext=(5, 4 + 9 * near), textcoords="offset points", fontsize=7)
+    front = pts["on_front"].to_numpy()
+    if front.any():
+        order = np.argsort(t[front], kind="stable")
+        ft, fy = t[front][order], y[front][order]
+        # staircase: the region a front point dominates extends right and up
+        ax.step(ft, fy, where="post", color="k", lw=1.0, ls="--", zorder=1, label="Pareto front")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_ylim(floor, ceil)
+    # whole decades: at least two labelled major ticks, and no labels on the minor ones (on a range
+    # under two decades matplotlib labels its minor ticks, which overlap)
+    ms = t[np.isfinite(t) & (t > 0)]
+    if len(ms):
+        ax.set_xlim(10.0 ** np.floor(np.log10(ms.min())), 10.0 ** np.ceil(np.log10(ms.max()) + 1e-9))
+    ax.xaxis.set_minor_formatter(NullFormatter())
+    ax.grid(True, which="both", alpha=0.25)
+    return pts
+
+
+def speed_accuracy_chart(df: pd.DataFrame, path, scene=None, error="mean_error", title=None, dpi=100) -> pd.DataFrame:
+    """Log ms per frame (x) against log error (y), one point per method, Pareto front marked.
+
+    Expected columns of ``df`` (one row per scene, method and, optionally, test sequence):
+
+    - ``scene`` (str), ``method`` (str);
+    - ``ms_per_frame`` (float > 0): wall time of one step [ms];
+    - ``mean_error`` (float): error relative to the bounding-box diagonal
+      (0 for the ground truth itself, drawn as a down triangle on the bottom
+      edge; NaN when not measurable, drawn as a cross on the top edge), or any
+      column named by ``error`` (e.g. ``max_error``);
+    - ``max_error`` (float, optional): drawn as a whisker above the point;
+    - ``diverged_frame`` (int, optional): first diverged frame, -1 when stable.
+      Diverged methods are drawn hollow, labelled with the frame, and kept off
+      the Pareto front (their error covers only the frames before divergence);
+    - ``sequence`` (str, optional).
+
+    Several rows of one (scene, method) are aggregated: median ms per frame,
+    mean of the error and max of ``max_error`` (NaN if any is NaN), earliest
+    divergence.  The Pareto front is computed on the error column only.
+
+    Parameters
+    ----------
+    df : DataFrame, columns as above.
+    path : output image (PNG unless the suffix says otherwise).
+    scene : str or None
+        One scene's chart; ``None`` draws small multiples, one panel per scene,
+        with one legend (colour = method across all panels).
+    error : str
+        Column used as the error axis.
+
+    Returns
+    -------
+    DataFrame
+        One row per (scene, method) as drawn, with ``ms_per_frame``, the error
+        column, ``diverged_frame`` and ``on_front`` (bool).
+    """
+    _require_columns(df, ["scene", "method", "ms_per_frame", error], "speed_accuracy_chart")
+    if df.empty:
+        raise ValueError("speed_accuracy_chart: empty DataFrame")
+    ms = df["ms_per_frame"].to_numpy(float)
+    if (ms[np.isfinite(ms)] <= 0).any():
+        bad = df.loc[np.isfinite(ms) & (ms <= 0), ["scene", "method"]].to_dict("records")
+        raise ValueError(f"speed_accuracy_chart: ms_per_frame must be > 0 (log axis); offending rows {bad}")
+    colours = method_colours(df["method"])
+    if scene is not None:
+        sub = df[df["scene"] == scene]
+        if sub.empty:
+            raise KeyError(f"speed_accuracy_chart: scene {scene!r} not in the DataFrame; scenes {sorted(df['scene'].unique())}")
+        scenes = [scene]
+    else:
+        sub = df
+        scenes = sorted(sub["scene"].unique())
+    pts = _aggregate_methods(sub, error)
+    ncol = min(len(scenes), 3)
+    nrow = -(-len(scenes) // ncol)
+    legend_width = 2.4 if scene is not None else 0.0  # one scene: the legend beside the axes, off the points
+    fig, axes = plt.subplots(nrow, ncol, figsize=(5.2 * ncol + legend_width, 4.2 * nrow), squeeze=False)
+    drawn = []
+    for k, s in enumerate(scenes):
+        ax = axes.flat[k]
+        drawn.append(_draw_speed_accuracy(ax, pts[pts["scene"] == s], error, colours, annotate=scene is not None))
+        ax.set_title(s if scene is None else (title or f"{s}: speed vs accuracy"))
+        ax.set_xlabel("ms per frame")
+        ax.set_ylabel(f"{error.replace('_', ' ')} / bbox diagonal")
+    for ax in axes.flat[len(scenes):]:
+        ax.set_visible(False)
+    handles = [Line2D([], [], marker="o", ls="", color=c, label=m) for m, c in colours.items() if m in set(pts["method"])]
+    handles += [
+        Line2D([], [], marker="o", ls="", mfc="none", mec="k", ms=11, label="on the Pareto front"),
+        Line2D([], [], marker="o", ls="", mfc="none", mec="grey", label="diverged (hollow)"),
+        Line2D([], [], color="k", ls="--", label="Pareto front"),
+    ]
+    if scene is None:
+        fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 5), fontsize=8, frameon=False)
+        fig.suptitle(title or "speed vs accuracy per scene")
+        fig.tight_layout(rect=(0, 0.06 + 0.02 * (len(handles) // 5), 1, 0.97))
+    else:
+        axes[0, 0].legend(handles=handles, fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False)
+        fig.tight_layout()
+    save_figure(fig, path, dpi=dpi)
+    return pd.concat(drawn, ignore_index=True)
+
+
+# --------------------------------------------------------------------------- stability map
+
+
+def stability_heatmap(df: pd.DataFrame, path, title="stability: frames survived", dpi=100) -> dict:
+    """Heat map method (rows) x condition (columns) -> frames survived.
+
+    Expected columns of ``df`` (one row per method and condition):
+
+    - ``method`` (str), ``condition`` (str, e.g. ``"speed x5"``, ``"10x longer"``);
+    - ``frames_survived`` (int): frames before divergence (all frames if stable);
+    - ``frames`` (int, optional): length of the condition's rollout; when
+      given, the colour is the fraction survived (conditions of different
+      length compare), otherwise the frame count itself;
+    - ``bc_error`` (float, optional): Dirichlet error at the last surviving
+      frame (relative to the bbox diagonal), printed under the count;
+    - ``diverged`` (bool, optional): otherwise ``diverged_frame >= 0`` when that
+      column exists, otherwise ``frames_survived < frames``.
+
+    Diverged cells are hatched and their count is printed with a cross;
+    method/condition pairs with no row are grey and marked ``n/a``.
+
+    Returns
+    -------
+    dict with ``methods`` (rows, in first-appearance order), ``conditions``
+    (columns), ``frames`` (R,C) float (frames survived, NaN where missing),
+    ``colour`` (R,C) float (the values coloured), ``bc_error`` (R,C) float and
+    ``diverged`` (R,C) bool.
+    """
+    _require_columns(df, ["method", "condition", "frames_survived"], "stability_heatmap")
+    if df.empty:
+        raise ValueError("stability_heatmap: empty DataFrame")
+    dup = df.duplicated(["method", "condition"], keep=False)
+    if dup.any():
+        pairs = df.loc[dup, ["method", "condition"]].drop_duplicates().to_records(index=False).tolist()
+        raise ValueError(f"stability_heatmap: several rows for (method, condition) {pairs}")
+    methods = list(dict.fromkeys(df["method"].astype(str)))
+    conditions = list(dict.fromkeys(df["condition"].astype(str)))
+    R, C = len(methods), len(conditions)
+    frames = np.full((R, C), np.nan)
+    total = np.full((R, C), np.nan)
+    bc = np.full((R, C), np.nan)
+    diverged = np.zeros((R, C), dtype=bool)
+    for r in df.itertuples(index=False):
+        i, j = methods.index(str(r.method)), conditions.index(str(r.condition))
+        frames[i, j] = float(r.frames_survived)
+        if "frames" in df.columns:
+            total[i, j] = float(r.frames)
+        if "bc_error" in df.columns:
+            bc[i, j] = float(r.bc_error)
+        if "diverged" in df.columns:
+            diverged[i, j] = bool(r.diverged)
+        elif "diverged_frame" in df.columns:
+            diverged[i, j] = int(r.diverged_frame) >= 0
+        elif "frames" in df.columns:
+            diverged[i, j] = r.frames_survived < r.frames
+    relative = "frames" in df.columns
+    colour = frames / total if relative else frames
+    fig, ax = plt.subplots(figsize=(3.0 + 1.3 * C, 2.2 + 0.75 * R), layout="constrained")
+    cmap = plt.get_cmap("viridis").with_extremes(bad="0.85")
+    vmax = 1.0 if relative else np.nanmax(frames)
+    im = ax.imshow(np.ma.masked_invalid(colour), cmap=cmap, vmin=0.0, vmax=vmax, aspect="auto")
+    for i in range(R):
+        for j in range(C):
+            if np.isnan(frames[i, j]):
+                ax.text(j, i, "n/a", ha="center", va="center", fontsize=8, color="0.3")
+                continue
+            if diverged[i, j]:
+                ax.add_patch(plt.Rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, hatch="//", edgecolor="red", lw=1.5))
+            dark = colour[i, j] < 0.6 * vmax
+            text = f"{'✗ ' if diverged[i, j] else ''}{int(frames[i, j])}"
+            if not np.isnan(bc[i, j]):
+                text += f"\nBC {bc[i, j]:.1e}"
+            ax.text(
+                j, i, text, ha="center", va="center", fontsize=8, color="white" if dark else "black",
+                bbox={"boxstyle": "round,pad=0.15", "fc": "red", "alpha": 0.55, "lw": 0} if diverged[i, j] else None,
+            )
+    ax.set_xticks(range(C), conditions, rotation=30, ha="right", fontsize=8)
+    ax.set_yticks(range(R), methods, fontsize=8)
+    ax.set_title(title)
+    fig.colorbar(
+        im, ax=ax, label="fraction of frames survived" if relative else "frames survived", fraction=0.04, pad=0.02
+    )
+    save_figure(fig, path, dpi=dpi)
+    return {"methods": methods, "conditions": conditions, "frames": frames, "colour": colour, "bc_error": bc, "diverged": diverged}
+
+
+# --------------------------------------------------------------------------- energies
+
+
+_ENERGY_LABELS = {
+    "kinetic": "kinetic energy [J]",
+    "incremental_potential": "incremental potential [J]",
+}
+
+
+def energy_curves(series: Mapping, path, dt: float, reference="ground truth", title=None, dpi=100) -> dict:
+    """Energies over time, ground truth against methods, one panel per quantity.
+
+    Parameters
+    ----------
+    series : mapping name -> mapping quantity -> (T,) float
+        Quantities ``kinetic`` and/or ``incremental_potential`` (any other key
+        gets its own panel too); lengths may differ between names (e.g. a
+        10x-longer rollout). NaN entries (after divergence) are not drawn; the
+        last finite value of a curve that stops early is marked with a cross.
+    path : output image.
+    dt : float
+        Time step [s]; the x axis is time.
+    reference : str
+        Name in ``series`` drawn as the thick black reference line.
+
+    Returns
+    -------
+    dict quantity -> list of the names drawn in that panel.
+    """
+    if not series:
+        raise ValueError("energy_curves: no series")
+    if reference is not None and reference not in series:
+        raise KeyError(f"energy_curves: reference {reference!r} not in series {list(series)}")
+    quantities = list(dict.fromkeys(q for s in series.values() for q in s))
+    if not quantities:
+        raise ValueError("energy_curves: every series is empty")
+    colours = method_colours([n for n in series if n != reference])
+    fig, axes = plt.subplots(len(quantities), 1, figsize=(7, 2.8 * len(quantities)), squeeze=False, sharex=True)
+    drawn = {}
+    for ax, q in zip(axes[:, 0], quantities):
+        drawn[q] = []
+        for name, s in series.items():
+            if q not in s:
+                continue
+            y = np.asarray(s[q], dtype=float)
+            if y.ndim != 1:
+                raise ValueError(f"energy_curves: series {name!r} quantity {q!r} has shape {y.shape}, expected (T,)")
+            t = np.arange(len(y)) * dt
+            is_ref = name == reference
+            # the reference underneath, wide and grey, so a method that matches it stays visible
+            style = {"color": "0.55", "lw": 3.0, "zorder": 1} if is_ref else {"color": colours[name], "lw": 1.2, "ls": "--", "zorder": 2}
+            ax.plot(t, y, label=name, **style)
+            fin = np.flatnonzero(np.isfinite(y))
+            if len(fin) and fin[-1] < len(y) - 1:
+                ax.plot(t[fin[-1]], y[fin[-1]], "x", color=style["color"], ms=9, mew=2)
+            drawn[q].append(name)
+        ax.set_ylabel(_ENERGY_LABELS.get(q, q))
+        ax.grid(True, alpha=0.25)
+        ax.legend(fontsize=7)
+    axes[-1, 0].set_xlabel("time [s]")
+    axes[0, 0].set_title(title or "energies over time (x: diverged)")
+    fig.tight_layout()
+    save_figure(fig, path, dpi=dpi)
+    return drawn
+
+
+def energy_curves_from_files(truth_h5, rollouts: Mapping, sequence: str, path, title=None) -> dict:
+    """Kinetic energy of one sequence: ground truth file against rollout files.
+
+    The kinetic energy is recomputed from positions and lumped masses with
+    backward-difference velocities (:func:`latentsim.report.evaluate.kinetic_energy`),
+    identically for every file.
+
+    Parameters
+    ----------
+    truth_h5 : path of a trajectory-layout file (``trajectories.h5``).
+    rollouts : mapping method name -> path of a trajectory-layout file.
+    sequence : str, a sequence present in every file.
+    path : output image.
+
+    Returns
+    -------
+    dict name -> {"kinetic": (T,) float} [J], the curves drawn (NaN after a
+    rollout's divergence), the ground truth under ``"ground truth"``.
+    """
+    from latentsim.report.evaluate import kinetic_energy
+
+    def load(p):
+        with h5py.File(p, "r") as f:
+            g = require(require(f, "sequences"), sequence)
+            x = require(g, "positions")[()]
+            m = require(f, "masses")[()]
+            dt = float(f.attrs["dt"]) if "dt" in f.attrs else None
+        return kinetic_energy(x, m, dt or 1.0), dt
+
+    ke, dt = load(truth_h5)
+    if dt is None:
+        raise ArtefactError(f"{truth_h5}: missing root attribute 'dt'")
+    series = {"ground truth": {"kinetic": ke}}
+    for name, p in rollouts.items():
+        series[name] = {"kinetic": load(p)[0]}
+    energy_curves(series, path, dt, title=title or f"kinetic energy, sequence {sequence!r}")
+    return series
+
+
+# --------------------------------------------------------------------------- training
+
+
+def _load_history(run: str, h, key: str) -> np.ndarray:
+    if isinstance(h, (str, Path)):
+        with h5py.File(h, "r") as f:
+            return np.asarray(require(f, key, path=str(h))[()], dtype=float)
+    y = np.asarray(h, dtype=float)
+    if y.ndim != 1:
+        raise ValueError(f"training_curves: run {run!r} has shape {y.shape}, expected (epochs,)")
+    return y
+
+
+def training_curves(histories: Mapping, path, key="loss", title=None, dpi=100) -> dict:
+    """Loss histories of several runs on one log-scale axis.
+
+    Parameters
+    ----------
+    histories : mapping run name -> (epochs,) float array, or path of an HDF5
+        file holding the dataset ``key`` (``history.h5``, ``latents.h5``).
+    path : output image.
+    key : str
+        Dataset read from files (and the y label).
+
+    Returns
+    -------
+    dict with ``runs`` (run name -> (epochs,) float, the values drawn) and
+    ``yscale``: ``"log"`` when every value is positive, otherwise ``"symlog"``
+    (the self-supervised loss is an energy and can be negative; the title then
+    says so).
+    """
+    if not histories:
+        raise ValueError("training_curves: no runs")
+    data = {str(name): _load_history(name, h, key) for name, h in histories.items()}
+    allv = np.concatenate([v[np.isfinite(v)] for v in data.values()] + [np.zeros(0)])
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    colours = method_colours(data)
+    for name, y in data.items():
+        ax.plot(np.arange(1, len(y) + 1), y, color=colours[name], lw=1.3, label=f"{name} ({len(y)} epochs)")
+    positive = bool(len(allv)) and bool((allv > 0).all())
+    if positive:
+        ax.set_yscale("log")
+        scale = "log"
+    else:
+        # linear band well below every run's typical magnitude, so each run reads logarithmically
+        typical = [np.median(np.abs(v[np.isfinite(v) & (v != 0)])) for v in data.values() if (np.isfinite(v) & (v != 0)).any()]
+        ax.set_yscale("symlog", linthresh=0.1 * float(min(typical)) if typical else 1.0)
+        scale = "symlog"
+    ax.set_xlabel("epoch")
+    ax.set_ylabel(key.replace("_", " "))
+    ax.set_title((title or "training histories") + ("" if positive else " (symlog: values <= 0)"))
+    ax.grid(True, which="both", alpha=0.25)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    save_figure(fig, path, dpi=dpi)
+    return {"runs": data, "yscale": scale}

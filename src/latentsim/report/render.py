@@ -1,0 +1,602 @@
+"""Looking at motions: rendered frames, clips and ParaView series of any trajectory file.
+
+Every function reads the trajectory layout of ``docs/artefacts.md`` (ground
+truth ``trajectories.h5`` and rollouts ``rollout.h5`` alike: root
+``rest_positions``, ``dirichlet``, the model's connectivity, attribute
+``model``; ``/sequences/<name>/positions (T,n,3)``, attribute
+``diverged_frame`` on rollouts) or an already loaded :class:`Motion`, and
+writes one file atomically (:func:`latentsim.io.atomic_path`).
+
+- :func:`render_frames`: ground truth against each method, side by side, at
+  chosen frames (matplotlib 3D: rods as polylines, shells and the boundary
+  faces of tets as shaded triangles, Dirichlet vertices in red); every panel
+  shares the same axes; a method that has diverged by a frame gets an empty
+  panel naming its divergence frame;
+- :func:`render_clip`: the same side by side as an animated GIF (Pillow), or
+  MP4 where ffmpeg exists;
+- :func:`write_xdmf_series`: XDMF + HDF5 time series for ParaView with the
+  ``displacement`` from rest, a ``dirichlet`` marker and, against a reference
+  file, the per-vertex ``error``.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import meshio
+import numpy as np
+from matplotlib import animation
+from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
+
+from latentsim.io import ArtefactError, atomic_path, require
+from latentsim.mesh import surface_of
+from latentsim.utils import working_directory
+
+__all__ = ["Motion", "have_ffmpeg", "load_motion", "render_clip", "render_frames", "write_xdmf_series"]
+
+# connectivity each model needs (first match wins for tets: a stored surface saves recomputing it)
+_MODEL_CELLS = {"rods": ("edges",), "shell": ("triangles",), "tets": ("surface", "tets")}
+_LIGHT = np.array([0.3, 0.8, 0.5]) / np.linalg.norm([0.3, 0.8, 0.5])
+
+
+@dataclass
+class Motion:
+    """One sequence of a trajectory-layout file, possibly a subset of its frames.
+
+    Attributes
+    ----------
+    label : str, what panels call it (method name or "ground truth").
+    sequence : str
+    model : str, ``rods``, ``shell`` or ``tets``.
+    positions : (k,n,3) float, the loaded frames (NaN after divergence).
+    frames : (k,) int, frame index of each loaded position.
+    n_frames : int, frames in the file's sequence.
+    rest : (n,3) float, rest positions.
+    dirichlet : (m,) int, prescribed vertices.
+    segments : (E,2) int or None, rod edges (polylines).
+    triangles : (F,3) int or None, shell triangles or the tets' boundary faces.
+    dt : float
+    diverged_frame : int, first diverged frame, -1 when stable (or unknown).
+    vertical : int, axis drawn upwards (that of the root ``gravity``; y when absent).
+    """
+
+    label: str
+    sequence: str
+    model: str
+    positions: np.ndarray
+    frames: np.ndarray
+    n_frames: int
+    rest: np.ndarray
+    dirichlet: np.ndarray
+    segments: np.ndarray | None
+    triangles: np.ndarray | None
+    dt: float
+    diverged_frame: int = -1
+    vertical: int = 1
+
+    def at(self, frame: int):
+        """Positions (n,3) at ``frame``, or None when not loaded / past the end."""
+        k = np.flatnonzero(self.frames == frame)
+        return self.positions[k[0]] if len(k) else None
+
+    def status(self, frame: int) -> str:
+        """``ok``, ``diverged`` (at or after divergence, or non-finite) or ``missing``."""
+        if frame >= self.n_frames:
+            return "missing"
+        if 0 <= self.diverged_frame <= frame:
+            return "diverged"
+        x = self.at(frame)
+        if x is None:
+            return "missing"
+        return "ok" if np.isfinite(x).all() else "diverged"
+
+
+def load_motion(h5_path, sequence: str, frames=None, label=None) -> Motion:
+    """Read one sequence of a trajectory-layout file.
+
+    Parameters
+    ----------
+    h5_path : path of ``trajectories.h5``, ``rollout.h5`` or any file of that layout.
+    sequence : str, group name under ``/sequences``.
+    frames : iterable of int or None
+        Frames to read (those past the sequence's end are skipped); all when None.
+    label : str, defaults to the file's ``method`` attribute or its path.
+
+    Raises
+    ------
+    ArtefactError
+        Naming the file and the missing key (sequence, positions, connectivity).
+    """
+    h5_path = str(h5_path)
+    with h5py.File(h5_path, "r") as f:
+        seqs = require(f, "sequences", path=h5_path)
+        if sequence not in seqs:
+            raise ArtefactError(f"{h5_path}: no sequence '{sequence}'; has {sorted(seqs)}")
+        g = seqs[sequence]
+        ds = require(g, "positions", path=h5_path)
+        T = ds.shape[0]
+        if frames is None:
+            idx = np.arange(T)
+            pos = ds[()]
+        else:
+            idx = np.unique(np.asarray(list(frames), dtype=np.int64))
+            if (idx < 0).any():
+                raise ValueError(f"{h5_path}: negative frame in {idx.tolist()}")
+            idx = idx[idx < T]
+            pos = ds[idx] if len(idx) else np.zeros((0,) + ds.shape[1:])
+        model = str(f.attrs.get("model", ""))
+        if model not in _MODEL_CELLS:
+            raise ArtefactError(f"{h5_path}: root attribute 'model' is {model!r}; expected one of {sorted(_MODEL_CELLS)}")
+        segments = triangles = None
+        if model == "rods":
+            segments = require(f, "edges", path=h5_path)[()]
+        elif model == "shell":
+            triangles = require(f, "triangles", path=h5_path)[()]
+        else:
+            triangles = f["surface"][()] if "surface" in f else surface_of(require(f, "tets", path=h5_path)[()])
+        rest = f["rest_positions"][()] if "rest_positions" in f else ds[0]
+        dirichlet = f["dirichlet"][()] if "dirichlet" in f else np.zeros(0, dtype=np.int64)
+        div = int(g.attrs.get("diverged_frame", -1))
+        if label is None:
+            label = str(g.attrs.get("method", f.attrs.get("method", Path(h5_path).parent.name)))
+        dt = float(f.attrs.get("dt", 1.0))
+        g_vec = np.asarray(f.attrs.get("gravity", [0.0, -1.0, 0.0]), dtype=float).ravel()
+        vertical = int(np.argmax(np.abs(g_vec))) if g_vec.size == 3 and np.abs(g_vec).max() > 0 else 1
+    return Motion(
+        label, sequence, model, np.asarray(pos, float), idx, T, rest, dirichlet, segments, triangles, dt, div, vertical
+    )
+
+
+def _as_motion(obj, sequence, frames, label) -> Motion:
+    if isinstance(obj, Motion):
+        if obj.sequence != sequence:
+            raise ValueError(f"motion {obj.label!r} holds sequence {obj.sequence!r}, not {sequence!r}")
+        return obj
+    return load_motion(obj, sequence, frames=frames, label=label)
+
+
+def _load_all(truth, methods, sequence, frames):
+    gt = _as_motion(truth, sequence, frames, "ground truth")
+    if isinstance(methods, (str, os.PathLike, Motion)):
+        methods = {None: methods}
+    out = [gt]
+    for name, m in (methods or {}).items():
+        mo = _as_motion(m, sequence, frames, name)
+        if mo.rest.shape != gt.rest.shape:
+            raise ValueError(
+                f"method {mo.label!r}, sequence {sequence!r}: {mo.rest.shape[0]} vertices, ground truth has {gt.rest.shape[0]}"
+            )
+        out.append(mo)
+    return out
+
+
+def _limits(motions, frames, bounds: str) -> np.ndarray:
+    """(3,2) axis limits: the ground truth's (``truth``) or every motion's (``all``) finite
+    positions at ``frames``; the rest shape when none is finite."""
+    use = motions[:1] if bounds == "truth" else motions
+    pts = []
+    for m in use:
+        for fr in frames:
+            x = m.at(fr)
+            if x is not None:
+                pts.append(x[np.isfinite(x).all(axis=1)])
+    P = np.concatenate(pts) if pts else np.zeros((0, 3))
+    if not len(P):
+        P = motions[0].rest
+    lo, hi = P.min(axis=0), P.max(axis=0)
+    centre, half = (lo + hi) / 2, (hi - lo) / 2
+    # flat objects (a cloth at rest) get depth, so out-of-plane motion stays in view
+    half = np.maximum(half * 1.08, 0.15 * half.max() + 1e-9)
+    return np.stack([centre - half, centre + half], axis=1)
+
+
+def _shade(x: np.ndarray, tris: np.ndarray, rgb) -> np.ndarray:
+    """(F,4) face colours, Lambert shading two-sided (cloth is seen from both sides).
+
+    ``rgb`` is one colour (3,) or one per face (F,3).
+    """
+    a, b, c = x[tris[:, 0]], x[tris[:, 1]], x[tris[:, 2]]
+    nrm = np.cross(b - a, c - a)
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+    k = 0.35 + 0.65 * np.abs(nrm @ _LIGHT)
+    base = np.broadcast_to(np.asarray(rgb, dtype=float)[..., :3], (len(tris), 3))
+    col = np.empty((len(tris), 4))
+    col[:, :3] = np.clip(base * k[:, None], 0, 1)
+    col[:, 3] = 1.0
+    return col
+
+
+def _setup_axes(ax, limits, vertical: int, elev, azim):
+    ax.set_xlim(*limits[0])
+    ax.set_ylim(*limits[1])
+    ax.set_zlim(*limits[2])
+    ax.view_init(elev=elev, azim=azim, vertical_axis="xyz"[vertical])
+    # after view_init: matplotlib stores the aspect relative to the current vertical axis
+    ax.set_box_aspect(np.maximum(limits[:, 1] - limits[:, 0], 1e-9))
+    ax.set_xticks([])
+    ax.set_yticks([])
+    ax.set_zticks([])
+
+
+def _draw_panel(ax, motion: Motion, frame: int, limits, vertical, elev, azim, colour, title=True, values=None, cmap=None):
+    """Draw one motion at one frame on a 3D axis; returns the panel's status.
+
+    ``values`` (n,) in [0, 1], optional, colour the elements through ``cmap``
+    (mean over each element's vertices) instead of the flat ``colour``.
+    """
+    ax.cla()
+    _setup_axes(ax, limits, vertical, elev, azim)
+    status = motion.status(frame)
+    head = f"{motion.label}\nframe {frame}" if title else None
+    if status != "ok":
+        for a in (ax.xaxis, ax.yaxis, ax.zaxis):
+            a.pane.set_alpha(0.0)
+        ax.grid(False)
+        if status == "diverged":
+            f0 = motion.diverged_frame if motion.diverged_frame >= 0 else frame
+            msg = f"diverged at frame {f0}"
+        else:
+            msg = f"no frame {frame}\n(sequence has {motion.n_frames})"
+        ax.text2D(0.5, 0.5, msg, transform=ax.transAxes, ha="center", va="center", color="firebrick", fontsize=10)
+    else:
+        x = motion.at(frame)
+        if motion.segments is not None:
+            seg = motion.segments
+            cols = [colour] if values is None else cmap(values[seg].mean(axis=1))
+            ax.add_collection3d(
+                Line3DCollection(x[seg], colors=cols, linewidths=0.8), autolim=False, axlim_clip=True
+            )
+        if motion.triangles is not None:
+            tris = motion.triangles
+            rgb = colour if values is None else cmap(values[tris].mean(axis=1))
+            fc = _shade(x, tris, rgb)
+            ax.add_collection3d(
+                # edges in the face colours hide the antialiasing seams between triangles
+                Poly3DCollection(x[tris], facecolors=fc, edgecolors=fc, linewidths=0.3),
+                autolim=False,
+                axlim_clip=True,
+            )
+        if len(motion.dirichlet):
+            d = x[motion.dirichlet]
+            ax.scatter(d[:, 0], d[:, 1], d[:, 2], s=4, c="red", depthshade=False, axlim_clip=True)
+        outside = ~((x >= limits[:, 0]) & (x <= limits[:, 1])).all(axis=1)
+        if outside.any() and head:
+            head += f"\n{outside.mean():.0%} of vertices outside view"
+    if head:
+        ax.set_title(head, fontsize=9)
+    return status
+
+
+def _colours(n):
+    cmap = plt.get_cmap("tab10")
+    return [(0.45, 0.5, 0.6)] + [cmap(i % 10)[:3] for i in range(n - 1)]
+
+
+_ERROR_CMAP = plt.get_cmap("viridis")  # no red in it: red marks the Dirichlet vertices
+
+
+def _vertex_errors(motions, frames):
+    """Per-vertex distance to the ground truth (motions[0]) of every ``ok`` panel.
+
+    Returns ``per_vertex`` {(row, column): (n,) float} and ``errors``
+    (len(frames), len(motions)) float, each panel's largest distance (NaN
+    where the panel is not ``ok``).
+    """
+    gt = motions[0]
+    errors = np.full((len(frames), len(motions)), np.nan)
+    per_vertex = {}
+    for i, fr in enumerate(frames):
+        for j, m in enumerate(motions):
+            if m.status(fr) == "ok" and gt.status(fr) == "ok":
+                per_vertex[i, j] = np.linalg.norm(m.at(fr) - gt.at(fr), axis=1)
+                errors[i, j] = per_vertex[i, j].max()
+    return per_vertex, errors
+
+
+def _error_scale(errors, error_max=None) -> float:
+    """Top of the error colour scale: ``error_max`` or the largest method error shown."""
+    top = error_max if error_max is not None else np.nanmax(errors[:, 1:], initial=0.0)
+    return float(top) if np.isfinite(top) and top > 0 else 1.0
+
+
+def _error_values(per_vertex, i, j, top):
+    """Colour-map input (n,) in [0, 1] of a method panel, None for the ground truth or an empty panel."""
+    return np.clip(per_vertex[i, j] / top, 0, 1) if j > 0 and (i, j) in per_vertex else None
+
+
+def _error_colorbar(fig, top, bottom, height):
+    cax = fig.add_axes((0.25, bottom, 0.5, height))
+    sm = plt.cm.ScalarMappable(norm=plt.Normalize(0.0, top), cmap=_ERROR_CMAP)
+    fig.colorbar(sm, cax=cax, orientation="horizontal", label="vertex distance to ground truth [m]")
+
+
+def render_frames(
+    truth,
+    methods,
+    sequence: str,
+    frames,
+    path,
+    *,
+    bounds="truth",
+    elev=15.0,
+    azim=-60.0,
+    panel_size=2.8,
+    dpi=100,
+    title=None,
+    color_by_error=False,
+    error_max=None,
+) -> dict:
+    """Ground truth against each method, side by side, at chosen frames.
+
+    Rows are frames, columns ground truth then the methods in the order given.
+    Every panel has the same axis limits and aspect, so positions compare.
+
+    Parameters
+    ----------
+    truth : path of the ground-truth trajectory file, or a :class:`Motion`.
+    methods : mapping method name -> path of a trajectory-layout file (a
+        rollout) or :class:`Motion`; may be empty.
+    sequence : str, a sequence present in every file.
+    frames : sequence of int, frames to show (within the ground truth).
+    path : output image (PNG unless the suffix says otherwise).
+    bounds : ``"truth"`` (default) fits the axes to the ground truth at these
+        frames, so a method that flies off is seen leaving the view (the panel
+        says how many vertices are outside); ``"all"`` fits every finite point;
+        ``"row"`` fits each row (frame) to the ground truth at that frame, for
+        motions that travel far (the panels of a row still share their axes).
+    elev, azim : float, view angles [degrees]; the vertical axis is y (gravity).
+    color_by_error : bool
+        Colour each method's elements by the distance of their vertices to the
+        ground truth at the same frame (viridis, one scale for the whole
+        figure, colour bar at the bottom) instead of a flat colour.
+    error_max : float or None
+        Top of that scale [m]; default the largest error shown.
+
+    Returns
+    -------
+    dict with ``status`` ((len(frames), 1 + len(methods)) array of str:
+    ``ok``, ``diverged`` or ``missing``), ``labels`` (column labels),
+    ``limits`` ((len(frames), 3, 2) axis limits of each row) and
+    ``max_error`` ((len(frames), 1 + len(methods)) float: largest vertex
+    distance to the ground truth in each panel [m], 0 for the ground truth,
+    NaN where a panel is not ``ok``).
+    """
+    frames = [int(f) for f in frames]
+    if not frames:
+        raise ValueError("render_frames: no frames given")
+    if bounds not in ("truth", "all", "row"):
+        raise ValueError(f"render_frames: bounds must be 'truth', 'all' or 'row', got {bounds!r}")
+    motions = _load_all(truth, methods, sequence, frames)
+    gt = motions[0]
+    bad = [f for f in frames if not 0 <= f < gt.n_frames]
+    if bad:
+        raise ValueError(f"render_frames: frames {bad} outside sequence {sequence!r} of the ground truth ({gt.n_frames} frames)")
+    if bounds == "row":
+        limits = np.stack([_limits(motions, [fr], "truth") for fr in frames])
+    else:
+        limits = np.repeat(_limits(motions, frames, bounds)[None], len(frames), axis=0)
+    R, C = len(frames), len(motions)
+    per_vertex, errors = _vertex_errors(motions, frames)
+    header, footer = 0.9, (0.8 if color_by_error else 0.0)  # inches for the title and the colour bar
+    height = panel_size * R + header + footer
+    fig = plt.figure(figsize=(panel_size * C, height))
+    colours = _colours(C)
+    status = np.empty((R, C), dtype=object)
+    top = _error_scale(errors, error_max)
+    for i, fr in enumerate(frames):
+        for j, m in enumerate(motions):
+            ax = fig.add_subplot(R, C, i * C + j + 1, projection="3d")
+            values = _error_values(per_vertex, i, j, top) if color_by_error else None
+            status[i, j] = _draw_panel(ax, m, fr, limits[i], m.vertical, elev, azim, colours[j], values=values, cmap=_ERROR_CMAP)
+    fig.suptitle(title or f"{sequence}: ground truth vs methods (red: Dirichlet vertices)", fontsize=10)
+    fig.subplots_adjust(
+        left=0.01, right=0.99, bottom=(footer + 0.05) / height, top=1 - header / height, wspace=0.02, hspace=0.2
+    )
+    if color_by_error:
+        _error_colorbar(fig, top, 0.45 / height, 0.12 / height)
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".").lower() or "png")
+    plt.close(fig)
+    return {"status": status.astype(str), "labels": [m.label for m in motions], "limits": limits, "max_error": errors}
+
+
+def have_ffmpeg() -> bool:
+    """Whether matplotlib can write MP4 (an ``ffmpeg`` executable is on the PATH)."""
+    return animation.writers.is_available("ffmpeg")
+
+
+def render_clip(
+    truth,
+    methods,
+    sequence: str,
+    path,
+    *,
+    start=0,
+    stride=5,
+    max_frames=60,
+    fps=12,
+    bounds="truth",
+    elev=15.0,
+    azim=-60.0,
+    panel_size=2.6,
+    dpi=90,
+    title=None,
+    color_by_error=False,
+    error_max=None,
+) -> dict:
+    """Animated clip of ground truth and methods side by side (GIF, or MP4 with ffmpeg).
+
+    Frames ``start, start + stride, ...`` up to ``max_frames`` of them and the
+    ground truth's end; only those frames are read from the files.  With the
+    defaults (90 dpi, 60 frames) a two-panel clip is a few hundred kB.
+
+    Parameters
+    ----------
+    truth, methods, sequence : as in :func:`render_frames` (``methods`` may
+        also be a single path: one rollout against the ground truth).
+    bounds : ``"truth"`` or ``"all"``, as in :func:`render_frames`, over all
+        the clip's frames (the camera never moves).
+    path : ``.gif`` (Pillow) or ``.mp4`` (needs ffmpeg; see :func:`have_ffmpeg`).
+    start, stride, max_frames : int, which frames to show.
+    fps : int, frames per second of the clip.
+    color_by_error, error_max : as in :func:`render_frames`; the scale is
+        fixed over the whole clip (default: the largest error in any frame).
+
+    Returns
+    -------
+    dict with ``frames`` (list of frame indices shown) and ``bytes`` (file size).
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".gif":
+        writer = animation.PillowWriter(fps=fps)
+    elif suffix == ".mp4":
+        if not have_ffmpeg():
+            raise RuntimeError(f"render_clip: {path} needs ffmpeg, which is not installed; write a .gif instead")
+        writer = animation.FFMpegWriter(fps=fps)
+    else:
+        raise ValueError(f"render_clip: unsupported clip format {suffix!r} ({path}); use .gif or .mp4")
+    if bounds not in ("truth", "all"):
+        raise ValueError(f"render_clip: bounds must be 'truth' or 'all', got {bounds!r}")
+    if stride < 1 or max_frames < 1:
+        raise ValueError(f"render_clip: stride ({stride}) and max_frames ({max_frames}) must be >= 1")
+    T = _as_motion(truth, sequence, [], "ground truth").n_frames  # reads no frames
+    frames = list(range(start, T, stride))[:max_frames]
+    if not frames:
+        raise ValueError(f"render_clip: start {start} is past the end of sequence {sequence!r} ({T} frames)")
+    motions = _load_all(truth, methods, sequence, frames)
+    limits = _limits(motions, frames, bounds)
+    C = len(motions)
+    per_vertex, errors = _vertex_errors(motions, frames) if color_by_error else ({}, None)
+    top = _error_scale(errors, error_max) if color_by_error else 1.0
+    footer = 0.85 if color_by_error else 0.0
+    height = panel_size + 0.5 + footer
+    fig = plt.figure(figsize=(panel_size * C, height))
+    axes = [fig.add_subplot(1, C, j + 1, projection="3d") for j in range(C)]
+    colours = _colours(C)
+    fig.subplots_adjust(left=0.0, right=1.0, bottom=footer / height, top=1 - 0.5 / height, wspace=0.02)
+    if color_by_error:
+        _error_colorbar(fig, top, 0.5 / height, 0.1 / height)
+    head = fig.suptitle("", fontsize=9)
+
+    def update(i, fr):
+        for j, (ax, m, c) in enumerate(zip(axes, motions, colours)):
+            values = _error_values(per_vertex, i, j, top) if color_by_error else None
+            _draw_panel(ax, m, fr, limits, m.vertical, elev, azim, c, title=False, values=values, cmap=_ERROR_CMAP)
+            ax.set_title(m.label, fontsize=8)
+        head.set_text(f"{title or sequence}   frame {fr}   t = {fr * motions[0].dt:.2f} s")
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp, tempfile.TemporaryDirectory(dir=path.parent, prefix=".clip-") as d:
+        # the writers choose the container from the file's suffix, which the atomic temporary name lacks
+        inner = Path(d) / f"clip{suffix}"
+        # driving the writer directly draws each frame once (FuncAnimation.save draws it twice)
+        with writer.saving(fig, inner, dpi):
+            for i, fr in enumerate(frames):
+                update(i, fr)
+                writer.grab_frame()
+        os.replace(inner, tmp)
+    plt.close(fig)
+    return {"frames": frames, "bytes": path.stat().st_size}
+
+
+def _cells(h5, model: str, h5_path):
+    key = {"rods": ("line", "edges"), "shell": ("triangle", "triangles"), "tets": ("tetra", "tets")}[model]
+    return [(key[0], np.asarray(require(h5, key[1], path=h5_path)[()]))]
+
+
+def write_xdmf_series(h5_path, sequence: str, out, reference=None, *, stop_at_divergence=True) -> dict:
+    """XDMF + HDF5 time series of one sequence of any trajectory-layout file, for ParaView.
+
+    The mesh is the rest shape (``rest_positions``) with the model's cells
+    (rod edges as lines, shell triangles, tetrahedra); each time step carries
+    the point fields
+
+    - ``displacement`` (n,3) [m]: positions minus rest (ParaView: *Warp By Vector*);
+    - ``dirichlet`` (n,) : 1 on prescribed vertices, 0 elsewhere;
+    - ``error`` (n,) [m], only with ``reference``: distance of each vertex to
+      the reference file's same sequence at the same frame (NaN past the
+      reference's last frame).
+
+    Parameters
+    ----------
+    h5_path : trajectory-layout file (``rollout.h5``, ``trajectories.h5``).
+    sequence : str, group under ``/sequences``.
+    out : path of the ``.xdmf`` to write; its heavy data go to the sibling
+        ``<stem>.h5``.  Both are written under temporary names and renamed
+        (the ``.h5`` first), so a complete ``.xdmf`` always has its data.
+    reference : path of the ground-truth file, or None.
+    stop_at_divergence : bool
+        Write only the frames before ``diverged_frame`` (the rest are NaN).
+
+    Returns
+    -------
+    dict with ``frames`` (number of time steps written), ``fields`` (names)
+    and ``h5`` (path of the data file).
+    """
+    out = Path(out)
+    if out.suffix.lower() != ".xdmf":
+        raise ValueError(f"write_xdmf_series: out must end in .xdmf, got {out}")
+    data_file = out.with_suffix(".h5")
+    for src in [h5_path] + ([reference] if reference is not None else []):
+        if data_file.resolve() == Path(src).resolve():
+            raise ValueError(f"write_xdmf_series: the series data file {data_file} would overwrite the input {src}")
+    h5_path = str(h5_path)
+    with h5py.File(h5_path, "r") as f:
+        model = str(f.attrs.get("model", ""))
+        if model not in _MODEL_CELLS:
+            raise ArtefactError(f"{h5_path}: root attribute 'model' is {model!r}; expected one of {sorted(_MODEL_CELLS)}")
+        cells = _cells(f, model, h5_path)
+        rest = require(f, "rest_positions", path=h5_path)[()]
+        D = f["dirichlet"][()] if "dirichlet" in f else np.zeros(0, dtype=np.int64)
+        dt = float(f.attrs.get("dt", 1.0))
+        seqs = require(f, "sequences", path=h5_path)
+        if sequence not in seqs:
+            raise ArtefactError(f"{h5_path}: no sequence '{sequence}'; has {sorted(seqs)}")
+        g = seqs[sequence]
+        pos = require(g, "positions", path=h5_path)[()]
+        div = int(g.attrs.get("diverged_frame", -1))
+    if pos.shape[1:] != rest.shape:
+        raise ArtefactError(f"{h5_path}: sequence '{sequence}' positions {pos.shape} do not match rest_positions {rest.shape}")
+    if stop_at_divergence and div >= 0:
+        pos = pos[:div]
+    ref = None
+    if reference is not None:
+        ref = load_motion(reference, sequence).positions
+        if ref.shape[1:] != rest.shape:
+            raise ValueError(
+                f"write_xdmf_series: reference {reference} sequence '{sequence}' has {ref.shape[1]} vertices, {h5_path} has {rest.shape[0]}"
+            )
+    marker = np.zeros(len(rest))
+    marker[D] = 1.0
+    fields = ["displacement", "dirichlet"] + (["error"] if ref is not None else [])
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmpdir = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.stem}.tmp-"))
+    try:
+        # meshio's TimeSeriesWriter writes <stem>.h5 into the current directory and
+        # names it inside the .xdmf, so both are written under their final names in a
+        # temporary folder and then moved beside each other
+        with working_directory(tmpdir), meshio.xdmf.TimeSeriesWriter(out.name) as w:
+            w.write_points_cells(rest, cells)
+            for t in range(len(pos)):
+                pd = {"displacement": pos[t] - rest, "dirichlet": marker}
+                if ref is not None:
+                    pd["error"] = (
+                        np.linalg.norm(pos[t] - ref[t], axis=1) if t < len(ref) else np.full(len(rest), np.nan)
+                    )
+                w.write_data(t * dt, point_data=pd)
+        os.replace(tmpdir / data_file.name, data_file)
+        os.replace(tmpdir / out.name, out)
+    finally:
+        shutil.rmtree(tmpdir, ignore_errors=True)
+    return {"frames": len(pos), "fields": fields, "h5": data_file}

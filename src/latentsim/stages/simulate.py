@@ -1,0 +1,143 @@
+"""Full-space simulation stage: every sequence of a scene into trajectories.h5.
+
+Layout (see docs/artefacts.md): root datasets ``rest_positions (n,3)``,
+``masses (n,)``, ``dirichlet (m,)`` and the model's element arrays; root
+attributes ``model``, ``dt``, ``gravity`` and the material constants; one group
+per sequence ``/sequences/<name>`` with ``positions (T,n,3)``,
+``dirichlet_positions (T,m,3)``, ``bc (T,6)``, ``newton_iterations (T,)``,
+``gradient_norm (T,)``, ``frame_ms (T,)`` and attribute ``split``.  Frame 0 is
+the initial state (at rest); frame 1 is solved with x_{-1} = x_0.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import time
+from pathlib import Path
+
+import h5py
+import meshio
+import numpy as np
+
+from latentsim.io import atomic_h5, atomic_path, write_dataset
+from latentsim.stages.mesh import cells_for
+from latentsim.scene import bc_parameters, build_potential, dirichlet_trajectory
+from latentsim.solve.implicit_euler import ImplicitEuler, NewtonFailed, NewtonSettings, StepInfo
+from latentsim.utils import progress_bar, working_directory
+
+log = logging.getLogger(__name__)
+
+
+class SimulationError(RuntimeError):
+    """A frame failed to converge; the message names scene, sequence and frame."""
+
+
+def read_mesh_arrays(path) -> dict:
+    with h5py.File(path, "r") as f:
+        arrays = {k: f[k][()] for k in f.keys()}
+        arrays["model"] = str(f.attrs["model"])
+    return arrays
+
+
+def simulate_sequence(solver: ImplicitEuler, rest, seq: dict, dt: float, label: str, progress=False):
+    """Run one sequence; returns a dict of the arrays stored for it."""
+    T = int(seq["frames"])
+    D = solver.dirichlet
+    p = bc_parameters(seq, T)
+    xD = dirichlet_trajectory(rest[D], p, dt)
+    n = len(rest)
+    pos = np.empty((T, n, 3))
+    iters = np.zeros(T, dtype=np.int32)
+    gnorm = np.full(T, np.nan)
+    ms = np.zeros(T)
+    pos[0] = rest
+    x_prev2 = x_prev = rest.copy()
+    timings = dict.fromkeys(StepInfo().timings, 0.0)
+    for t in progress_bar(range(1, T), enabled=progress, desc=label, unit="frame"):
+        t0 = time.perf_counter()
+        try:
+            x, info = solver.step(x_prev, x_prev2, xD[t])
+        except NewtonFailed as e:
+            raise SimulationError(f"{label}, frame {t}: {e} (residual {e.residual:.3e})") from e
+        ms[t] = 1e3 * (time.perf_counter() - t0)
+        pos[t], iters[t], gnorm[t] = x, info.iterations, info.gradient_norm
+        for k in timings:
+            timings[k] += info.timings[k]
+        x_prev2, x_prev = x_prev, x
+    return dict(positions=pos, dirichlet_positions=xD, bc=p, newton_iterations=iters, gradient_norm=gnorm, frame_ms=ms), timings
+
+
+def simulate_scene(scene: str, mesh_h5, cfg: dict, out_h5, paraview_dir=None, progress=False):
+    """Simulate every sequence of ``cfg['sequences']`` and write ``out_h5``.
+
+    cfg holds model, material, dt, gravity, newton, sequences (the rule's params).
+    """
+    arrays = read_mesh_arrays(mesh_h5)
+    model = arrays["model"]
+    if model != cfg["model"]:
+        raise SimulationError(f"scene '{scene}': {mesh_h5} holds a '{model}' mesh, the config says '{cfg['model']}'")
+    pot = build_potential(model, arrays, cfg["material"], cfg["dt"], cfg["gravity"], free_only=True)
+    solver = ImplicitEuler(pot, NewtonSettings(**cfg["newton"]))
+    rest = np.asarray(arrays["rest_positions"], dtype=np.float64)
+    log.info("scene %s: %d DoF, %d free, linear solver %s", scene, 3 * len(rest), len(solver.free_dofs), solver.linear.method)
+    results = {}
+    for seq in cfg["sequences"]:
+        label = f"scene {scene}, sequence {seq['name']}"
+        data, timings = simulate_sequence(solver, rest, seq, cfg["dt"], label, progress)
+        it = data["newton_iterations"][1:]
+        log.info(
+            "%s: %d frames, %.1f ms/frame, %.2f Newton iterations/frame, timings %s",
+            label, len(data["positions"]), data["frame_ms"][1:].mean(), it.mean(), {k: round(v, 3) for k, v in timings.items()},
+        )
+        results[seq["name"]] = (seq, data)
+    with atomic_h5(out_h5, config=cfg) as f:
+        f.attrs["scene"] = scene
+        f.attrs["model"] = model
+        f.attrs["dt"] = float(cfg["dt"])
+        f.attrs["gravity"] = np.asarray(cfg["gravity"], dtype=float)
+        f.attrs["newton_tolerance"] = float(solver.settings.tolerance)
+        f.attrs["force_scale"] = solver.f_ref
+        f.attrs["linear_solver"] = solver.linear.method
+        for k, v in cfg["material"].items():
+            f.attrs[k] = float(v)
+        write_dataset(f, "rest_positions", rest)
+        write_dataset(f, "masses", pot.masses.numpy())
+        for k in ("dirichlet", "edges", "triples", "root_of", "triangles", "tets", "surface"):
+            if k in arrays:
+                write_dataset(f, k, arrays[k])
+        grp = f.create_group("sequences", track_order=True)
+        for name, (seq, data) in results.items():
+            _write_sequence(grp, name, data, seq.get("split", "train"))
+            if seq.get("train_frames"):
+                n = int(seq["train_frames"])
+                _write_sequence(grp, f"{name}_train", {k: v[:n] for k, v in data.items()}, "train")
+    if paraview_dir is not None:
+        write_paraview(paraview_dir, model, arrays, {k: v[1]["positions"] for k, v in results.items()}, cfg["dt"])
+
+
+def _write_sequence(grp, name, data, split):
+    g = grp.create_group(name)
+    g.attrs["split"] = split
+    for k, v in data.items():
+        write_dataset(g, k, v)
+
+
+def write_paraview(folder, model, arrays, sequences: dict, dt: float):
+    """One XDMF time series per sequence (ParaView opens ``<name>.xdmf``).
+
+    The mesh is stored once at rest; each frame carries the point field
+    ``displacement`` (apply ParaView's *Warp By Vector* to see the motion).
+    """
+    folder = Path(folder)
+    with atomic_path(folder) as tmp:
+        tmp.mkdir(parents=True)
+        # meshio's TimeSeriesWriter puts its .h5 in the current directory
+        with working_directory(tmp):
+            for name, pos in sequences.items():
+                with meshio.xdmf.TimeSeriesWriter(f"{name}.xdmf") as w:
+                    w.write_points_cells(pos[0], cells_for(model, arrays))
+                    for t in range(len(pos)):
+                        w.write_data(t * dt, point_data={"displacement": pos[t] - pos[0]})
+        if folder.exists():
+            shutil.rmtree(folder)

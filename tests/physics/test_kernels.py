@@ -1,0 +1,355 @@
+"""Compiled per-stencil kernels against the PyTorch/NumPy closed forms and autograd.
+
+The kernels (``latentsim.physics.kernels``) re-implement the energies, gradients
+and Hessians that ``rods``, ``shells`` and ``tets`` define once; they must give
+the same numbers.  Each test would fail for a wrong formula, a wrong index
+order, a wrong projection, or a wrong scatter into the sparse Hessian.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from latentsim.physics import kernels
+from latentsim.physics.base import autograd_gradient_hessian
+from latentsim.physics.rods import rod_topology
+from latentsim.mesh import beam_tets, cloth_grid, rod_bundle
+from latentsim.scene import build_potential
+from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings
+from latentsim.solve.sparse import HessianPattern, scatter_gradient
+
+pytestmark = pytest.mark.skipif(not kernels.available(), reason="numba is not installed")
+
+MATERIAL = {"youngs_modulus": 1e5, "poisson_ratio": 0.35, "density": 1000.0, "radius": 1e-3, "thickness": 2e-3}
+
+
+def scene(model):
+    """A small scene of each model with a few Dirichlet vertices."""
+    if model == "tets":
+        X, T = beam_tets(4, 2, 2, 0.4, 0.1, 0.1, tets_per_cell=6)
+        arrays = {"rest_positions": X, "tets": T, "dirichlet": np.flatnonzero(X[:, 0] < 1e-9)}
+    elif model == "rods":
+        X, edges, roots = rod_bundle(3, 9, 0.2, 0.05)
+        _, triples = rod_topology(3, 9)
+        dirichlet = np.concatenate([roots, roots + 1])
+        arrays = {"rest_positions": X, "edges": edges, "triples": triples.numpy(), "dirichlet": dirichlet}
+    else:
+        X, tris = cloth_grid(4, 4, 0.4, 0.4)
+        arrays = {"rest_positions": X, "triangles": tris, "dirichlet": np.array([0, 4])}
+    return build_potential(model, arrays, MATERIAL, 0.01, [0.0, -9.81, 0.0]), np.asarray(X)
+
+
+def states(X, seed, count=3):
+    """Random states around the rest shape, from mild to strongly distorted (some elements inverted)."""
+    rng = np.random.default_rng(seed)
+    size = np.ptp(X, axis=0).max()
+    R, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    out = []
+    for s in np.linspace(0.02, 0.3, count):
+        out.append(X @ R.T + rng.normal(size=3) + s * size / 4 * rng.normal(size=X.shape))
+    return out
+
+
+MODELS = ["tets", "rods", "shell"]
+
+
+@pytest.fixture(scope="module", params=MODELS)
+def case(request):
+    pot, X = scene(request.param)
+    return request.param, pot, X, [kernels.term_kernel(t) for t in pot.terms]
+
+
+def close(a, b, rtol=1e-9):
+    """|a - b| <= rtol * max|b| (entries of very different size share one scale)."""
+    a, b = np.asarray(a), np.asarray(b)
+    return np.abs(a - b).max() <= rtol * max(np.abs(b).max(), 1e-300)
+
+
+def test_every_term_has_a_kernel(case):
+    _, pot, _, ks = case
+    assert all(k is not None for k in ks)
+    assert [k.name for k in ks] == [t.name for t in pot.terms]
+
+
+def test_energy_matches_torch(case):
+    _, pot, X, ks = case
+    for term, k in zip(pot.terms, ks):
+        scale = 0.0
+        for x in states(X, 1):
+            ref = float(term.energy(torch.from_numpy(x)))
+            assert abs(k.energy(x) - ref) <= 1e-11 * abs(ref), term.name
+            scale = max(scale, abs(ref))
+        assert abs(k.energy(X)) <= 1e-12 * scale, term.name  # zero at rest
+
+
+def test_fused_energy_gradient_and_assembly_energy(case):
+    """The one-pass energy + gradient (line search) gives the energy kernel's energy, and it and
+    the assembly pass give the scattered closed-form gradient."""
+    _, pot, X, ks = case
+    n = pot.n_vertices
+    x = states(X, 5)[2]
+    xt = torch.from_numpy(x)
+    for term, k in zip(pot.terms, ks):
+        st = term.stencils.numpy()
+        g_ref = scatter_gradient(n, [st], [term.local_gradient_hessian(term.gather(xt), project=False)[0].numpy()])
+        grad = np.zeros(3 * n)
+        e = k.energy_gradient(x, grad)
+        assert abs(e - k.energy(x)) <= 1e-12 * abs(e), term.name
+        assert close(grad, g_ref, 1e-12), term.name
+        free = np.arange(3 * n)
+        pattern = HessianPattern(n, [st], free)
+        for project in (False, True):  # the Hessian pass returns the same energy, to the bit
+            grad2, data = np.zeros(3 * n), np.zeros(pattern.nnz)
+            assert k.accumulate(x, grad2, data, pattern.stencil_slots(st), project) == e, term.name
+            assert close(grad2, g_ref, 1e-12), term.name
+
+
+def test_exact_gradient_hessian_match_closed_form_and_autograd(case):
+    _, pot, X, ks = case
+    for x in states(X, 2):
+        xt = torch.from_numpy(x)
+        for term, k in zip(pot.terms, ks):
+            xe = term.gather(xt)
+            g, H = k.local(x, project=False)
+            g_ref, H_ref = term.local_gradient_hessian(xe, project=False)
+            assert close(g, g_ref.numpy()), term.name
+            assert close(H, H_ref.numpy()), term.name
+            g_ad, H_ad = autograd_gradient_hessian(term, xe, project=False)
+            assert close(g, g_ad.numpy(), 1e-7), term.name
+            assert close(H, H_ad.numpy(), 1e-7), term.name
+
+
+def test_projected_hessian_matches_closed_form(case):
+    _, pot, X, ks = case
+    for x in states(X, 3):
+        xt = torch.from_numpy(x)
+        for term, k in zip(pot.terms, ks):
+            g, H = k.local(x, project=True)
+            g_ref, H_ref = term.local_gradient_hessian(term.gather(xt), project=True)
+            assert close(g, g_ref.numpy()), term.name
+            assert close(H, H_ref.numpy(), 1e-8), term.name
+            # positive semi-definite, and equal to the exact Hessian where that one is
+            w = np.linalg.eigvalsh(H)
+            assert w.min() >= -1e-10 * np.abs(w).max(), term.name
+            _, He = k.local(x, project=False)
+            psd = np.linalg.eigvalsh(He).min(axis=1) >= 0.0
+            if psd.any():
+                assert close(H[psd], He[psd], 1e-8), term.name
+
+
+def test_tets_projection_is_the_analytic_eigensystem_at_inversion():
+    """Inverted and collapsed tets: the kernel's SVD-based clamp equals the NumPy closed form."""
+    pot, X = scene("tets")
+    term, k = pot.terms[0], kernels.term_kernel(pot.terms[0])
+    x = X.copy()
+    x[:, 2] *= -0.6  # every tet inverted
+    x[:5, 1] = x[:5, 1].mean()  # some flattened
+    g, H = k.local(x, project=True)
+    g_ref, H_ref = term.local_gradient_hessian(term.gather(torch.from_numpy(x)), project=True)
+    assert close(g, g_ref.numpy())
+    assert close(H, H_ref.numpy(), 1e-8)
+
+
+@pytest.mark.parametrize("project", [False, True])
+def test_scatter_into_csr_equals_assembly(case, project):
+    """Kernels adding into the CSR data at precomputed slots give the matrix of ``assemble``."""
+    _, pot, X, ks = case
+    x = states(X, 4)[1]
+    n = pot.n_vertices
+    free = np.ones(n, dtype=bool)
+    free[pot.dirichlet.numpy()] = False
+    free_dofs = np.flatnonzero(np.repeat(free, 3))
+    stencils = [t.stencils.numpy() for t in pot.terms]
+    pattern = HessianPattern(n, stencils, free_dofs)
+    xt = torch.from_numpy(x)
+    pairs = [t.local_gradient_hessian(t.gather(xt), project=project) for t in pot.terms]
+    diag = np.linspace(1.0, 2.0, 3 * n)
+    U_ref = pattern.assemble([H.numpy() for _, H in pairs], diag).toarray()
+    g_ref = scatter_gradient(n, stencils, [g.numpy() for g, _ in pairs])
+    grad, data = np.zeros(3 * n), np.zeros(pattern.nnz)
+    for st, k in zip(stencils, ks):
+        k.accumulate(x, grad, data, pattern.stencil_slots(st), project)
+    data[pattern.diagonal_slots] += diag[free_dofs]
+    U = np.zeros(pattern.shape)
+    rows = np.repeat(np.arange(pattern.shape[0]), np.diff(pattern.indptr))
+    U[rows, pattern.indices] = data
+    assert close(U, U_ref, 1e-12)
+    assert close(grad, g_ref, 1e-12)
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_solver_steps_agree_with_the_reference_path(model):
+    """Newton with the compiled kernels and with the closed forms reaches the same states."""
+    pot, X = scene(model)
+    fast = ImplicitEuler(pot, NewtonSettings(tolerance=1e-9), kernels=True)
+    slow = ImplicitEuler(pot, NewtonSettings(tolerance=1e-9), kernels=False)
+    assert fast.kernels is not None and slow.kernels is None
+    D = fast.dirichlet
+    x2 = x1 = X.copy()
+    y2 = y1 = X.copy()
+    for t in range(1, 4):
+        target = X[D] + np.array([0.02 * t, 0.0, 0.01 * t])
+        x, info = fast.step(x1, x2, target)
+        y, _ = slow.step(y1, y2, target)
+        assert info.iterations >= 1
+        assert np.abs(x - y).max() <= 1e-7 * np.ptp(X)
+        x2, x1, y2, y1 = x1, x, y1, y
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_fused_line_search_trial_takes_the_same_steps(model, monkeypatch):
+    """The full-step trial that also builds the next Hessian (``fused_trial``) gives the same
+    energy, gradient and matrix as the separate passes, so the trajectory is the same to the bit;
+    and it is used (a broken fused pass would change the steps or never run)."""
+    pot, X = scene(model)
+    calls = []
+    original = ImplicitEuler._evaluate_hessian
+
+    def spy(self, *args):
+        calls.append(1)
+        return original(self, *args)
+
+    monkeypatch.setattr(ImplicitEuler, "_evaluate_hessian", spy)
+    runs = []
+    for fused in (False, True):
+        solver = ImplicitEuler(pot, NewtonSettings(tolerance=1e-9, fused_trial=fused), kernels=True)
+        D = solver.dirichlet
+        xs, needed, built = [X.copy(), X.copy()], 0, 0
+        for t in range(2, 8):
+            x, info = solver.step(xs[-1], xs[-2], X[D] + np.array([0.03 * t, 0.0, 0.02 * t]))
+            xs.append(x)
+            needed += info.iterations + info.projected
+            built += info.hessians
+        runs.append(np.stack(xs))
+        # unfused, one Hessian pass per iteration (and per fallback to projection); fused, a trial
+        # that converges or is rejected builds one more
+        assert built == needed if not fused else built >= needed
+        if not fused:
+            assert not calls
+    assert calls
+    assert np.array_equal(runs[0], runs[1])
+    assert np.abs(runs[0][-1] - X).max() > 1e-3  # it moved
+
+
+# ---------------------------------------------------------------------------
+# the compiled elastic energy of many states (the self-supervised losses)
+# ---------------------------------------------------------------------------
+def test_compiled_elastic_matches_the_terms_in_value_and_gradient(case):
+    """potential.elastic through the kernels (with_compiled_elastic) against the terms' PyTorch
+    energies under autograd, on a (2, 3) batch of states: same energies, same gradients."""
+    _, pot, X, _ = case
+    fast = kernels.with_compiled_elastic(pot)
+    assert fast is not pot and fast.kernels is not None
+    x0 = torch.as_tensor(np.stack(states(X, 4, count=6)).reshape(2, 3, *X.shape))
+    xa, xb = x0.clone().requires_grad_(True), x0.clone().requires_grad_(True)
+    ea, eb = pot.elastic(xa), fast.elastic(xb)
+    assert eb.shape == (2, 3)
+    w = torch.arange(1.0, 7.0, dtype=torch.float64).reshape(2, 3)  # a weighted sum: each state's gradient scaled
+    (w * ea).sum().backward()
+    (w * eb).sum().backward()
+    assert close(eb.detach(), ea.detach())
+    assert close(xb.grad, xa.grad)
+    with torch.no_grad():  # the energy-only pass
+        assert close(fast.elastic(x0), ea.detach())
+
+
+def test_compiled_elastic_is_the_same_on_any_thread_count_and_refuses_second_derivatives(case):
+    _, pot, X, ks = case
+    x = np.stack(states(X, 5, count=5))
+    E1, G1 = kernels.batch_energy_gradient(ks, x, threads=1)
+    E2, G2 = kernels.batch_energy_gradient(ks, x, threads=2)
+    assert np.array_equal(E1, E2) and np.array_equal(G1, G2)
+    xt = torch.as_tensor(x).requires_grad_(True)
+    # with another differentiable term beside it, a Hessian-vector product would silently miss the
+    # elastic part (the kernels' gradient is a constant to autograd): it must raise instead
+    total = (xt**2).sum() + kernels.compiled_energy(ks, xt).sum()
+    with pytest.raises(RuntimeError, match="first derivatives only"):
+        torch.autograd.grad(total, xt, create_graph=True)
+    (g,) = torch.autograd.grad(total, xt)  # a first derivative is fine
+    assert close(g, 2 * xt.detach() + torch.as_tensor(G1))
+    with pytest.raises(ValueError, match="float64 CPU"):
+        kernels.compiled_energy(ks, xt.detach().float())
+
+
+def test_integrator_training_with_compiled_energies_follows_the_pytorch_one(monkeypatch):
+    """fit_integrator on a tiny cloth simulated by the solver: with the compiled elastic energy
+    (the default on the CPU) the self-supervised loss history is the PyTorch energy's to
+    rounding, epoch by epoch, and the trained weights agree."""
+    from latentsim.latent import Autoencoder, RelativeCoordinates, fit_integrator
+
+    pot, X = scene("shell")
+    solver = ImplicitEuler(pot, NewtonSettings(tolerance=1e-8))
+    D = solver.dirichlet
+    T = 14
+    xD = np.stack([X[D] + [0.0, 0.0, 0.02 * t] for t in range(T)])
+    xs = [X.copy(), X.copy()]
+    for t in range(2, T):
+        xs.append(solver.step(xs[-1], xs[-2], xD[t])[0])
+    seq = {"positions": torch.as_tensor(np.stack(xs)), "dirichlet_positions": torch.as_tensor(xD), "bc": torch.full((T, 1), 0.6)}
+    coords = RelativeCoordinates(len(X), D, "mean")
+    ae = Autoencoder(coords.dim, 3, [16], pca_dim=3)
+    ae.init_pca(coords.encode(seq["positions"], seq["dirichlet_positions"]))
+    cfg = dict(widths=[16], epochs=3, lr=1e-3, batch_size=6)
+    calls = []
+    original = kernels.batch_energy_gradient
+    monkeypatch.setattr(kernels, "batch_energy_gradient", lambda *a, **k: calls.append(1) or original(*a, **k))
+    a, ha = fit_integrator(ae.eval(), coords, pot, [seq], cfg, seed=0, compiled=True)
+    used = len(calls)
+    b, hb = fit_integrator(ae.eval(), coords, pot, [seq], cfg, seed=0, compiled=False)
+    assert used == 3 * 2 and len(calls) == used  # one call per batch (12 triplets, 2 batches) and epoch; none without
+    assert np.allclose(ha["loss"], hb["loss"], rtol=1e-9, atol=0)
+    assert all(torch.allclose(pa, pb, rtol=1e-6, atol=1e-9) for pa, pb in zip(a.parameters(), b.parameters()))
+
+
+# ---------------------------------------------------------------------------
+# two threads: vertex-disjoint halves of each term's stencils
+# ---------------------------------------------------------------------------
+def test_split_stencils_makes_vertex_disjoint_halves_and_a_thin_separator(case):
+    model, pot, X, ks = case
+    kernels.split_stencils(ks, len(X), threads=2)
+    for k in ks:
+        first, second, sep = k.groups
+        assert np.array_equal(np.sort(np.concatenate(k.groups)), np.arange(len(k.stencils)))  # every stencil once
+        assert not set(k.stencils[first].ravel()) & set(k.stencils[second].ravel())  # no shared vertex
+        assert len(first) > 0 and len(second) > 0
+        if model != "rods":  # a connected mesh: the separator is a layer, not a half
+            assert len(sep) < 0.5 * len(k.stencils)
+
+
+def test_solver_on_two_threads_gives_the_one_thread_result_bit_for_bit(case, monkeypatch):
+    """The halves run concurrently (forced here on a small scene) and every path visits the
+    groups in the same order, so the trajectory is identical to the serial one."""
+    _, pot, X, _ = case
+    monkeypatch.setattr(kernels.TermKernel, "MIN_PARALLEL", 0)
+    runs = []
+    for threads in (1, 2):
+        solver = ImplicitEuler(pot, NewtonSettings(tolerance=1e-8), threads=threads)
+        assert all(k.threads == threads and len(k.groups) == 3 for k in solver.kernels)
+        D = solver.dirichlet
+        xs = [X.copy(), X.copy()]
+        for t in range(2, 8):
+            xs.append(solver.step(xs[-1], xs[-2], X[D] + [0.0, 0.0, 0.01 * t])[0])
+        runs.append(np.stack(xs))
+    assert np.array_equal(runs[0], runs[1])
+    assert np.abs(runs[0][-1] - X).max() > 1e-3  # it moved
+
+
+def test_solver_energy_and_gradient_are_the_incremental_potentials(case):
+    """The solver's compiled inertia + gravity + elastic pass (line search, initial guess) against
+    the PyTorch incremental potential without the Dirichlet penalty, in value and autograd gradient;
+    a wrong mass, time step or gravity sign in the inertia kernel fails it."""
+    _, pot, X, _ = case
+    solver = ImplicitEuler(pot, NewtonSettings(), kernels=True)
+    x, x1, x2 = states(X, 8)
+    xt = torch.from_numpy(x.copy()).requires_grad_(True)
+    e_ref = pot(xt, torch.from_numpy(x1), torch.from_numpy(x2), penalty=False)
+    (g_ref,) = torch.autograd.grad(e_ref, xt)
+    e_ref = e_ref.item()
+    e, grad = solver._evaluate(x, x1, x2)
+    assert abs(e - e_ref) <= 1e-10 * abs(e_ref)
+    assert close(grad, g_ref.numpy().reshape(-1), 1e-10)
+    assert abs(solver.energy(x, x1, x2) - e) <= 1e-12 * abs(e)
+    grad_h, _ = solver.gradient_hessian(x, x1, x2, project=False)  # the Newton pass adds the same terms
+    assert close(grad_h, grad, 1e-12)

@@ -1,0 +1,202 @@
+"""Tests of reduced implicit Euler (latentsim.solve.reduced).
+
+A tiny StVK tet beam clamped at one end, under gravity, with its clamp moving:
+- a linear subspace spanning every free DoF reproduces the full-space Newton
+  step of :class:`latentsim.solve.implicit_euler.ImplicitEuler`;
+- the reduced gradient J^T g equals finite differences of the scene's
+  IncrementalPotential (with its Dirichlet penalty) along the subspace, for a
+  linear and for an autoencoder-decoder (nonlinear) subspace;
+- Newton and L-BFGS decrease the energy at every iteration and agree;
+- a rollout reports per-step times and the frame where a solve fails.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from latentsim.latent import Autoencoder, RelativeCoordinates
+from latentsim.mesh import beam_tets
+from latentsim.solve.reduced import (
+    DecoderSubspace,
+    LinearSubspace,
+    ReducedImplicitEuler,
+    ReducedSettings,
+    reduced_rollout,
+)
+from latentsim.scene import build_potential
+from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings
+
+DT = 1.0 / 30.0
+
+
+@pytest.fixture(scope="module")
+def beam():
+    V, T = beam_tets(3, 1, 1, 0.3, 0.1, 0.1, tets_per_cell=5)
+    D = np.flatnonzero(V[:, 0] < 1e-12)
+    arrays = {"rest_positions": V, "tets": T, "dirichlet": D}
+    mat = {"youngs_modulus": 2e4, "poisson_ratio": 0.3, "density": 1000.0}
+    pot = build_potential("tets", arrays, mat, DT, [0.0, -9.81, 0.0], w_bc=1e4)
+    # the clamp moves up and sideways: 3 frames of prescribed positions
+    shift = np.array([[0.0, 0.0, 0.0], [0.0, 0.02, 0.01], [0.0, 0.05, 0.02], [0.0, 0.07, 0.04], [0.0, 0.08, 0.05]])
+    xD = V[D][None] + shift[:, None, :]
+    return V, D, pot, xD
+
+
+def _hard_coords(V, D):
+    """Every vertex relative to the first clamped vertex; the clamp imposed exactly."""
+    return RelativeCoordinates(len(V), D, "roots", root_of=[int(D[0])] * len(V))
+
+
+def test_full_rank_linear_subspace_reproduces_full_newton(beam):
+    V, D, pot, xD = beam
+    coords = _hard_coords(V, D)
+    u0 = coords.encode(torch.as_tensor(V), torch.as_tensor(V[D])).numpy()
+    sub = LinearSubspace(coords, u0, np.eye(coords.dim))
+    assert sub.dim == 3 * (len(V) - len(D))
+    full = ImplicitEuler(pot, NewtonSettings(tolerance=1e-10))
+    xs = [V.copy(), V.copy()]
+    for t in range(2, len(xD)):
+        xs.append(full.step(xs[-1], xs[-2], xD[t])[0])
+    q0 = sub.project(V, xD[0])
+    out = reduced_rollout(sub, pot, q0, q0, np.concatenate([V[D][None]] * 2 + [xD[2:]]), ReducedSettings(tolerance=1e-10))
+    assert out["diverged_frame"] == -1 and out["failure"] == ""
+    X = out["positions"]
+    moved = np.abs(xs[-1] - V).max()
+    assert moved > 0.02  # the beam really moves and sags
+    for t in range(2, len(xD)):
+        assert np.abs(X[t] - xs[t]).max() < 1e-9 * moved + 1e-12
+    assert np.isfinite(out["step_ms"][2:]).all() and (out["iterations"][2:] >= 1).all()
+
+
+def _decoder_subspace(V, D, r=4, seed=0):
+    coords = RelativeCoordinates(len(V), D, "mean")
+    g = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)
+    rest = coords.encode(torch.as_tensor(V), torch.as_tensor(V[D]))
+    U = rest + 0.02 * torch.randn(64, coords.dim, generator=g, dtype=torch.float64)
+    ae = Autoencoder(coords.dim, r, [16, 16], pca_dim=8).double()
+    ae.init_pca(U)
+    with torch.no_grad():  # a genuinely nonlinear decoder: non-zero branch output, non-trivial BatchNorm
+        ae.dec_branch.out.weight.normal_(0.0, 0.05, generator=g)
+        for blk in ae.dec_branch.blocks:
+            blk[1].running_mean.normal_(0.0, 0.1, generator=g)
+            blk[1].running_var.uniform_(0.5, 2.0, generator=g)
+    ae.eval()
+    return DecoderSubspace(ae, coords), coords, rest.numpy()
+
+
+def _energy_along(pot, sub, q, x1, x2, xD):
+    with torch.no_grad():
+        x = torch.from_numpy(sub.map(q, xD))
+        return float(pot(x, torch.from_numpy(x1), torch.from_numpy(x2), targets=torch.from_numpy(xD), penalty=True))
+
+
+@pytest.mark.parametrize("kind", ["linear", "decoder"])
+def test_reduced_gradient_matches_finite_differences(beam, kind):
+    V, D, pot, xD = beam
+    if kind == "decoder":
+        sub, coords, _ = _decoder_subspace(V, D)
+    else:
+        coords = RelativeCoordinates(len(V), D, "mean")
+        rng = np.random.default_rng(1)
+        u0 = coords.encode(torch.as_tensor(V), torch.as_tensor(V[D])).numpy()
+        sub = LinearSubspace(coords, u0, np.linalg.qr(rng.standard_normal((coords.dim, 5)))[0])
+    solver = ReducedImplicitEuler(sub, pot)
+    assert solver.penalty  # mean coordinates: the Dirichlet vertices are only penalised
+    rng = np.random.default_rng(2)
+    q = 0.05 * rng.standard_normal(sub.dim)
+    x1 = V + 0.01 * rng.standard_normal(V.shape)
+    x2 = V + 0.01 * rng.standard_normal(V.shape)
+    e, gq, _ = solver.reduced_gradient(q, x1, x2, xD[2])
+    assert e == pytest.approx(_energy_along(pot, sub, q, x1, x2, xD[2]), rel=1e-12)
+    h = 1e-6
+    fd = np.array([(_energy_along(pot, sub, q + h * ei, x1, x2, xD[2]) - _energy_along(pot, sub, q - h * ei, x1, x2, xD[2])) / (2 * h) for ei in np.eye(sub.dim)])
+    assert np.abs(gq).max() > 1e-3
+    assert np.allclose(gq, fd, rtol=1e-5, atol=1e-7 * np.abs(gq).max())
+
+
+def test_decoder_curvature_matches_autograd(beam):
+    """sum_i g_i d^2 x_i / dq^2 of the decoder subspace against torch.func.hessian."""
+    V, D, _, xD = beam
+    sub, coords, _ = _decoder_subspace(V, D, seed=4)
+    rng = np.random.default_rng(5)
+    q, g = 0.3 * rng.standard_normal(sub.dim), rng.standard_normal(3 * len(V))
+    gt, xDt = torch.from_numpy(g), torch.from_numpy(xD[2])
+
+    def weighted(z):
+        return (gt * coords.decode(sub.ae.decode(z[None])[0], xDt).reshape(-1)).sum()
+
+    ref = torch.func.hessian(weighted)(torch.from_numpy(q)).detach().numpy()
+    C = sub.curvature(q, xD[2], g)
+    assert np.abs(ref).max() > 1e-3
+    assert np.allclose(C, ref, rtol=0, atol=1e-10 * np.abs(ref).max())
+
+
+@pytest.mark.parametrize("method,curvature", [("newton", True), ("newton", False), ("lbfgs", False)])
+def test_energy_decreases_every_iteration_and_methods_agree(beam, method, curvature):
+    V, D, pot, xD = beam
+    sub, _, _ = _decoder_subspace(V, D, seed=3)
+    q0 = sub.project(V, V[D])
+    settings = ReducedSettings(method=method, tolerance=1e-8, max_iterations=200, map_curvature=curvature)
+    solver = ReducedImplicitEuler(sub, pot, settings)
+    x0 = sub.map(q0, xD[0])
+    q, _, info = solver.step(q0, q0, x0, x0, xD[3])
+    assert info.converged and info.iterations >= 2
+    E = np.asarray(info.energies)
+    assert np.all(np.diff(E) <= 1e-12 * np.abs(E).max())
+    assert E[-1] < E[0]
+    ref = ReducedImplicitEuler(sub, pot, ReducedSettings(method="newton", tolerance=1e-10, max_iterations=200))
+    q_ref, _, info_ref = ref.step(q0, q0, x0, x0, xD[3])
+    assert np.abs(q - q_ref).max() < 1e-4 * max(np.abs(q_ref - q0).max(), 1e-12)
+    if method == "newton" and not curvature:  # Gauss-Newton: linear convergence, more iterations
+        assert info.iterations > info_ref.iterations
+
+
+def test_rollout_records_the_frame_that_does_not_converge(beam):
+    V, D, pot, xD = beam
+    coords = _hard_coords(V, D)
+    sub = LinearSubspace.from_frames(coords, np.stack([V, V + 0.01]), np.stack([V[D], V[D] + 0.01]), 1)
+    q0 = sub.project(V, V[D])
+    # no iteration allowed and an unreachable tolerance: frame 2 fails, and the rollout stops there
+    out = reduced_rollout(sub, pot, q0, q0, xD, ReducedSettings(tolerance=1e-14, max_iterations=0))
+    assert out["diverged_frame"] == 2
+    assert out["failure"].startswith("ReducedFailed: no convergence in 0 iterations")  # why, for the log
+    assert np.isnan(out["positions"][2:]).all() and np.isfinite(out["positions"][:2]).all()
+    assert out["positions"].shape == (len(xD), len(V), 3) and out["latents"].shape == (len(xD), 1)
+
+
+@pytest.mark.parametrize("mode", ["mean", "roots"])
+def test_modes_subspace_spans_the_vibration_modes_and_follows_the_clamp(beam, mode):
+    """modes_reduced: q = 0 is the rest shape carried by the clamp's translation, and the
+    directions are the M-orthonormal lowest modes (zero on the clamp), whose reduced stiffness
+    J^T K J is diag(omega^2)."""
+    from latentsim.latent.baselines import modes_subspace
+    from latentsim.solve.implicit_euler import lowest_modes, stiffness_matrix
+
+    V, D, pot, _ = beam
+    coords = RelativeCoordinates(len(V), D, "mean") if mode == "mean" else _hard_coords(V, D)
+    sub = modes_subspace(coords, pot, V, 3)
+    t = np.array([0.01, -0.02, 0.03])
+    assert np.allclose(sub.map(np.zeros(3), V[D] + t), V + t, atol=1e-12)
+    _, J = sub.jacobian(np.zeros(3), V[D])
+    assert np.abs(J.reshape(len(V), 3, 3)[D]).max() == 0.0
+    w, _, free = lowest_modes(pot, 3, V)
+    K, _ = stiffness_matrix(pot, V, free)
+    m = np.repeat(pot.masses.numpy(), 3)
+    Jf = J[free]
+    assert np.allclose(Jf.T @ (m[free, None] * Jf), np.eye(3), atol=1e-8)
+    assert np.allclose(Jf.T @ (K @ Jf), np.diag(w), rtol=1e-6, atol=1e-8 * w.max())
+
+
+def test_modes_subspace_is_the_same_on_every_call(beam):
+    """The linear-modes basis is reproducible: ARPACK's own start vector is random (and advances
+    between calls in one process), so without the fixed start and sign the basis, and every latent
+    rolled out in it, differs from run to run."""
+    from latentsim.solve.implicit_euler import lowest_modes
+
+    V, _, pot, _ = beam
+    (w1, V1, _), (w2, V2, _) = lowest_modes(pot, 4, V), lowest_modes(pot, 4, V)
+    assert np.array_equal(w1, w2) and np.array_equal(V1, V2)
+    assert (V1[np.abs(V1).argmax(0), np.arange(4)] > 0).all()

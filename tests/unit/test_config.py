@@ -1,0 +1,119 @@
+"""Config validation: defaults filled, malformed configs stopped with the key named."""
+
+import copy
+from pathlib import Path
+
+import pytest
+import yaml
+
+from latentsim.config import ConfigError, autoencoder_dir, autoencoder_settings, integrator_settings, load_config, sweep_point_settings, validate_config
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture
+def tiny():
+    return yaml.safe_load((ROOT / "config" / "tiny.yaml").read_text())
+
+
+@pytest.mark.parametrize("name", ["config.yaml", "tiny.yaml"])
+def test_shipped_configs_validate(name):
+    cfg = load_config(ROOT / "config" / name)
+    for scene in cfg["scenes"].values():
+        # defaults filled at every level
+        assert scene["newton"]["max_iterations"] >= 1
+        assert "noise_scale" in scene["integrator"]
+        for seq in scene["sequences"]:
+            assert seq["split"] in ("train", "test")
+
+
+def test_unknown_scene_key_is_named(tiny):
+    tiny["scenes"]["tiny_rods"]["materail"] = {}
+    with pytest.raises(ConfigError, match=r"scenes\.tiny_rods.*materail"):
+        validate_config(tiny)
+
+
+def test_negative_youngs_modulus_is_named(tiny):
+    tiny["scenes"]["tiny_rods"]["material"]["youngs_modulus"] = -1.0
+    with pytest.raises(ConfigError, match=r"scenes\.tiny_rods\.material\.youngs_modulus.*-1\.0.*exclusiveMinimum"):
+        validate_config(tiny)
+
+
+def test_string_where_a_number_goes_is_named(tiny):
+    tiny["scenes"]["tiny_cloth"]["dt"] = "fast"
+    with pytest.raises(ConfigError, match=r"scenes\.tiny_cloth\.dt.*'fast'.*number"):
+        validate_config(tiny)
+
+
+def test_enum_lists_allowed_values(tiny):
+    tiny["scenes"]["tiny_rods"]["model"] = "fem"
+    with pytest.raises(ConfigError, match=r"scenes\.tiny_rods\.model.*allowed values: \['rods', 'shell', 'tets'\]"):
+        validate_config(tiny)
+
+
+def test_defaults_do_not_leak_between_scenes(tiny):
+    cfg = validate_config(copy.deepcopy(tiny))
+    cfg["scenes"]["tiny_rods"]["newton"]["tolerance"] = 1.0
+    assert cfg["scenes"]["tiny_cloth"]["newton"]["tolerance"] != 1.0
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda sc: sc.update(paper="none"), r"'scenes\.tiny_nm\.nm_study\.\w+\.enabled'.*paper wang2024.*'none'"),
+        (lambda sc: sc.update(model="tets"), r"'scenes\.tiny_nm\.nm_study\.sheet\.enabled'.*needs a shell.*'tets'"),
+        (lambda sc: sc["nm_study"]["energy"].update(train=15), r"'scenes\.tiny_nm\.nm_study\.energy'.*20 samples leave 1 test samples"),
+        (lambda sc: sc["nm_study"]["keyframes"].update(poses=[[0, 0], [1, 0, 0]]), r"'scenes\.tiny_nm\.nm_study\.keyframes\.poses'.*2 modal coordinates"),
+        (lambda sc: sc["neural_modes"].update(boundary="free"), r"'scenes\.tiny_nm\.nm_study\.dynamics\.enabled'.*boundary to dirichlet"),
+        (lambda sc: sc["nm_study"]["sheet"].update(curve_points=0), r"'scenes\.tiny_nm\.nm_study\.sheet\.curve_points'.*0 is out of range"),
+        (lambda sc: sc["nm_study"].update(table6={}), r"'scenes\.tiny_nm\.nm_study'.*unknown key.*table6"),
+        (lambda sc: sc["nm_study"]["aspect"].update(ratios=4), r"'scenes\.tiny_nm\.nm_study\.aspect\.ratios'.*4 is even"),
+        (lambda sc: sc["nm_study"]["aspect"].update(ratio_min=2.0), r"'scenes\.tiny_nm\.nm_study\.aspect'.*ratio_min 2\.0 must be below ratio_max 2\.0"),
+    ],
+)
+def test_neural_modes_studies_that_do_not_fit_the_scene_are_named(tiny, edit, message):
+    edit(tiny["scenes"]["tiny_nm"])
+    with pytest.raises(ConfigError, match=message):
+        validate_config(tiny)
+
+
+def test_a_variant_of_another_size_overrides_the_autoencoder_apart_from_the_integrator(tiny):
+    cfg = validate_config(tiny)
+    assert tiny["integrator_variants"]["small"]["autoencoder"] == {"latent_dim": 2, "widths": [16]}
+    own, small = autoencoder_settings(cfg, "tiny_rods"), autoencoder_settings(cfg, "tiny_rods", "small")
+    assert (own["latent_dim"], own["widths"], small["latent_dim"], small["widths"]) == (4, [32, 32], 2, [16])
+    assert {k: v for k, v in small.items() if k not in ("latent_dim", "widths")} == {k: v for k, v in own.items() if k not in ("latent_dim", "widths")}
+    assert autoencoder_settings(cfg, "tiny_rods", "supervised") == own  # a variant without the block shares the scene's
+    integ = integrator_settings(cfg, "tiny_rods", "small")
+    assert "autoencoder" not in integ and integ["widths"] == [16] and integ["epochs"] == cfg["scenes"]["tiny_rods"]["integrator"]["epochs"]
+    assert autoencoder_dir(cfg, "tiny_rods", "small") == "results/autoencoder/tiny_rods/small"
+    assert autoencoder_dir(cfg, "tiny_rods", "supervised") == autoencoder_dir(cfg, "tiny_rods") == "results/autoencoder/tiny_rods"
+    with pytest.raises(ConfigError, match="no integrator variant 'small'"):
+        autoencoder_settings(cfg, "tiny_cloth", "small")  # the scene does not list it
+
+
+def test_unknown_key_of_a_variants_autoencoder_is_named(tiny):
+    tiny["integrator_variants"]["small"]["autoencoder"]["coordinates"] = "mean"
+    with pytest.raises(ConfigError, match=r"integrator_variants\.small\.autoencoder'.*coordinates"):
+        validate_config(tiny)
+
+
+def test_a_sweep_trains_its_points_with_the_method_it_names(tiny):
+    cfg = validate_config(copy.deepcopy(tiny))
+    own = sweep_point_settings(cfg, "tiny_cloth", 2, 0)
+    assert own["integrator"] == dict(cfg["scenes"]["tiny_cloth"]["integrator"], widths=[16, 16])
+    assert own["autoencoder"] == dict(cfg["scenes"]["tiny_cloth"]["autoencoder"], latent_dim=2, widths=[16, 16])
+    tiny["integrator_variants"]["hybrid"] = {"supervised_weight": 3.0, "widths": [99], "autoencoder": {"latent_dim": 7, "epochs": 11}}
+    tiny["scenes"]["tiny_cloth"]["variants"] = ["hybrid"]
+    tiny["scenes"]["tiny_cloth"]["sweep"]["method"] = "hybrid"
+    cfg = validate_config(tiny)
+    point = sweep_point_settings(cfg, "tiny_cloth", 2, 0)
+    # the variant's loss and settings, the point's latent size and widths
+    assert point["integrator"]["supervised_weight"] == 3.0 and point["integrator"]["widths"] == [16, 16]
+    assert point["autoencoder"]["epochs"] == 11 and point["autoencoder"]["latent_dim"] == 2 and point["autoencoder"]["widths"] == [16, 16]
+
+
+def test_a_sweep_method_the_scene_does_not_run_is_named(tiny):
+    tiny["scenes"]["tiny_cloth"]["sweep"]["method"] = "supervised"  # defined, but tiny_cloth does not list it
+    with pytest.raises(ConfigError, match=r"scenes\.tiny_cloth\.sweep\.method'.*'supervised'"):
+        validate_config(tiny)

@@ -1,0 +1,101 @@
+"""The summary's glance tables: one row per scene and method, and the grid of the compared methods."""
+
+import numpy as np
+import pandas as pd
+
+from latentsim.report.evaluate import glance_grid, glance_table, speed_accuracy_rows, summarise, table1, table2
+from latentsim.report.plots import speed_accuracy_chart
+
+
+def _metrics():
+    """Two scenes. On 'a', no_noise (a variant) is a hair faster and more accurate than self_supervised;
+    supervised diverges on one of two sequences. 'b' runs self_supervised alone."""
+    rows = []
+
+    def add(scene, method, seq, err, ms, full, ke, div=-1):
+        rows.append(dict(scene=scene, method=method, sequence=seq, mean_error=err, max_error=3 * err, diverged_frame=div,
+                         kinetic_ratio=ke, full_ms=full, latent_ms=ms, integrate_ms=ms / 3, decode_ms=2 * ms / 3,
+                         jvp_torch_ms=1.0, jvp_forward_ms=0.01, dof=30, latent_dim=2, frames=100, dirichlet_error=0.0,
+                         end_error=err, end_motion=0.1, end_motion_truth=0.1))  # fmt: skip
+
+    for seq, full in (("s0", 10.0), ("s1", 12.0)):
+        add("a", "self_supervised", seq, 0.020, 0.10, full, 0.9)
+        add("a", "no_noise", seq, 0.019, 0.099, full, 0.8)
+        add("a", "pca_reduced", seq, 0.001, 2.0, full, 1.0)
+        add("a", "supervised_5x256", seq, 0.005, 0.05, full, 1.1, div=40 if seq == "s1" else -1)
+    add("b", "self_supervised", "t", 0.3, 0.2, 5.0, 1.2)
+    return pd.DataFrame(rows)
+
+
+def _stress():
+    def row(method, c, diverged):
+        return dict(scene="a", method=method, condition=c, frames=50, frames_survived=20 if diverged else 50,
+                    diverged=diverged, bc_error=0.0)  # fmt: skip
+
+    return pd.DataFrame([row("self_supervised", c, False) for c in "xyz"] + [row("supervised_5x256", c, c != "x") for c in "xyz"])
+
+
+def test_glance_table_rows(tmp_path):
+    df = _metrics()
+    pts = speed_accuracy_chart(speed_accuracy_rows(df), tmp_path / "c.png")
+    g = glance_table(df, pts, _stress()).set_index(["scene", "method"])
+    ss = g.loc[("a", "self_supervised")]
+    # own job's ratio: mean full ms (11) over mean latent ms (0.1)
+    assert np.isclose(ss["speedup"], 110.0)
+    assert np.isclose(ss["mean_error"], 0.020) and np.isclose(ss["max_error"], 0.060)
+    assert np.isclose(ss["kinetic_ratio"], 0.9)
+    assert ss["test_survived"] == "2/2" and ss["stress_survived"] == "3/3"
+    sup = g.loc[("a", "supervised_5x256")]
+    assert sup["test_survived"] == "1/2" and sup["stress_survived"] == "1/3"
+    assert not sup["on_front"]  # diverged: off the front though fastest
+    full = g.loc[("a", "full_space")]
+    assert full["speedup"] == 1.0 and full["mean_error"] == 0.0 and full["test_survived"] == "2/2" and full["on_front"]
+    assert g.loc[("a", "pca_reduced"), "stress_survived"] == ""  # no stress conditions ran
+    # the chart's front counts variants: no_noise dominates self_supervised
+    assert g.loc[("a", "no_noise"), "on_front"] and not ss["on_front"]
+    # sorted by scene, then ms per frame
+    flat = g.reset_index()
+    for _, s in flat.groupby("scene"):
+        assert list(s["ms_per_frame"]) == sorted(s["ms_per_frame"])
+
+
+def test_glance_grid_front_of_the_compared_methods(tmp_path):
+    df = _metrics()
+    pts = speed_accuracy_chart(speed_accuracy_rows(df), tmp_path / "c.png")
+    grid = glance_grid(glance_table(df, pts, _stress())).set_index("scene")
+    # columns: the comparison's methods present, in the comparison's order; variants left out
+    assert list(grid.columns) == ["full_space", "pca_reduced", "self_supervised", "supervised_5x256"]
+    assert grid.loc["a", "self_supervised"] == "0.02 (0.1) *"  # no_noise is not in the grid's front
+    assert grid.loc["a", "supervised_5x256"] == "0.005 (0.05)"  # diverged: no star
+    assert grid.loc["a", "pca_reduced"].endswith("*") and grid.loc["a", "full_space"].endswith("*")
+    assert grid.loc["b", "pca_reduced"] == "-"
+
+
+def test_summary_markdown_opens_with_the_glance(tmp_path):
+    df = _metrics()
+    df.to_csv(tmp_path / "m.csv", index=False)
+    _stress().to_csv(tmp_path / "st.csv", index=False)
+    summarise([tmp_path / "m.csv"], tmp_path / "s.csv", tmp_path / "s.md", tmp_path / "s.png",
+              stress=[tmp_path / "st.csv"], stress_paths=(tmp_path / "stress.csv", tmp_path / "stress.png"),
+              glance_path=tmp_path / "glance.csv")  # fmt: skip
+    text = (tmp_path / "s.md").read_text()
+    assert text.startswith("## At a glance")
+    assert "| a | 0 (11) * | 0.001 (2) * | 0.02 (0.1) * | 0.005 (0.05) |" in text
+    assert "| a | self_supervised | 0.1 | 110 | 0.02 | 0.06 | 0.9 | 2/2 | 3/3 | False |" in text
+    g = pd.read_csv(tmp_path / "glance.csv", keep_default_na=False)
+    assert len(g) == 7 and set(g["method"]) == {"full_space", "self_supervised", "no_noise", "pca_reduced", "supervised_5x256"}
+
+
+def test_tables_1_and_2_give_a_variant_of_another_size_a_row_of_its_own():
+    df = _metrics()
+    small = df[(df["scene"] == "a") & (df["method"] == "no_noise")].assign(method="small", latent_dim=1, latent_ms=0.01, decode_ms=0.006)
+    df = pd.concat([small, df], ignore_index=True)  # listed first: the tables still put the scene's own model first
+    t1 = table1(df, sized=["small"])
+    assert list(zip(t1["scene"], t1["method"])) == [("a", "self_supervised"), ("a", "small"), ("b", "self_supervised")]
+    row = t1.set_index(["scene", "method"]).loc[("a", "small")]
+    assert row["latent_dof"] == 1 and np.isclose(row["full_ms"], 11.0) and np.isclose(row["speedup"], 1100.0)
+    assert list(table1(df)["method"]) == ["self_supervised", "self_supervised"]  # no_noise, supervised: the scene's size
+    layers = {"a": ("8, 8", "8"), ("a", "small"): ("4", "4")}
+    t2 = table2(df, layers, sized=["small"]).set_index(["scene", "method"])
+    assert t2.loc[("a", "small"), "decoder_layers"] == "4" and t2.loc[("a", "self_supervised"), "decoder_layers"] == "8, 8"
+    assert np.isclose(t2.loc[("a", "small"), "ours_ms"], 0.01) and ("b", "small") not in t2.index

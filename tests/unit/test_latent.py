@@ -1,0 +1,611 @@
+"""Tests of the latent-space learning core (latentsim.latent).
+
+The physical test system is a hanging chain of point masses joined by linear
+springs, 1/2 k |x_i - x_j - (X_i - X_j)|^2, whose root (vertex 0, Dirichlet)
+moves horizontally with a prescribed velocity p_t.  Its implicit-Euler step is
+a linear solve, written out below independently of the energy code, which
+gives a known answer for the self-supervised integrator.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+import pytest
+import torch
+
+from latentsim.physics.base import EnergyTerm
+from latentsim.physics.incremental_potential import IncrementalPotential
+from latentsim.latent import (
+    Autoencoder,
+    LatentIntegrator,
+    RelativeCoordinates,
+    TrainingDiverged,
+    balancing_weights,
+    build_triplets,
+    decode_latents,
+    encode_positions,
+    fit_autoencoder,
+    fit_integrator,
+    integrator_loss,
+    load_autoencoder,
+    load_integrator,
+    pca_basis,
+    resolve_device,
+    rollout,
+    save_module,
+)
+
+F64 = torch.float64
+
+
+ONE_THREAD = True  # tiny networks (conftest)
+
+
+# ---------------------------------------------------------------------------
+# the spring-chain system with a known implicit-Euler step
+# ---------------------------------------------------------------------------
+class LinearSpring(EnergyTerm):
+    """1/2 k |x_i - x_j - (X_i - X_j)|^2 per edge (i, j)."""
+
+    name = "linear_spring"
+
+    def __init__(self, edges, X, k):
+        self.stencils = torch.as_tensor(edges, dtype=torch.long)
+        self.rest = X[self.stencils[:, 0]] - X[self.stencils[:, 1]]  # (E, 3)
+        self.k = float(k)
+
+    def local_energy(self, xe):
+        d = xe[..., 0, :] - xe[..., 1, :] - self.rest.to(xe)
+        return 0.5 * self.k * (d * d).sum(-1)
+
+
+class Chain:
+    def __init__(self, n=4, L=0.1, k=40.0, m=0.05, dt=1.0 / 30.0):
+        self.n = n
+        X = torch.zeros(n, 3, dtype=F64)
+        X[:, 2] = -L * torch.arange(n, dtype=F64)
+        self.X = X
+        edges = [[i, i + 1] for i in range(n - 1)]
+        self.pot = IncrementalPotential(
+            terms=[LinearSpring(edges, X, k)],
+            masses=torch.full((n,), m, dtype=F64),
+            dt=dt,
+            g=torch.tensor([0.0, 0.0, -9.81], dtype=F64),
+            dirichlet=torch.tensor([0]),
+            w_bc=1e5,
+        )
+        lap = torch.zeros(n, n, dtype=F64)
+        for i, j in edges:
+            lap[i, i] += 1
+            lap[j, j] += 1
+            lap[i, j] -= 1
+            lap[j, i] -= 1
+        self.K = k * torch.kron(lap, torch.eye(3, dtype=F64))  # spring energy = 1/2 (x-X)^T K (x-X)
+
+    def exact_step(self, x1, x2, xD):
+        """Implicit Euler with the root held at xD (..., 1, 3): solve
+        (M/h^2 + K)_ff x_f = M/h^2 (2 x1 - x2)_f + (M g)_f + (K X)_f - K_f0 x_0."""
+        n, h = self.n, self.pot.dt
+        lead = x1.shape[:-2]
+        Mv = self.pot.masses.repeat_interleave(3)
+        A = torch.diag(Mv) / h**2 + self.K
+        y = (2 * x1 - x2).reshape(lead + (3 * n,))
+        mg = (self.pot.masses[:, None] * self.pot.g).reshape(3 * n)
+        xfix = torch.zeros(lead + (3 * n,), dtype=F64)
+        xfix[..., :3] = xD.reshape(lead + (3,))
+        rhs = Mv / h**2 * y + mg + self.K @ self.X.reshape(-1) - xfix @ self.K.T
+        f = slice(3, 3 * n)
+        xf = torch.linalg.solve(A[f, f], rhs[..., f].unsqueeze(-1)).squeeze(-1)
+        out = xfix.clone()
+        out[..., f] = xf
+        return out.reshape(lead + (n, 3))
+
+    def simulate(self, amp, freq, T=40):
+        dt = self.pot.dt
+        ts = torch.arange(T, dtype=F64) * dt
+        vel = amp * torch.sin(2 * math.pi * freq * ts)  # p_t: root x-velocity
+        rootx = torch.cumsum(vel * dt, 0) - vel[0] * dt
+        xD = torch.zeros(T, 1, 3, dtype=F64)
+        xD[:, 0, 0] = rootx
+        xs = [self.X + xD[0], self.X + xD[1]]
+        for t in range(2, T):
+            xs.append(self.exact_step(xs[-1], xs[-2], xD[t]))
+        return {"positions": torch.stack(xs), "dirichlet_positions": xD, "bc": vel[:, None]}
+
+
+@pytest.fixture(scope="module")
+def chain_setup():
+    ch = Chain()
+    seqs = [ch.simulate(a, f) for a, f in [(0.5, 1.0), (-0.8, 0.7), (1.0, 1.5)]]
+    coords = RelativeCoordinates(ch.n, [0], "roots", root_of=[0] * ch.n)
+    U = torch.cat([coords.encode(s["positions"], s["dirichlet_positions"]) for s in seqs])
+    # latent_dim = d: an untrained PCA-initialised autoencoder is an exact linear bijection
+    ae = Autoencoder(coords.dim, coords.dim, [16], pca_dim=coords.dim)
+    ae.init_pca(U)
+    ae.eval()
+    return ch, seqs, coords, ae
+
+
+INTEG_CFG = dict(widths=[64, 64], epochs=400, lr=3e-3, batch_size=32, noise_scale=0.1, balancing=True)
+
+
+@pytest.fixture(scope="module")
+def trained(chain_setup):
+    ch, seqs, coords, ae = chain_setup
+    integ, hist = fit_integrator(ae, coords, ch.pot, seqs, INTEG_CFG, seed=0)
+    return integ, hist
+
+
+def _one_step_error(integ, ch, ae, coords, seq):
+    """Mean vertex error of the one-step prediction vs the exact implicit-Euler
+    step (from ground-truth inputs), relative to the mean step displacement."""
+    tr = build_triplets(ae, coords, [seq])
+    with torch.no_grad():
+        pred = integ(tr["z_prev"], tr["z_prev2"], tr["p"], tr["p_prev"], tr["p_prev2"])
+        x = decode_latents(ae, coords, pred, tr["xD"])
+        x1 = decode_latents(ae, coords, tr["z_prev"], tr["xD_prev"])
+        x2 = decode_latents(ae, coords, tr["z_prev2"], tr["xD_prev2"])
+    xe = ch.exact_step(x1, x2, tr["xD"])
+    return float((x - xe).norm(dim=-1).mean() / (xe - x1).norm(dim=-1).mean())
+
+
+def _untrained(chain_setup, widths=(64, 64), seed=1):
+    ch, seqs, coords, ae = chain_setup
+    tr = build_triplets(ae, coords, seqs)
+    torch.manual_seed(seed)
+    integ = LatentIntegrator(coords.dim, 1, widths)
+    integ.fit_normalization(*(tr[k] for k in ("z", "z_prev", "z_prev2", "p", "p_prev", "p_prev2")))
+    return integ.eval(), tr
+
+
+# ---------------------------------------------------------------------------
+# devices
+# ---------------------------------------------------------------------------
+def test_resolve_device():
+    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    with pytest.raises(ValueError, match="unknown device"):
+        resolve_device("tpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="CUDA is not available"):
+            resolve_device("cuda")
+
+
+# ---------------------------------------------------------------------------
+# relative coordinates
+# ---------------------------------------------------------------------------
+def test_relative_coordinates_roots_round_trip_and_roots_excluded():
+    g = torch.Generator().manual_seed(0)
+    n = 8  # two rods of 4 vertices, roots 0 and 4
+    root_of = [0, 0, 0, 0, 4, 4, 4, 4]
+    dirichlet = torch.tensor([0, 4])
+    c = RelativeCoordinates(n, dirichlet, "roots", root_of=root_of)
+    assert c.dim == 3 * 6 and c.hard_dirichlet
+    assert set(c.encoded_vertices.tolist()) == {1, 2, 3, 5, 6, 7}
+    x = torch.randn(5, 2, n, 3, generator=g, dtype=F64)  # batched leading axes
+    xD = x[..., dirichlet, :].clone()
+    u = c.encode(x, xD)
+    assert u.shape == (5, 2, 18)
+    # vertex 6 is stored relative to its root 4
+    k = c.encoded_vertices.tolist().index(6)
+    assert torch.equal(u.reshape(5, 2, 6, 3)[..., k, :], x[..., 6, :] - x[..., 4, :])
+    assert torch.allclose(c.decode(u, xD), x, atol=1e-14, rtol=0)
+    # roots are not in u: decoding any u re-applies the prescribed root positions
+    xr = c.decode(torch.randn(18, generator=g, dtype=F64), xD[0, 0])
+    assert torch.equal(xr[dirichlet], xD[0, 0])
+    with pytest.raises(ValueError):
+        RelativeCoordinates(n, dirichlet, "roots", root_of=[1] * n)  # root not Dirichlet
+
+
+def test_relative_coordinates_mean_round_trip_and_translation_invariance():
+    g = torch.Generator().manual_seed(1)
+    n, dirichlet = 7, torch.tensor([0, 3])
+    c = RelativeCoordinates(n, dirichlet, "mean")
+    assert c.dim == 3 * n and not c.hard_dirichlet
+    x = torch.randn(4, n, 3, generator=g, dtype=F64)
+    xD = x[:, dirichlet, :] + 0.01  # prescribed positions need not equal x[D] in "mean" mode
+    u = c.encode(x, xD)
+    assert u.shape == (4, 3 * n)
+    assert torch.allclose(u.reshape(4, n, 3), x - xD.mean(1, keepdim=True), atol=1e-15)
+    assert torch.allclose(c.decode(u, xD), x, atol=1e-14, rtol=0)
+    shift = torch.tensor([1.0, -2.0, 0.5], dtype=F64)
+    assert torch.allclose(c.encode(x + shift, xD + shift), u, atol=1e-13)
+
+
+def test_relative_coordinates_hard_mean_leaves_out_and_reapplies_the_prescribed_vertices():
+    g = torch.Generator().manual_seed(2)
+    n, dirichlet = 7, torch.tensor([0, 3, 5])
+    c = RelativeCoordinates(n, dirichlet, "hard_mean")
+    free = torch.tensor([1, 2, 4, 6])
+    assert c.dim == 3 * 4 and c.hard_dirichlet and torch.equal(c.encoded_vertices, free)
+    x = torch.randn(4, n, 3, generator=g, dtype=F64)
+    xD = x[:, dirichlet, :]
+    u = c.encode(x, xD)
+    assert torch.allclose(u.reshape(4, 4, 3), x[:, free] - xD.mean(1, keepdim=True), atol=1e-15)
+    assert torch.allclose(c.decode(u, xD), x, atol=1e-14, rtol=0)
+    # any u: the prescribed vertices come back exactly at their targets
+    y = c.decode(torch.randn(4, 12, generator=g, dtype=F64), xD + 0.3)
+    assert torch.equal(y[:, dirichlet], xD + 0.3)
+    shift = torch.tensor([1.0, -2.0, 0.5], dtype=F64)
+    assert torch.allclose(c.encode(x + shift, xD + shift), u, atol=1e-13)
+    with pytest.raises(ValueError, match="needs Dirichlet"):
+        RelativeCoordinates(n, [], "hard_mean")
+
+
+# ---------------------------------------------------------------------------
+# autoencoder
+# ---------------------------------------------------------------------------
+def test_pca_initialised_autoencoder_reconstructs_linear_subspace():
+    g = torch.Generator().manual_seed(2)
+    d, N = 30, 64
+    basis = torch.linalg.qr(torch.randn(d, 2, generator=g, dtype=F64))[0].T  # (2, d)
+    coeff = torch.randn(N, 2, generator=g, dtype=F64) * torch.tensor([1.0, 0.3], dtype=F64)
+    offset = torch.randn(d, generator=g, dtype=F64)
+    U = coeff @ basis + offset  # exactly in a 2-D affine subspace
+    torch.manual_seed(0)
+    ae = Autoencoder(d, 2, widths=[16, 16], pca_dim=8).eval()
+    with torch.no_grad():
+        err_random = float((ae(U.float()).double() - U).pow(2).mean())
+    ae.init_pca(U)
+    with torch.no_grad():
+        z = ae.encode(U.float())
+        err_pca = float((ae.decode(z).double() - U).pow(2).mean())
+    assert err_pca < 1e-10 and err_random > 1e-2
+    assert err_pca < 1e-8 * err_random
+    # the latents are the (scaled) principal coordinates: uncorrelated
+    zc = (z - z.mean(0)).double()
+    cov = zc.T @ zc / N
+    assert abs(float(cov[0, 1])) < 1e-4 * float(cov[0, 0])
+    # rank-deficient data (N - 1 < p): the basis is completed to p orthonormal rows
+    _, V, std = pca_basis(U[:4], 8)
+    assert V.shape == (8, d)
+    assert torch.allclose(V @ V.T, torch.eye(8, dtype=F64), atol=1e-10)
+    assert float(std[4:].abs().max()) < 1e-12
+
+
+def _arc_family(N=128, n=10, L=1.0):
+    """A chain of n points bent along a circular arc, total angle in [-2.5, 2.5]."""
+    theta = torch.linspace(-2.5, 2.5, N, dtype=F64)
+    s = torch.linspace(0, L, n, dtype=F64)
+    ang = theta[:, None] * s[None, :] / L
+    t = torch.stack([torch.cos(ang), torch.sin(ang), torch.zeros_like(ang)], -1)
+    ds = L / (n - 1)
+    x = torch.cumsum(t * ds, 1) - t[:, :1] * ds
+    return x.reshape(N, -1)
+
+
+def test_autoencoder_training_reduces_error_and_is_deterministic(tmp_path):
+    U = _arc_family()
+    cfg = dict(latent_dim=1, widths=[32, 32], epochs=100, lr=3e-3, batch_size=32)
+    m1, h1 = fit_autoencoder(U, cfg, seed=0)
+    m2, h2 = fit_autoencoder(U, cfg, seed=0)
+    # a 1-D linear (PCA) subspace cannot hold the arc family; the network can
+    assert h1["mse_final"] < h1["mse_initial"] / 5
+    assert h1["loss"][-1] < h1["loss"][0]
+    s1, s2 = m1.state_dict(), m2.state_dict()
+    assert s1.keys() == s2.keys() and all(torch.equal(s1[k], s2[k]) for k in s1)
+    assert h1["loss"] == h2["loss"]
+    # round trip through disk (weights_only loading)
+    save_module(tmp_path / "ae.pt", m1)
+    m3 = load_autoencoder(tmp_path / "ae.pt")
+    with torch.no_grad():
+        assert torch.equal(m3(U.float()), m1(U.float()))
+
+
+# ---------------------------------------------------------------------------
+# losses
+# ---------------------------------------------------------------------------
+def test_self_supervised_loss_is_the_incremental_potential(chain_setup):
+    ch, seqs, coords, ae = chain_setup
+    integ, tr = _untrained(chain_setup)
+    batch = {k: v[:10] for k, v in tr.items()}
+    loss, info = integrator_loss(integ, ae, coords, ch.pot, batch, noise_scale=0.0, balancing=False)
+    with torch.no_grad():
+        pred = integ(batch["z_prev"], batch["z_prev2"], batch["p"], batch["p_prev"], batch["p_prev2"])
+        x = decode_latents(ae, coords, pred, batch["xD"])
+        x1 = decode_latents(ae, coords, batch["z_prev"], batch["xD_prev"])
+        x2 = decode_latents(ae, coords, batch["z_prev2"], batch["xD_prev2"])
+    assert x.dtype == F64
+    e = ch.pot(x, x1, x2, targets=batch["xD"], penalty=False)
+    assert info["count"] == 10
+    assert torch.allclose(info["per_sample"], e, rtol=1e-12, atol=1e-12)
+    assert torch.allclose(loss, e.mean(), rtol=1e-12)
+    # the loss is differentiable w.r.t. the integrator weights
+    loss.backward()
+    assert all(p.grad is not None for p in integ.parameters())
+    # balanced: each sample divided by |mean velocity of the previous step|
+    loss_b, info_b = integrator_loss(integ, ae, coords, ch.pot, batch, noise_scale=0.0, balancing=True)
+    v = ((x1 - x2) / ch.pot.dt).mean(-2).norm(dim=-1)
+    assert torch.allclose(loss_b, (e / v.clamp_min(1e-2)).mean(), rtol=1e-10)
+    # "mean" coordinates switch the Dirichlet penalty on automatically
+    cm = RelativeCoordinates(ch.n, [0], "mean")
+    assert not cm.hard_dirichlet
+    Um = torch.cat([cm.encode(s["positions"], s["dirichlet_positions"]) for s in seqs])
+    aem = Autoencoder(cm.dim, cm.dim, [8], pca_dim=cm.dim).eval()
+    aem.init_pca(Um)
+    zm = {k: encode_positions(aem, cm, seqs[0]["positions"][o : o + 10], seqs[0]["dirichlet_positions"][o : o + 10])
+          for k, o in (("z", 2), ("z_prev", 1), ("z_prev2", 0))}
+    bm = {**batch, **zm, "xD": batch["xD"] + 0.01}  # targets off the decoded root: penalty > 0
+    im = LatentIntegrator(cm.dim, 1, [8]).eval()
+    loss_m, info_m = integrator_loss(im, aem, cm, ch.pot, bm, noise_scale=0.0, balancing=False)
+    with torch.no_grad():
+        xm = decode_latents(aem, cm, im(bm["z_prev"], bm["z_prev2"], bm["p"], bm["p_prev"], bm["p_prev2"]), bm["xD"])
+        xm1 = decode_latents(aem, cm, bm["z_prev"], bm["xD_prev"])
+        xm2 = decode_latents(aem, cm, bm["z_prev2"], bm["xD_prev2"])
+    e_pen = ch.pot(xm, xm1, xm2, targets=bm["xD"], penalty=True)
+    e_nopen = ch.pot(xm, xm1, xm2, targets=bm["xD"], penalty=False)
+    assert torch.allclose(info_m["per_sample"], e_pen, rtol=1e-12) and (e_pen > e_nopen + 1.0).all()
+    # supervised variant: squared L2 to the ground-truth latent
+    loss_s, _ = integrator_loss(integ, ae, coords, ch.pot, batch, mode="supervised", noise_scale=0.0, balancing=False)
+    assert torch.allclose(loss_s, ((pred - batch["z"]) ** 2).sum(-1).double().mean(), rtol=1e-6)
+
+
+def test_training_noise_doubles_batch_and_perturbs_only_latents(chain_setup):
+    ch, seqs, coords, ae = chain_setup
+    _, tr = _untrained(chain_setup)
+    B = 16
+    batch = {k: v[:B] for k, v in tr.items()}
+    seen = {}
+
+    def recorder(z1, z2, p, p1, p2):  # any callable can stand in for the integrator
+        seen.update(z1=z1, z2=z2, p=p, p1=p1, p2=p2)
+        return z1 + 0.0 * z1.sum()
+
+    g = torch.Generator().manual_seed(0)
+    _, info = integrator_loss(recorder, ae, coords, ch.pot, batch, noise_scale=0.1, balancing=True, generator=g)
+    assert info["count"] == 2 * B and info["per_sample"].shape == (2 * B,)
+    assert torch.equal(seen["z1"][:B], batch["z_prev"]) and torch.equal(seen["z2"][:B], batch["z_prev2"])
+    for key, src in (("z1", "z_prev"), ("z2", "z_prev2")):
+        delta = seen[key][B:] - batch[src]
+        amp = 0.1 * batch[src].std(0, unbiased=False)
+        assert (delta.abs() <= amp + 1e-7).all() and delta.abs().max() > 0.5 * amp.max()
+    for key, src in (("p", "p"), ("p1", "p_prev"), ("p2", "p_prev2")):
+        assert torch.equal(seen[key][B:], batch[src])  # BCs unchanged
+    _, info0 = integrator_loss(recorder, ae, coords, ch.pot, batch, noise_scale=0.0, balancing=True)
+    assert info0["count"] == B
+
+
+def test_supervised_weight_adds_the_l2_term_on_the_clean_samples(chain_setup):
+    ch, seqs, coords, ae = chain_setup
+    integ, tr = _untrained(chain_setup)
+    B = 12
+    batch = {k: v[:B] for k, v in tr.items()}
+    kw = dict(noise_scale=0.1, balancing=True)
+    l0, info = integrator_loss(integ, ae, coords, ch.pot, batch, generator=torch.Generator().manual_seed(3), **kw)
+    lw, _ = integrator_loss(integ, ae, coords, ch.pot, batch, generator=torch.Generator().manual_seed(3), supervised_weight=0.5, **kw)
+    pred = info["prediction"][:B]  # the unperturbed half
+    sup = (((pred - batch["z"]) / integ.out_std) ** 2).sum(-1).mean()
+    assert torch.allclose(lw - l0, 0.5 * sup.double(), rtol=1e-6)
+    with pytest.raises(ValueError, match="supervised_weight"):
+        integrator_loss(integ, ae, coords, ch.pot, batch, mode="supervised", supervised_weight=0.5)
+    with pytest.raises(ValueError, match="supervised_weight"):
+        integrator_loss(integ, ae, coords, ch.pot, batch, supervised_weight=-1.0)
+
+
+def test_supervised_weight_pulls_a_lossy_latent_space_towards_the_data(chain_setup):
+    """In a latent space smaller than the chain's (2 of 9 dimensions) the incremental potential's
+    minimiser is not the ground truth's projection: the self-supervised integrator settles away
+    from the ground-truth latents, and the supervision term pulls it most of the way back."""
+    ch, seqs, _, _ = chain_setup
+    coords = RelativeCoordinates(ch.n, [0], "roots", root_of=[0] * ch.n)
+    U = torch.cat([coords.encode(s["positions"], s["dirichlet_positions"]) for s in seqs])
+    ae = Autoencoder(coords.dim, 2, [16], pca_dim=coords.dim)
+    ae.init_pca(U)
+    ae.eval()
+    cfg = dict(INTEG_CFG, epochs=150)
+    _, plain = fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=0)
+    _, mixed = fit_integrator(ae, coords, ch.pot, seqs, {**cfg, "supervised_weight": 1.0}, seed=0)
+    # 9.6e-6 against 2.1e-5 (with weights 10 and 100 also 9.8e-6: the network's own floor)
+    assert mixed["latent_mse"][-1] < 0.6 * plain["latent_mse"][-1], (mixed["latent_mse"][-1], plain["latent_mse"][-1])
+
+
+def test_balancing_weights_hand_made():
+    dt = 0.1
+    x2 = torch.zeros(3, 5, 3, dtype=F64)
+    x1 = x2.clone()
+    x1[0] += torch.tensor([0.3, 0.4, 0.0], dtype=F64) * dt  # rigid motion, |v| = 0.5
+    x1[1, 0, 0] = 1.0 * dt  # one vertex moves: mean velocity (0.2, 0, 0)
+    x1[1, 1, 0] = 1.0 * dt
+    # x1[2] at rest: |v| = 0 -> weight capped at 1/eps
+    w = balancing_weights(x1, x2, dt, eps=1e-2)
+    assert torch.allclose(w, torch.tensor([2.0, 1.0 / 0.4, 100.0], dtype=F64))
+
+
+# ---------------------------------------------------------------------------
+# integrator training against a known answer
+# ---------------------------------------------------------------------------
+def test_self_supervised_integrator_learns_implicit_euler(chain_setup, trained):
+    ch, seqs, coords, ae = chain_setup
+    integ, hist = trained
+    untrained, _ = _untrained(chain_setup)
+    unseen = ch.simulate(0.7, 1.2)  # a BC trajectory not in the training set
+    err_train = _one_step_error(integ, ch, ae, coords, seqs[0])
+    err_test = _one_step_error(integ, ch, ae, coords, unseen)
+    err_untrained = _one_step_error(untrained, ch, ae, coords, seqs[0])
+    assert err_train < 0.08 and err_test < 0.12, (err_train, err_test)
+    assert err_train < 0.2 * err_untrained, (err_train, err_untrained)
+    assert len(hist["loss"]) == INTEG_CFG["epochs"] and hist["n_triplets"] == 3 * 38
+    assert hist["latent_mse"][-1] < 0.1 * hist["latent_mse"][0]
+
+
+def test_checkpoint_resume_equals_uninterrupted(chain_setup, tmp_path):
+    ch, seqs, coords, ae = chain_setup
+    cfg = dict(widths=[16], epochs=6, lr=1e-3, batch_size=40, checkpoint_every=1)
+    full, hf = fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=3)
+    path = tmp_path / "ckpt.pt"
+    fit_integrator(ae, coords, ch.pot, seqs, {**cfg, "epochs": 3}, seed=3, checkpoint_path=path)
+    state = torch.load(path, weights_only=True)
+    assert state["epoch"] == 3 and "optimizer" in state and len(state["optimizer"]["state"]) > 0
+    resumed, hr = fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=3, checkpoint_path=path)
+    assert hr["start_epoch"] == 3 and len(hr["loss"]) == 6
+    assert hr["loss"] == hf["loss"]
+    sf, sr = full.state_dict(), resumed.state_dict()
+    assert all(torch.equal(sf[k], sr[k]) for k in sf)
+    assert torch.load(path, weights_only=True)["epoch"] == 6
+    save_module(tmp_path / "integ.pt", resumed)
+    again = load_integrator(tmp_path / "integ.pt")
+    assert all(torch.equal(again.state_dict()[k], sr[k]) for k in sr)
+
+
+
+@pytest.mark.parametrize(
+    "change",
+    ["widths", "lr", "noise", "seed", "data", "fewer_epochs"],
+)
+def test_a_checkpoint_of_another_training_is_not_resumed(chain_setup, tmp_path, change, caplog):
+    """After a config edit (or new data) the pipeline reruns the training with the old checkpoint on
+    disk: it must start over, giving exactly a fresh run's result, never continue the old weights."""
+    ch, seqs, coords, ae = chain_setup
+    cfg = dict(widths=[16], epochs=4, lr=1e-3, batch_size=40, checkpoint_every=1)
+    path = tmp_path / "ckpt.pt"
+    fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=3, checkpoint_path=path)
+    new_cfg, new_seed, new_seqs = dict(cfg), 3, seqs
+    if change == "widths":
+        new_cfg["widths"] = [8]
+    elif change == "lr":
+        new_cfg["lr"] = 3e-3
+    elif change == "noise":
+        new_cfg["noise_scale"] = 0.0
+    elif change == "seed":
+        new_seed = 4
+    elif change == "data":
+        new_seqs = seqs[:2]
+    else:
+        new_cfg["epochs"] = 2
+    fresh, hf = fit_integrator(ae, coords, ch.pot, new_seqs, new_cfg, seed=new_seed)
+    with caplog.at_level("WARNING", logger="latentsim.latent"):
+        again, ha = fit_integrator(ae, coords, ch.pot, new_seqs, new_cfg, seed=new_seed, checkpoint_path=path)
+    assert "starting over" in caplog.text
+    assert ha["start_epoch"] == 0 and ha["loss"] == hf["loss"]
+    assert all(torch.equal(a, b) for a, b in zip(fresh.state_dict().values(), again.state_dict().values()))
+    assert torch.load(path, weights_only=True)["epoch"] == new_cfg["epochs"]  # overwritten by the new training
+
+
+def test_cosine_learning_rate_decay(chain_setup, tmp_path):
+    """lr_final: the rate follows lr_final + (lr - lr_final)(1 + cos(pi e / E)) / 2 over the epochs
+    (a function of the epoch, so a resumed run sets it alike); lr_final = lr is the constant run."""
+    ch, seqs, coords, ae = chain_setup
+    cfg = dict(widths=[16], epochs=5, lr=1e-3, batch_size=40, checkpoint_every=1)
+    path = tmp_path / "cos.pt"
+    fit_integrator(ae, coords, ch.pot, seqs, {**cfg, "lr_final": 1e-5}, seed=3, checkpoint_path=path)
+    last = torch.load(path, weights_only=True)["optimizer"]["param_groups"][0]["lr"]
+    assert last == pytest.approx(1e-5 + 0.5 * (1e-3 - 1e-5) * (1 + math.cos(math.pi * 4 / 5)), rel=1e-12)
+    const, hc = fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=3)
+    flat, hf = fit_integrator(ae, coords, ch.pot, seqs, {**cfg, "lr_final": 1e-3}, seed=3)
+    assert hf["loss"] == hc["loss"]
+    decayed, hd = fit_integrator(ae, coords, ch.pot, seqs, {**cfg, "lr_final": 1e-5}, seed=3)
+    assert hd["loss"][0] == hc["loss"][0] and hd["loss"][-1] != hc["loss"][-1]  # same first epoch, then slower steps
+
+
+class _NaNAfter:
+    """Wraps a potential; returns NaN from the (calls+1)-th evaluation on."""
+
+    def __init__(self, pot, calls):
+        self.pot, self.calls, self.n = pot, calls, 0
+
+    def __getattr__(self, name):
+        return getattr(self.pot, name)
+
+    def __call__(self, *a, **k):
+        self.n += 1
+        e = self.pot(*a, **k)
+        return e * float("nan") if self.n > self.calls else e
+
+
+def test_nan_raises_training_diverged_and_keeps_checkpoint(chain_setup, tmp_path):
+    ch, seqs, coords, ae = chain_setup
+    cfg = dict(widths=[16], epochs=5, lr=1e-3, batch_size=40, checkpoint_every=1)  # 114 triplets -> 3 batches
+    path = tmp_path / "ckpt.pt"
+    with pytest.raises(TrainingDiverged, match="epoch 3") as exc:
+        fit_integrator(ae, coords, _NaNAfter(ch.pot, calls=2 * 3 + 1), seqs, cfg, seed=0, checkpoint_path=path)
+    assert exc.value.epoch == 3 and exc.value.batch == 1
+    assert not os.path.exists(str(path) + ".tmp")
+    state = torch.load(path, weights_only=True)
+    assert state["epoch"] == 2 and all(torch.isfinite(v).all() for v in state["model"].values())
+    # resuming with a sane potential continues from epoch 2
+    _, hist = fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=0, checkpoint_path=path)
+    assert hist["start_epoch"] == 2 and len(hist["loss"]) == 5
+
+
+# ---------------------------------------------------------------------------
+# rollout
+# ---------------------------------------------------------------------------
+class _Scaling(torch.nn.Module):
+    """Scales the relative coordinates by ``factor`` every step."""
+
+    def __init__(self, ae, factor):
+        super().__init__()
+        self.ae, self.factor = ae, factor
+
+    def forward(self, z1, z2, p, p1, p2):
+        return self.ae.encode(self.factor * self.ae.decode(z1))
+
+
+def test_rollout_divergence_detection(chain_setup, trained):
+    ch, seqs, coords, ae = chain_setup
+    seq = seqs[1]
+    T = seq["positions"].shape[0]
+    z = encode_positions(ae, coords, seq["positions"], seq["dirichlet_positions"])
+    args = (z[0], z[1], seq["bc"], seq["dirichlet_positions"])
+
+    # the integrator sees z_{t-1}, z_{t-2} and exactly p_t, p_{t-1}, p_{t-2}
+    calls = []
+
+    def recorder(z1, z2, p, p1, p2):
+        calls.append((z1.clone(), z2.clone(), float(p), float(p1), float(p2)))
+        return z1 + 1.0
+
+    out = rollout(recorder, ae, coords, z[0], z[1], torch.arange(T, dtype=F64)[:, None], seq["dirichlet_positions"])
+    assert [c[2:] for c in calls] == [(t, t - 1, t - 2) for t in range(2, T)]
+    assert torch.equal(calls[0][0][0], z[1]) and torch.equal(calls[0][1][0], z[0])
+    assert torch.equal(calls[5][0][0], out["latents"][6]) and torch.equal(calls[5][1][0], out["latents"][5])
+    assert torch.allclose(out["latents"][T - 1], z[1] + (T - 2), atol=1e-4)
+
+    # relative coordinates x10 per step: extent / rest extent = 10^(t-1) -> exceeds 50 first at t = 3
+    out = rollout(_Scaling(ae, 10.0), ae, coords, *args, max_extent=50.0, rest_positions=ch.X)
+    assert out["diverged_frame"] == 3
+    assert torch.isfinite(out["positions"][:4]).all() and torch.isnan(out["positions"][4:]).all()
+    assert torch.isnan(out["latents"][4:]).all() and out["positions"].shape == (T, ch.n, 3)
+    # overflow to inf/NaN without an extent limit: detected, not raised
+    out = rollout(_Scaling(ae, 1e30), ae, coords, *args)
+    assert out["diverged_frame"] == 3 and torch.isnan(out["positions"][4:]).all()
+
+    # a real integrator with weights blown up diverges ...
+    torch.manual_seed(0)  # independent of what earlier tests drew
+    integ = LatentIntegrator(coords.dim, 1, [32, 32])
+    with torch.no_grad():
+        for prm in integ.mlp.parameters():
+            prm.mul_(30.0)
+    out = rollout(integ, ae, coords, *args, max_extent=10.0)
+    assert out["diverged_frame"] >= 2
+    # ... one that keeps z_{t-1} is stable
+    with torch.no_grad():
+        integ.mlp[-1].weight.zero_()
+        integ.mlp[-1].bias.zero_()
+    out = rollout(integ, ae, coords, *args, max_extent=10.0, potential=ch.pot)
+    assert out["diverged_frame"] == -1 and torch.isfinite(out["positions"]).all()
+    assert out["kinetic_energy"].shape == (T,) and torch.isnan(out["kinetic_energy"][0])
+
+    # the trained self-supervised integrator rolls out stably and close to the reference
+    integ, _ = trained
+    out = rollout(integ, ae, coords, *args, max_extent=10.0, potential=ch.pot, rest_positions=ch.X)
+    assert out["diverged_frame"] == -1
+    ref = seq["positions"]
+    err = (out["positions"] - ref).norm(dim=-1).mean()
+    motion = (ref - ref[0]).norm(dim=-1).mean()
+    assert float(err) < 0.2 * float(motion), (float(err), float(motion))
+    # Dirichlet roots are exact in "roots" coordinates
+    assert torch.allclose(out["positions"][:, 0], seq["dirichlet_positions"][:, 0], atol=1e-12)
+
+
+def test_autoencoder_never_returns_worse_than_its_pca_start():
+    """On data in an exact 3D subspace, PCA is exact; SGD can only make it worse, so the PCA start is kept."""
+    gen = torch.Generator().manual_seed(0)
+    U = torch.randn(200, 3, generator=gen) @ torch.randn(3, 30, generator=gen)
+    model, hist = fit_autoencoder(U, {"latent_dim": 3, "widths": [16, 16], "epochs": 30, "lr": 0.1, "batch_size": 50}, seed=0)
+    assert hist["kept"] == "pca"
+    assert hist["mse_final"] == hist["mse_initial"] < 1e-10
+    with torch.no_grad():
+        assert ((model(U) - U) ** 2).mean() < 1e-10

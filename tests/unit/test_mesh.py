@@ -1,0 +1,497 @@
+"""Tests for latentsim.mesh: reading, fetching, generators, TetGen, selections, checks."""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from latentsim import mesh as M
+from latentsim.mesh import MeshError
+
+REPO = Path(__file__).resolve().parents[2]
+MESH_DIR = Path(os.environ.get("LATENTSIM_MESH_DIR", REPO / ".." / "shared" / "meshes")).resolve()
+# Outside CI the shared meshes may be absent (a clone elsewhere); in CI they must be there.
+_MESHES_MISSING = not (MESH_DIR / "SOURCES.md").is_file()
+if _MESHES_MISSING and os.environ.get("CI"):
+    raise RuntimeError(f"CI: the shared meshes are not at {MESH_DIR} (set LATENTSIM_MESH_DIR)")
+needs_meshes = pytest.mark.skipif(_MESHES_MISSING, reason=f"shared meshes not found at {MESH_DIR}")
+
+EDGE_RE = re.compile(r"edge \(\d+, \d+\)")
+
+
+# ---------------------------------------------------------------------------
+# OBJ reader
+# ---------------------------------------------------------------------------
+
+OBJ_TEXT = """\
+# a unit square, a quad and a triangle given with every corner form
+mtllib nothing.mtl
+o square
+v 0 0 0
+v 1 0 0
+v 1 1 0
+v 0 1 0   # trailing comment
+v 0.5 0.5 1.0 1.0
+vt 0 0
+vt 1 0
+vt 1 1
+vn 0 0 1
+g faces
+usemtl none
+s off
+f 1/1/1 2/2/1 3/3/1 4/1/1
+f -5//1 -4//1 -1//1
+f 2/1 3/2 5/3
+f 3 4 \\
+  5
+l 1 2
+"""
+
+
+def test_read_obj_forms_quads_negative_indices(tmp_path):
+    path = tmp_path / "small.obj"
+    path.write_text(OBJ_TEXT)
+    v, t = M.read_obj(path)
+    assert v.dtype == np.float64 and v.shape == (5, 3)
+    assert t.dtype == np.int64
+    np.testing.assert_array_equal(v[4], [0.5, 0.5, 1.0])
+    np.testing.assert_array_equal(t, [[0, 1, 2], [0, 2, 3],  # fan of the quad
+                                      [0, 1, 4],              # -5, -4, -1 with 5 vertices
+                                      [1, 2, 4],
+                                      [2, 3, 4]])             # continued line
+    m = M.read_mesh(path)
+    assert m.tets is None and m.name == "small.obj"
+    np.testing.assert_array_equal(m.triangles, t)
+
+
+def test_read_obj_negative_index_is_relative_to_vertices_so_far(tmp_path):
+    path = tmp_path / "rel.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf -3 -2 -1\n"
+                    "v 0 0 1\nv 1 0 1\nv 0 1 1\nf -3 -2 -1\n")
+    _, t = M.read_obj(path)
+    np.testing.assert_array_equal(t, [[0, 1, 2], [3, 4, 5]])
+
+
+@pytest.mark.parametrize("text, pattern", [
+    ("v 0 0 0\nv 1 0 0\nv 0 1 x\nf 1 2 3\n", r"bad\.obj:3: cannot parse vertex"),
+    ("v 0 0 0\nv 1 0 nan\nv 0 1 0\nf 1 2 3\n", r"bad\.obj:2: non-finite"),
+    ("v 0 0 0\nv 1 0 0\nv 0 1 0\n\nf 1 2 4\n", r"bad\.obj:5: face index 4 out of range"),
+    ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n", r"bad\.obj:4: face index 0"),
+    ("v 0 0 0\nv 1 0 0\nf -3 -2 -1\n", r"bad\.obj:3: negative face index -3"),
+    ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2\n", r"bad\.obj:4: face needs at least 3"),
+    ("v 0 0 0\nv 1 0\n", r"bad\.obj:2: vertex needs 3"),
+    ("v 0 0 0\nv 1 0 0\nv 0 1 0\n", r"bad\.obj: no faces"),
+    ("v 0 0 0\nf a/1 2 3\n", r"bad\.obj:2: cannot parse face corner"),
+])
+def test_read_obj_errors_name_file_and_line(tmp_path, text, pattern):
+    path = tmp_path / "bad.obj"
+    path.write_text(text)
+    with pytest.raises(MeshError, match=pattern):
+        M.read_mesh(path)
+
+
+def test_read_mesh_missing_and_unparsable(tmp_path):
+    with pytest.raises(MeshError, match=r"nope\.vtu: mesh file not found"):
+        M.read_mesh(tmp_path / "nope.vtu")
+    garbage = tmp_path / "garbage.vtu"
+    garbage.write_bytes(b"\x00\x01 this is not xml")
+    with pytest.raises(MeshError, match=r"garbage\.vtu: cannot read mesh"):
+        M.read_mesh(garbage)
+    binary_obj = tmp_path / "binary.obj"
+    binary_obj.write_bytes(b"v \xff\xfe\x00 1 2\n")
+    with pytest.raises(MeshError, match=r"binary\.obj"):
+        M.read_mesh(binary_obj)
+
+
+def test_read_mesh_meshio_nan_range_and_orientation(tmp_path):
+    import meshio
+
+    p = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1.0]])
+    tets = np.array([[0, 1, 2, 3], [1, 2, 4, 3]])  # second one negative
+    assert M.tet_volumes(p, tets)[1] < 0
+    path = tmp_path / "two.vtu"
+    meshio.write(path, meshio.Mesh(p, [("tetra", tets)]))
+    m = M.read_mesh(path)
+    assert m.flipped == 1 and (M.tet_volumes(m.vertices, m.tets) > 0).all()
+    assert M.read_mesh(path, orient=False).flipped == 0
+
+    bad = p.copy()
+    bad[2, 1] = np.nan
+    meshio.write(tmp_path / "nan.vtu", meshio.Mesh(bad, [("tetra", tets)]))
+    with pytest.raises(MeshError, match=r"nan\.vtu: 1 vertices with NaN/inf.*vertex 2"):
+        M.read_mesh(tmp_path / "nan.vtu")
+    meshio.write(tmp_path / "range.vtu", meshio.Mesh(p, [("tetra", np.array([[0, 1, 2, 9]]))]))
+    with pytest.raises(MeshError, match=r"range\.vtu: tet 0 has vertex index out of range"):
+        M.read_mesh(tmp_path / "range.vtu")
+
+
+# ---------------------------------------------------------------------------
+# Real meshes and sources
+# ---------------------------------------------------------------------------
+
+@needs_meshes
+@pytest.mark.parametrize("name", sorted(M.MESH_SOURCES))
+def test_real_meshes_load_with_documented_counts(name):
+    entry = M.MESH_SOURCES[name]
+    assert M.sha256_of(MESH_DIR / name) == entry["sha256"]
+    m = M.read_mesh(MESH_DIR / name)
+    assert m.vertices.dtype == np.float64 and m.vertices.shape == (entry["vertices"], 3)
+    if "tets" in entry:
+        assert m.triangles is None
+        assert m.tets.dtype == np.int64 and m.tets.shape == (entry["tets"], 4)
+        assert m.flipped == 0  # the files themselves are positively oriented
+        assert (M.tet_volumes(m.vertices, m.tets) > 0).all()
+        surf = M.surface_of(m.tets)
+        assert M.enclosed_volume(m.vertices, surf) == pytest.approx(
+            M.tet_volumes(m.vertices, m.tets).sum(), rel=1e-9)
+    else:
+        assert m.tets is None
+        assert m.triangles.shape == (entry["triangles"], 3)
+    stats = m.check()
+    assert stats["problems"] == [] and stats["n_unreferenced"] == 0
+
+
+def test_sources_table_is_pinned():
+    for name, entry in M.MESH_SOURCES.items():
+        assert re.fullmatch(r"[0-9a-f]{64}", entry["sha256"]), name
+        assert entry["url"].startswith("https://raw.githubusercontent.com/"), name
+        assert re.search(r"/[0-9a-f]{40}/", entry["url"]), name  # pinned commit
+
+
+# ---------------------------------------------------------------------------
+# fetch_mesh
+# ---------------------------------------------------------------------------
+
+@needs_meshes
+def test_fetch_local_dir_returns_file_in_place(tmp_path):
+    path = M.fetch_mesh("square.obj", local_dir=MESH_DIR, cache_dir=tmp_path / "cache")
+    assert path == MESH_DIR / "square.obj"
+    assert not (tmp_path / "cache").exists()  # nothing copied
+
+
+@needs_meshes
+def test_fetch_local_dir_wrong_hash(tmp_path):
+    local = tmp_path / "local"
+    local.mkdir()
+    shutil.copyfile(MESH_DIR / "square.obj", local / "square.obj")
+    with open(local / "square.obj", "ab") as fh:
+        fh.write(b"# tampered\n")
+    actual = M.sha256_of(local / "square.obj")
+    with pytest.raises(MeshError) as err:
+        M.fetch_mesh("square.obj", local_dir=local, cache_dir=tmp_path / "cache")
+    msg = str(err.value)
+    assert "square.obj" in msg and M.MESH_SOURCES["square.obj"]["sha256"] in msg and actual in msg
+
+
+@needs_meshes
+def test_fetch_download_file_url(tmp_path):
+    src = tmp_path / "upstream" / "ref.obj"
+    src.parent.mkdir()
+    shutil.copyfile(MESH_DIR / "square.obj", src)
+    cache = tmp_path / "cache"
+    # local dir without the file falls through to the download
+    path = M.fetch_mesh("square.obj", local_dir=tmp_path / "empty", cache_dir=cache,
+                        url=src.as_uri())
+    assert path == cache / "square.obj"
+    assert M.sha256_of(path) == M.MESH_SOURCES["square.obj"]["sha256"]
+    assert sorted(p.name for p in cache.iterdir()) == ["square.obj"]  # no temp file left
+    # second call: served from the cache even though the url is now dead
+    src.unlink()
+    assert M.fetch_mesh("square.obj", cache_dir=cache, url=src.as_uri()) == path
+    assert M.read_mesh(path).triangles.shape == (200, 3)
+
+
+@needs_meshes
+def test_fetch_wrong_hash_leaves_nothing_in_cache(tmp_path):
+    src = tmp_path / "ref.obj"
+    shutil.copyfile(MESH_DIR / "square.obj", src)
+    cache = tmp_path / "cache"
+    wrong = "0" * 64
+    with pytest.raises(MeshError) as err:
+        M.fetch_mesh("square.obj", cache_dir=cache, url=src.as_uri(), sha256=wrong)
+    msg = str(err.value)
+    assert "square.obj" in msg and wrong in msg and M.MESH_SOURCES["square.obj"]["sha256"] in msg
+    assert list(cache.iterdir()) == []
+
+
+def test_fetch_errors(tmp_path):
+    with pytest.raises(MeshError, match="no sha256 pinned"):
+        M.fetch_mesh("unknown.obj", cache_dir=tmp_path)
+    with pytest.raises(MeshError, match="plain file name"):
+        M.fetch_mesh("../etc/passwd", cache_dir=tmp_path, sha256="0" * 64)
+    with pytest.raises(MeshError, match="download from .* failed"):
+        M.fetch_mesh("x.obj", cache_dir=tmp_path / "c", sha256="0" * 64,
+                     url=(tmp_path / "missing.obj").as_uri())
+    assert list((tmp_path / "c").iterdir()) == []
+
+
+# ---------------------------------------------------------------------------
+# Closed-surface check and TetGen
+# ---------------------------------------------------------------------------
+
+def _tet_surface(offset=0):
+    """Outward-oriented surface of the unit tet on vertices offset..offset+3."""
+    return M.surface_of(np.array([[0, 1, 2, 3]])) + offset
+
+
+@pytest.fixture(scope="module")
+def bunny():
+    if not (MESH_DIR / "bunny.obj").is_file():
+        pytest.skip("shared meshes not available")
+    return M.read_mesh(MESH_DIR / "bunny.obj")
+
+
+def test_bunny_surface_is_closed(bunny):
+    M.check_closed_surface(bunny.triangles)
+    assert M.enclosed_volume(bunny.vertices, bunny.triangles) > 0
+
+
+def test_tetrahedralize_bunny(bunny):
+    v, t, info = M.tetrahedralize(bunny.vertices, bunny.triangles, target_vertices=3500,
+                                  return_info=True)
+    assert v.dtype == np.float64 and t.dtype == np.int64
+    assert 3000 <= len(v) <= 4000 and len(info["runs"]) == 1
+    vol = M.tet_volumes(v, t)
+    assert (vol > 0).all()
+    enclosed = M.enclosed_volume(bunny.vertices, bunny.triangles)
+    assert vol.sum() == pytest.approx(enclosed, rel=1e-2)
+    # 'Y': the surface is kept exactly, vertices first and in order
+    np.testing.assert_array_equal(v[:len(bunny.vertices)], bunny.vertices)
+    surf = M.surface_of(t)
+    as_set = lambda tri: {tuple(np.roll(f, -int(np.argmin(f)))) for f in tri.tolist()}
+    assert as_set(surf) == as_set(bunny.triangles)  # same faces, same orientation
+    stats = M.check_mesh(v, tets=t, name="bunny-tets")
+    assert stats["problems"] == [] and stats["dihedral_min_deg"] > 1.0
+
+
+def test_tetrahedralize_reaches_larger_target(bunny):
+    v, t, info = M.tetrahedralize(bunny.vertices, bunny.triangles, target_vertices=4500,
+                                  tolerance=0.08, return_info=True)
+    assert abs(len(v) - 4500) <= 0.08 * 4500, info["runs"]
+    assert (M.tet_volumes(v, t) > 0).all()
+
+
+def test_open_surface_rejected(bunny):
+    open_tris = np.delete(bunny.triangles, 100, axis=0)
+    with pytest.raises(MeshError, match="open") as err:
+        M.tetrahedralize(bunny.vertices, open_tris)
+    assert EDGE_RE.search(str(err.value))
+    a, b = map(int, EDGE_RE.search(str(err.value)).group(0)[6:-1].split(", "))
+    assert {a, b} <= set(bunny.triangles[100].tolist())
+
+
+def test_non_manifold_and_misoriented_surfaces_rejected():
+    # two tets' surfaces glued along one edge: closed, but that edge has 4 triangles
+    p = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1],
+                  [0, 0, 0], [1, 0, 0], [0, -1, 0], [0, 0, -1.0]])
+    tris = np.concatenate([_tet_surface(0), _tet_surface(4)])
+    tris[tris == 4] = 0
+    tris[tris == 5] = 1
+    with pytest.raises(MeshError, match=r"edge \(0, 1\) is non-manifold"):
+        M.tetrahedralize(p, tris)
+    flipped = _tet_surface(0)
+    flipped[2] = flipped[2, ::-1]
+    with pytest.raises(MeshError, match="inconsistent orientation") as err:
+        M.check_closed_surface(flipped)
+    assert EDGE_RE.search(str(err.value))
+
+
+def test_surface_of_tet_and_beam():
+    surf = _tet_surface()
+    assert len(surf) == 4
+    p = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
+    assert M.enclosed_volume(p, surf) == pytest.approx(1 / 6)
+    v, t = M.beam_tets(4, 2, 3, 2.0, 0.5, 0.75)
+    s = M.surface_of(t)
+    M.check_closed_surface(s)
+    assert M.triangle_areas(v, s).sum() == pytest.approx(2 * (2 * .5 + 2 * .75 + .5 * .75))
+    assert M.enclosed_volume(v, s) == pytest.approx(2.0 * 0.5 * 0.75)
+    with pytest.raises(MeshError, match="shared by 3 tets"):
+        M.surface_of(np.array([[0, 1, 2, 3], [0, 1, 2, 4], [0, 2, 1, 5]]))
+
+
+# ---------------------------------------------------------------------------
+# Generators
+# ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize("per_cell", [5, 6])
+@pytest.mark.parametrize("n", [(1, 1, 1), (3, 2, 4)])
+def test_beam_tets(per_cell, n):
+    L, W, H = 2.0, 0.3, 0.7
+    v, t = M.beam_tets(*n, L, W, H, tets_per_cell=per_cell)
+    nx, ny, nz = n
+    assert v.shape == ((nx + 1) * (ny + 1) * (nz + 1), 3) and v.dtype == np.float64
+    assert t.shape == (per_cell * nx * ny * nz, 4) and t.dtype == np.int64
+    vol = M.tet_volumes(v, t)
+    assert (vol > 0).all()
+    assert vol.sum() == pytest.approx(L * W * H, rel=1e-12)
+    np.testing.assert_allclose(v.min(0), [0, -W / 2, -H / 2])
+    np.testing.assert_allclose(v.max(0), [L, W / 2, H / 2])
+    # conforming: interior faces are shared by exactly two tets (surface_of checks > 2)
+    # and the boundary is exactly the box surface
+    s = M.surface_of(t)
+    assert M.triangle_areas(v, s).sum() == pytest.approx(2 * (L * W + L * H + W * H))
+    stats = M.check_mesh(v, tets=t)
+    assert stats["problems"] == [] and stats["n_unreferenced"] == 0
+
+
+def test_cloth_grid():
+    v, t = M.cloth_grid(10, 10, 0.2, 0.2)  # the Neural Modes square: 121 v / 200 tri
+    assert v.shape == (121, 3) and t.shape == (200, 3) and t.dtype == np.int64
+    assert np.all(v[:, 1] == 0)
+    n = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+    assert (n[:, 1] > 0).all()  # xz cloth: normals +y
+    assert M.triangle_areas(v, t).sum() == pytest.approx(0.04)
+    v, t = M.cloth_grid(4, 3, 2.0, 1.5, plane="xy")
+    assert v.shape == (20, 3) and t.shape == (24, 3) and np.all(v[:, 2] == 0)
+    np.testing.assert_allclose(v.max(0), [1.0, 0.75, 0])
+    n = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+    assert (n[:, 2] > 0).all()
+    assert M.check_mesh(v, triangles=t)["problems"] == []
+    with pytest.raises(MeshError, match="plane"):
+        M.cloth_grid(2, 2, 1, 1, plane="yz")
+
+
+def test_rod_bundle():
+    n_rods, m = 5, 7
+    v, e, roots = M.rod_bundle(n_rods, m, length=0.6, spacing=0.1)
+    assert v.shape == (n_rods * m, 3) and e.shape == (n_rods * (m - 1), 2)
+    assert e.dtype == np.int64 and roots.dtype == np.int64
+    np.testing.assert_array_equal(roots, np.arange(n_rods) * m)
+    assert np.all(v[roots, 1] == 0)  # roots in the xz plane
+    assert len({tuple(r) for r in v[roots].round(12).tolist()}) == n_rods
+    for r in range(n_rods):
+        rod = v[r * m:(r + 1) * m]
+        np.testing.assert_allclose(rod[:, [0, 2]], np.repeat(rod[:1, [0, 2]], m, 0))
+        np.testing.assert_allclose(rod[:, 1], -np.linspace(0, 0.6, m))  # hangs down
+    np.testing.assert_array_equal(e[:m - 1], np.column_stack([np.arange(m - 1), np.arange(1, m)]))
+    # spacing between grid neighbours
+    assert np.linalg.norm(v[roots[1]] - v[roots[0]]) == pytest.approx(0.1)
+    v2, _, _ = M.rod_bundle(1, 3, 1.0, 0.1, direction=(2.0, 0, 0))
+    np.testing.assert_allclose(v2, [[0, 0, 0], [0.5, 0, 0], [1, 0, 0]])
+    with pytest.raises(MeshError):
+        M.rod_bundle(2, 1, 1.0, 0.1)
+
+
+# ---------------------------------------------------------------------------
+# normalise
+# ---------------------------------------------------------------------------
+
+def test_normalise_and_rotation():
+    R = M.rotation_matrix("x", 180)
+    np.testing.assert_array_equal(R, np.diag([1.0, -1.0, -1.0]))
+    np.testing.assert_allclose(M.rotation_matrix([0, 0, 2], 90) @ [1, 0, 0], [0, 1, 0],
+                               atol=1e-15)
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(50, 3)) * [1, 3, 2] + 5
+    out = M.normalise(v, height=1.5)
+    assert np.ptp(out[:, 1]) == pytest.approx(1.5)
+    np.testing.assert_allclose(out.min(0) + out.max(0), 0, atol=1e-12)
+    top = np.argmax(v[:, 1])
+    flipped = M.normalise(v, rotation={"axis": "x", "degrees": 180}, center=None, ground=True)
+    assert np.argmin(flipped[:, 1]) == top and flipped[:, 1].min() == pytest.approx(0)
+    assert M.normalise(v, scale=2.0, center="centroid").mean(0) == pytest.approx(np.zeros(3))
+    with pytest.raises(MeshError):
+        M.normalise(v, height=1.0, scale=2.0)
+
+
+# ---------------------------------------------------------------------------
+# Selections
+# ---------------------------------------------------------------------------
+
+def test_select_extreme_fraction_exact():
+    rng = np.random.default_rng(1)
+    v = rng.uniform(-1, 2, size=(2000, 3))
+    y = v[:, 1]
+    idx = M.select_vertices(v, {"type": "extreme", "axis": "y", "side": "max", "fraction": 0.05})
+    expected = np.flatnonzero(y >= y.max() - 0.05 * (y.max() - y.min()))
+    np.testing.assert_array_equal(idx, expected)
+    assert idx.dtype == np.int64 and 60 < len(idx) < 140
+    idx = M.select_vertices(v, {"type": "extreme", "axis": "x", "side": "min", "fraction": 0.1})
+    x = v[:, 0]
+    np.testing.assert_array_equal(idx, np.flatnonzero(x <= x.min() + 0.1 * np.ptp(x)))
+    # boundary included: grid vertices exactly at the threshold
+    g, _ = M.cloth_grid(10, 10, 1.0, 1.0)
+    idx = M.select_vertices(g, {"type": "extreme", "axis": "z", "side": "max", "fraction": 0.0})
+    assert len(idx) == 11
+
+
+def test_select_sphere_box_indices():
+    v, _ = M.cloth_grid(4, 4, 4.0, 4.0)  # integer grid -2..2 in x and z
+    idx = M.select_vertices(v, {"type": "sphere", "center": [0, 0, 0], "radius": 1.0})
+    assert sorted(map(tuple, v[idx].tolist())) == sorted(
+        [(0, 0, 0), (1, 0, 0), (-1, 0, 0), (0, 0, 1), (0, 0, -1)])
+    idx = M.select_vertices(v, {"type": "box", "min": [-2, -1, -2], "max": [-1, 1, 2]})
+    assert len(idx) == 10 and (v[idx, 0] <= -1).all()
+    np.testing.assert_array_equal(
+        M.select_vertices(v, {"type": "indices", "indices": [3, 1, 3]}), [1, 3])
+
+
+@pytest.mark.parametrize("rule, pattern", [
+    ({"type": "sphere", "center": [10, 10, 10], "radius": 0.5}, "selects no vertex"),
+    ({"type": "box", "min": [5, 5, 5], "max": [6, 6, 6]}, "selects no vertex"),
+    ({"type": "indices", "indices": []}, "selects no vertex"),
+    ({"type": "indices", "indices": [99]}, "out of range"),
+    ({"type": "blob"}, "unknown type 'blob'"),
+    ({"type": "extreme", "axis": "y", "side": "max"}, r"missing keys \['fraction'\]"),
+    ({"type": "extreme", "axis": "y", "side": "top", "fraction": 0.1}, "side"),
+    ({"type": "extreme", "axis": "y", "side": "max", "fraction": 0.1, "fracton": 1},
+     "unknown keys"),
+    ({"type": "roots"}, "roots"),
+])
+def test_select_errors_name_rule(rule, pattern):
+    v, _ = M.cloth_grid(2, 2, 1.0, 1.0)
+    with pytest.raises(MeshError, match=pattern) as err:
+        M.select_vertices(v, rule)
+    assert f"'type': '{rule['type']}'" in str(err.value)
+
+
+# ---------------------------------------------------------------------------
+# check_mesh
+# ---------------------------------------------------------------------------
+
+def test_check_mesh_flags_inverted_tet_by_index():
+    v, t = M.beam_tets(2, 1, 1, 1.0, 1.0, 1.0)
+    stats = M.check_mesh(v, tets=t)
+    assert stats["n_tets"] == 12 and stats["volume_total"] == pytest.approx(1.0)
+    assert 0 < stats["dihedral_min_deg"] < stats["dihedral_max_deg"] < 180
+    bad = t.copy()
+    bad[7] = bad[7, [1, 0, 2, 3]]
+    vol7 = M.tet_volumes(v, bad[7:8])[0]
+    with pytest.raises(MeshError, match=rf"tet 7 .* inverted, volume {vol7:.6g}"):
+        M.check_mesh(v, tets=bad, name="beam")
+    stats = M.check_mesh(v, tets=bad, strict=False)
+    assert stats["n_inverted"] == 1 and len(stats["problems"]) == 1
+
+
+def test_check_mesh_flags_nan_and_degenerate():
+    v, t = M.beam_tets(1, 1, 1, 1.0, 1.0, 1.0)
+    v[3, 2] = np.nan
+    with pytest.raises(MeshError, match=r"my beam: 1 vertices with NaN/inf .* vertex 3"):
+        M.check_mesh(v, tets=t, name="my beam")
+    p = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0, 0, 1.0]])
+    with pytest.raises(MeshError, match=r"tet 1 .* zero volume"):
+        M.check_mesh(p, tets=np.array([[0, 1, 2, 4], [0, 1, 2, 3]]))
+    with pytest.raises(MeshError, match=r"triangle 1 .* degenerate"):
+        M.check_mesh(p, triangles=np.array([[0, 1, 2], [0, 1, 1], [1, 3, 2], [0, 1, 4],
+                                             [0, 4, 2]]))
+    with pytest.raises(MeshError, match="out of range"):
+        M.check_mesh(p, tets=np.array([[0, 1, 2, 7]]))
+
+
+def test_check_mesh_unreferenced(caplog):
+    p = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0], [5, 5, 5]])
+    t = np.array([[0, 1, 2, 3]])
+    with caplog.at_level(logging.WARNING, logger="latentsim.mesh"):
+        stats = M.check_mesh(p, tets=t, name="lonely")
+    assert stats["n_unreferenced"] == 1 and "lonely: 1 unreferenced vertices" in caplog.text
+    with pytest.raises(MeshError, match=r"unreferenced vertices \(first: \[4\]\)"):
+        M.check_mesh(p, tets=t, unreferenced="error")
+    q, t2, kept = M.remove_unreferenced(p, t)
+    assert len(q) == 4 and kept.tolist() == [0, 1, 2, 3] and (t2 == t).all()

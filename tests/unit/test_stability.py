@@ -1,0 +1,114 @@
+"""Stress conditions and the survival measurement of latent rollouts."""
+
+import numpy as np
+import pytest
+import torch
+
+from latentsim import latent
+from latentsim.latent import stability
+from latentsim.scene import bc_parameters
+
+
+@pytest.fixture
+def program():
+    seq = {"segments": [{"start": 0, "velocity": [0.2, 0, 0]}, {"start": 10, "velocity": [-0.1, 0, 0.05]}]}
+    return bc_parameters(seq, 30)
+
+
+def test_programs_scale_stop_reverse_and_repeat(program):
+    out = stability.stress_programs(program, train_frames=20, factors=(0.5, 5.0), long_factor=10)
+    assert set(out) == {"long_x10", "speed_x0p5", "speed_x5", "sudden_stop", "sudden_reversal", "perturbed_start"}
+    long = out["long_x10"]
+    assert long.shape == (200, 6)
+    assert np.allclose(long[0], 0.0)
+    assert np.allclose(long[1:30], program[1:30]) and np.allclose(long[30:59], program[1:30])  # the motion repeats
+    assert np.allclose(out["speed_x5"], 5.0 * program)
+    cut = 30 // 3
+    assert np.allclose(out["sudden_stop"][:cut], program[:cut]) and np.allclose(out["sudden_stop"][cut:], 0.0)
+    assert np.allclose(out["sudden_reversal"][cut:], -program[cut:])
+
+
+def test_conditions_prescribe_the_rigid_motion_of_their_program(program):
+    rest_D = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]])
+    conds = {c.name: c for c in stability.stress_conditions(program, rest_D, 0.1, train_frames=20, factors=(2.0,))}
+    c = conds["speed_x2"]
+    # first segment: both vertices translate at 2 * 0.2 m/s along x
+    assert np.allclose(c.dirichlet_positions[5] - rest_D, [[0.4 * 0.1 * 5, 0, 0]] * 2)
+    assert conds["perturbed_start"].perturbation > 0 and c.perturbation == 0
+
+
+def _tiny_autoencoder(n=6):
+    rest = torch.tensor(np.random.default_rng(0).normal(size=(n, 3)))
+    coords = latent.RelativeCoordinates(n, [0], mode="mean")
+    X = rest[None] + 0.01 * torch.randn(40, n, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    xD = X[:, :1]
+    ae = latent.Autoencoder(coords.dim, 2, [], pca_dim=2)
+    ae.init_pca(coords.encode(X, xD).float())
+    return ae.eval(), coords, rest
+
+
+class _Linear(torch.nn.Module):
+    """z_t = a z_{t-1} + b: a stable (a < 1) or an exploding (a > 1) integrator."""
+
+    def __init__(self, a, b=0.0):
+        super().__init__()
+        self.a, self.b = a, b
+
+    def forward(self, z1, z2, p, p1, p2):
+        return self.a * z1 + self.b
+
+
+def test_a_contracting_integrator_survives_and_an_exploding_one_fails_where_its_extent_crosses_the_bound():
+    ae, coords, rest = _tiny_autoencoder()
+    T = 60
+    bc = np.zeros((T, 6))
+    cond = stability.Condition("still", bc, np.repeat(rest[None, :1].numpy(), T, 0))
+    diag = float(np.linalg.norm(rest.numpy().max(0) - rest.numpy().min(0)))
+    z = torch.zeros(2)
+    ok = stability.survive_latent(_Linear(0.5), ae, coords, z, z, cond, np.array([0]), diag, max_extent=3.0)
+    assert ok["survived"] == T and ok["frames"] == T and len(ok["dirichlet_error"]) == T
+    bad = stability.survive_latent(_Linear(1.5, 1.0), ae, coords, z, z, cond, np.array([0]), diag, max_extent=3.0)
+    assert 2 < bad["survived"] < T
+    # the reported frame is the first whose decoded extent exceeds the bound
+    Z = [torch.zeros(2), torch.zeros(2)]
+    for _ in range(2, T):
+        Z.append(1.5 * Z[-1] + 1.0)
+    with torch.no_grad():
+        x = latent.decode_latents(ae, coords, torch.stack(Z), torch.as_tensor(cond.dirichlet_positions)).numpy()
+    ext = np.linalg.norm(x.max(-2) - x.min(-2), axis=-1)
+    assert bad["survived"] == int(np.argmax(ext > 3.0 * diag))
+
+
+class _SpeedSensitive(torch.nn.Module):
+    """Contracting while the boundary moves slowly; exploding above ``limit`` (|p_t| max-norm), and
+    for good once its latent has run away (|z| > 10)."""
+
+    def __init__(self, limit):
+        super().__init__()
+        self.limit = limit
+
+    def forward(self, z1, z2, p, p1, p2):
+        fast = (p.abs().amax(-1, keepdim=True) > self.limit) | (z1.abs().amax(-1, keepdim=True) > 10.0)
+        return torch.where(fast, 1.5 * z1 + 1.0, 0.5 * z1)
+
+
+def test_stress_test_runs_every_condition_of_the_settings_and_finds_the_one_that_breaks_a_method(program):
+    """The shared stress test (rollout stage and sizing sweep): every condition of the settings runs on the
+    sequence's program, and an integrator that explodes only beyond 3x the program's speed fails
+    speed_x5 alone."""
+    ae, coords, rest = _tiny_autoencoder()
+    dt = 0.1
+    xD = stability.dirichlet_trajectory(rest.numpy()[[0]], program, dt)
+    x = rest.numpy()[None] + (xD - rest.numpy()[[0]])  # the shape carried rigidly by its Dirichlet vertex
+    seq = {"positions": x, "dirichlet_positions": xD, "bc": program}
+    settings = {"speed_factors": [0.5, 2.0, 5.0], "long_factor": 3, "perturbation": 0.1}
+    limit = 3.0 * np.abs(program).max()
+    out = {c.name: r for c, r in stability.stress_test(_SpeedSensitive(limit), ae, coords, seq, rest.numpy(), np.array([0]),
+                                                       dt, train_frames=20, settings=settings, max_extent=3.0)}  # fmt: skip
+    assert set(out) == {"long_x3", "speed_x0p5", "speed_x2", "speed_x5", "sudden_stop", "sudden_reversal", "perturbed_start"}
+    assert out["long_x3"]["frames"] == 60
+    failed = {name for name, r in out.items() if r["survived"] < r["frames"]}
+    assert failed == {"speed_x5"}
+    calm = {c.name: r for c, r in stability.stress_test(_Linear(0.5), ae, coords, seq, rest.numpy(), np.array([0]), dt,
+                                                        train_frames=20, settings=settings, max_extent=3.0)}  # fmt: skip
+    assert all(r["survived"] == r["frames"] for r in calm.values())

@@ -1,0 +1,76 @@
+"""The benchmark scripts' own bookkeeping (their figures come from runs, not tests)."""
+
+import importlib.util
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def load(name):
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_stage_times_put_every_benchmark_file_under_its_stage_and_scene(tmp_path):
+    """The Li rules write <stage>/<scene>[/<method>].tsv, the Neural Modes rules neural_modes/<scene>[_<job>].tsv
+    (scene names hold underscores): each lands in its own stage and scene, wall and CPU seconds summed."""
+    files = {
+        "integrator/hair_rotation/self_supervised.tsv": (100.0, 90.0),
+        "integrator/hair_rotation/no_noise.tsv": (50.0, 40.0),
+        "sim/bunny_ears.tsv": (30.0, 29.0),
+        "neural_modes/nm_armadillo.tsv": (600.0, 590.0),
+        "neural_modes/nm_armadillo_energy_ground_truth.tsv": (2000.0, 1990.0),
+        "neural_modes/nm_armadillo_energy_table.tsv": (500.0, 495.0),
+        "neural_modes/nm_armadillo_dynamics.tsv": (120.0, 118.0),
+        "neural_modes/nm_sheet_sheet_ground_truth.tsv": (300.0, 299.0),
+        "neural_modes/nm_sheet_sheet_study.tsv": (400.0, 398.0),
+        "neural_modes/nm_sheet_aspect_ratio.tsv": (450.0, 449.0),
+        "summary/summary.tsv": (6.0, 5.0),
+    }
+    for rel, (wall, cpu) in files.items():
+        path = tmp_path / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(f"s\th:m:s\tcpu_time\n{wall}\t0:00:00\t{cpu}\n")
+    df = load("stage_times").stage_times(tmp_path).set_index(["stage", "scene"])
+    assert sorted(df.index) == sorted([
+        ("integrator", "hair_rotation"), ("sim", "bunny_ears"), ("nm_train", "nm_armadillo"),
+        ("nm_ground_truth", "nm_armadillo"), ("nm_energy_table", "nm_armadillo"), ("nm_dynamics", "nm_armadillo"),
+        ("nm_ground_truth", "nm_sheet"), ("nm_sheet_study", "nm_sheet"), ("nm_aspect_ratio", "nm_sheet"),
+        ("summary", "across scenes"),
+    ])  # fmt: skip
+    assert df.loc[("integrator", "hair_rotation")].tolist() == [2, 150.0, 130.0]
+    assert df.loc[("nm_ground_truth", "nm_armadillo"), "wall_s"] == 2000.0
+
+
+def test_runtime_ab_times_a_revisions_runtime_beside_the_working_trees(tmp_path):
+    """bench_runtime_ab loads runtime.py from git (HEAD here) as its own module and steps the same
+    runtime file with both; the decoded frames agree to float32 rounding."""
+    import numpy as np
+    import torch
+
+    from latentsim import runtime
+    from latentsim.latent import Autoencoder, LatentIntegrator, RelativeCoordinates
+
+    ab = load("bench_runtime_ab")
+    old = ab.load_revision("HEAD")
+    assert old is not runtime and old.__name__ == "latentsim._runtime_rev" and hasattr(old, "NumpyStepper")
+    torch.manual_seed(0)
+    coords = RelativeCoordinates(30, [0, 1], "mean")
+    ae = Autoencoder(coords.dim, 3, [8, 8], pca_dim=6).eval()
+    integ = LatentIntegrator(3, 6, [8]).eval()
+    runtime.export_runtime(ae, integ, coords, tmp_path / "runtime.npz")
+    row = ab.compare(tmp_path / "runtime.npz", old, rounds=2, repeats=5)
+    assert row["mode"] == "mean" and np.isfinite(row["speedup"]) and row["old_us"] > 0 and row["new_us"] > 0
+    assert row["max_dx"] < 1e-5
+    # --runtime compiled: runtime_compiled.py from git beside the working tree's, on a file named with --npz
+    from latentsim.runtime import compiled as runtime_compiled
+
+    if runtime_compiled.available():
+        old_c = ab.load_revision("HEAD", kind="compiled")
+        assert old_c is not runtime_compiled and hasattr(old_c, "CompiledStepper")
+        row = ab.compare(tmp_path / "runtime.npz", old_c, ab.current_module("compiled"), rounds=2, repeats=5)
+        assert row["old_us"] > 0 and row["new_us"] > 0 and row["max_dx"] < 1e-5
+        df = ab.main(["--against", "HEAD", "--runtime", "compiled", "--npz", str(tmp_path / "runtime.npz"), "--rounds", "1", "--repeats", "3"])
+        assert df["scene"].tolist() == ["runtime"] and df.loc[0, "max_dx"] < 1e-5

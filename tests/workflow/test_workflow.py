@@ -1,0 +1,556 @@
+"""The Snakemake workflow as users run it: lint, dry runs, the tiny config end to end.
+
+The tiny config runs in temporary working directories (``snakemake -d``), so
+the repository's own results/ is never touched.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from latentsim.config import scene_methods, validate_config
+
+ROOT = Path(__file__).resolve().parents[2]
+TINY = ROOT / "config" / "tiny.yaml"
+SCENES_TINY = ["tiny_cloth", "tiny_nm", "tiny_rods"]
+STAGES = ["prepare_mesh", "simulate", "train_autoencoder", "train_integrator", "rollout", "evaluate"]
+# values that measure wall time, the only things allowed to differ between two identical runs: these, and
+# every dataset or attribute whose name ends in _ms or _seconds, or is "seconds" (is_timing)
+TIMING_DATASETS = {"frame_ms", "step_ms"}
+TIMING_ATTRS = {"train_seconds", "rollout_seconds", "step_ms", "integrate_ms", "decode_ms", "autoencoder_train_seconds", "integrator_train_seconds",
+                "full_ms", "runtime", "jvp_torch_ms", "jvp_forward_ms"} | {f"{r}_{k}_ms" for r in ("numpy", "compiled", "torchscript", "eager") for k in ("step", "integrate", "decode")}  # fmt: skip
+# the Neural Modes stages of the default config: (rule, scene) of every job, beside those of every scene (STAGES)
+NM_JOBS_DEFAULT = (
+    [(r, s) for r in ("nm_linear_modes", "nm_train") for s in ("nm_armadillo", "nm_bunny", "nm_giraffe", "nm_sheet")]
+    + [("nm_ground_truth", "nm_sheet"), ("nm_sheet_study", "nm_sheet"), ("nm_sheet_tables", "nm_sheet")]
+    + [("nm_ground_truth", "nm_armadillo"), ("nm_energy_table", "nm_armadillo")]
+    + [("nm_dynamics", s) for s in ("nm_armadillo", "nm_bunny", "nm_giraffe")]
+    + [("nm_keyframes", "nm_giraffe"), ("nm_aspect_ratio", "nm_sheet"), ("nm_summary", None)]
+    + [(r, s) for r in ("nm_linear_modes", "nm_train") for s in ("bunny_ears", "cantilever", "cloth", "hair_rotation", "hair_translation")]  # for their neural_modes_reduced baselines
+)
+
+
+def is_timing(name: str, explicit: set) -> bool:
+    """A wall-time field: named in ``explicit`` or by its suffix."""
+    return name in explicit or name == "seconds" or name.endswith(("_ms", "_seconds"))
+
+
+def snakemake(*args, cwd=ROOT, check=True, timeout=600):
+    cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(ROOT / "Snakefile"), *args]
+    env = dict(os.environ, CI="1")
+    proc = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, timeout=timeout, env=env)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"{' '.join(cmd)} failed:\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}")
+    return proc
+
+
+def planned_jobs(output: str, methods: bool = False) -> list[tuple]:
+    """(rule, scene) of every job a dry run lists; (rule, scene, method) with ``methods``."""
+    jobs = []
+    for block in re.split(r"\n(?=(?:local)?rule \w+:)", output):
+        m = re.match(r"(?:local)?rule (\w+):", block.strip())
+        if not m:
+            continue
+        w = re.search(r"wildcards: [^\n]*\bscene=(\w+)", block)
+        job = (m.group(1), w.group(1) if w else None)
+        if methods:
+            v = re.search(r"wildcards: [^\n]*\bmethod=(\w+)", block)
+            job += (v.group(1) if v else None,)
+        jobs.append(job)
+    return jobs
+
+
+def test_lint_is_clean():
+    proc = snakemake("--lint", check=False)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "Lints for" not in proc.stdout + proc.stderr
+
+
+def test_dry_run_of_default_config_lists_every_stage_for_every_scene(tmp_path):
+    """In an empty directory (the repository's own results/ may be partly up to date)."""
+    scenes = sorted(yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["scenes"])
+    cfg = validate_config(yaml.safe_load((ROOT / "config" / "config.yaml").read_text()))
+    out = snakemake("-n", "all", "--cores", "2", "--configfile", str(ROOT / "config" / "config.yaml"), "--directory", str(tmp_path)).stdout
+    jobs = planned_jobs(out, methods=True)
+    for stage in STAGES:
+        assert sorted({s for r, s, _ in jobs if r == stage}) == scenes, stage
+    for stage in ("train_integrator", "rollout"):  # one job per method of each scene
+        for scene in scenes:
+            assert sorted(m for r, s, m in jobs if r == stage and s == scene) == sorted(scene_methods(cfg, scene)), (stage, scene)
+    assert ("summary", None, None) in jobs
+    assert sorted(((r, s) for r, s, _ in jobs if r.startswith("nm_")), key=str) == sorted(NM_JOBS_DEFAULT, key=str)
+
+
+def test_slurm_profile_dry_run(tmp_path):
+    out = snakemake("-n", "all", "--workflow-profile", str(ROOT / "profiles" / "slurm"), "--configfile", str(TINY), "--directory", str(tmp_path)).stdout
+    jobs = planned_jobs(out)
+    assert ("train_integrator", "tiny_rods") in jobs
+
+
+@pytest.mark.parametrize(
+    "edit, key",
+    [
+        (lambda c: c["scenes"]["tiny_rods"].update(bogus=1), "scenes.tiny_rods"),
+        (lambda c: c["scenes"]["tiny_rods"]["material"].update(youngs_modulus=-5.0), "scenes.tiny_rods.material.youngs_modulus"),
+        (lambda c: c["scenes"]["tiny_cloth"]["material"].update(density="heavy"), "scenes.tiny_cloth.material.density"),
+        (lambda c: c["scenes"]["tiny_cloth"].update(variants=["nonexistent"]), "scenes.tiny_cloth.variants"),
+    ],
+)
+def test_malformed_config_stops_before_any_job(tmp_path, edit, key):
+    cfg = yaml.safe_load(TINY.read_text())
+    edit(cfg)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump(cfg))
+    proc = snakemake("all", "--cores", "1", "--configfile", str(bad), "--directory", str(tmp_path), check=False)
+    assert proc.returncode != 0
+    assert f"config key '{key}'" in proc.stdout + proc.stderr
+    assert not (tmp_path / "results").exists()
+
+
+# --- the tiny config end to end -----------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """One complete run of the tiny config in a fresh directory."""
+    work = tmp_path_factory.mktemp("tiny_a")
+    t0 = time.perf_counter()
+    snakemake("all", "--cores", "2", "--configfile", str(TINY), "--directory", str(work))
+    return work, time.perf_counter() - t0
+
+
+def test_tiny_run_writes_tables_and_figures(tiny_run):
+    work, _ = tiny_run
+    import pandas as pd
+
+    table = pd.read_csv(work / "results/evaluation/summary.csv")
+    assert sorted(table["scene"].unique()) == SCENES_TINY
+    assert np.isfinite(table[["mean_error", "full_ms", "latent_ms"]].to_numpy()).all()
+    for scene in SCENES_TINY:
+        assert (work / f"results/evaluation/{scene}/errors.png").stat().st_size > 1000
+        assert (work / f"results/evaluation/{scene}/frames.png").stat().st_size > 1000
+        assert (work / f"results/evaluation/{scene}/clip.gif").stat().st_size > 1000
+        assert list((work / f"results/evaluation/{scene}/paraview").glob("self_supervised_*.xdmf"))
+        assert (work / f"results/sim/{scene}/paraview").is_dir()
+        assert (work / f"logs/sim/{scene}.log").read_text()
+        assert (work / f"results/benchmarks/sim/{scene}.tsv").exists()
+    assert (work / "results/evaluation/speed_accuracy.png").stat().st_size > 1000
+    assert list((work / "results/integrator").rglob("integrator.pt"))
+    assert not list((work / "results/integrator").rglob("checkpoint.pt"))  # a finished training leaves none
+    choice = pd.read_csv(work / "results/sweep/tiny_cloth/choice.csv")
+    assert sorted(choice["latent_dim"]) == [2, 4] and choice["chosen"].sum() <= 1
+    assert (choice["method"] == "self_supervised").all()  # the loss its points trained with (sweep.method)
+    assert (choice["stress_conditions"] == 8).all()  # the rollout stage's conditions, at every point
+    assert (choice["passes"] == choice["within_tolerance"] & (choice["stress_failed"] == 0)).all()
+    assert (work / "results/sweep/tiny_cloth/sweep.png").stat().st_size > 1000
+    sizes = pd.read_csv(work / "results/evaluation/sizes.csv").set_index("scene")
+    assert sorted(sizes.index) == SCENES_TINY
+    assert sizes.loc["tiny_cloth", "sweep_points"] == len(choice)
+    tiny_ae = yaml.safe_load(TINY.read_text())["scenes"]["tiny_cloth"]["autoencoder"]
+    assert sizes.loc["tiny_cloth", "latent_dim"] == tiny_ae["latent_dim"]
+    assert "Model size per scene" in (work / "results/evaluation/summary.md").read_text()
+
+
+def test_reduced_baselines_step_with_a_cubature(tiny_run):
+    """tiny_cloth asks for a 1% cubature: the PCA, linear-modes and Fulton rollouts record one that
+    fits and leaves out most elements, and still finish their test sequence."""
+    work, _ = tiny_run
+    with h5py.File(work / "results/sim/tiny_cloth/trajectories.h5") as f:
+        n_tri = len(f["triangles"])
+    for method in ("pca_reduced", "modes_reduced", "fulton_reduced"):
+        with h5py.File(work / f"results/rollout/tiny_cloth/{method}/rollout.h5") as g:
+            assert g.attrs["cubature_force_error"] <= 0.01
+            k = int(g.attrs["cubature_elements"])
+            assert 0 < k == len(g["cubature_index"]) < n_tri  # triangles + hinges together: far fewer
+            assert (g["cubature_weights"][()] > 0).all()
+            assert g["sequences/line"].attrs["diverged_frame"] == -1
+
+
+def test_hard_mean_coordinates_hold_the_prescribed_vertices_in_every_learned_frame(tiny_run):
+    """tiny_nm's autoencoder encodes its free vertices only (coordinates: hard_mean): the autoencoder
+    records it, and every frame the integrator rolls out puts the held edges exactly on their targets."""
+    work, _ = tiny_run
+    extra = torch.load(work / "results/autoencoder/tiny_nm/autoencoder.pt", weights_only=True)["extra"]
+    assert extra["coordinates"] == "hard_mean"
+    with h5py.File(work / "results/sim/tiny_nm/trajectories.h5") as f:
+        D = f["dirichlet"][()]
+    with h5py.File(work / "results/rollout/tiny_nm/self_supervised/rollout.h5") as f:
+        seq = f["sequences/bounce"]
+        x, xD = seq["positions"][()], seq["dirichlet_positions"][()]
+    ok = np.isfinite(x).all(axis=(1, 2))
+    assert ok.sum() > 2 and np.array_equal(x[ok][:, D], xD[ok])
+
+
+def test_tiny_cloth_swings_out_of_its_plane(tiny_run):
+    """The cloth hangs in the xy plane; its corners move along z, so it must bend out of that plane.
+
+    Moved within its own plane (as once configured) it stays exactly flat and barely deforms, and every
+    learning stage downstream faces a trivially low-dimensional motion.
+    """
+    work, _ = tiny_run
+    with h5py.File(work / "results/sim/tiny_cloth/trajectories.h5") as f:
+        x = f["sequences/line/positions"][()]
+        D = f["dirichlet"][()]
+        rest = f["rest_positions"][()]
+    rel = x - x[:, D].mean(axis=1, keepdims=True)  # the autoencoder's coordinates
+    diag = np.linalg.norm(rest.max(0) - rest.min(0))
+    assert np.ptp(rest[:, 2]) == 0.0
+    assert np.ptp(rel[..., 2], axis=1).max() > 0.05 * diag
+
+
+def test_paraview_series_reads_back(tiny_run):
+    """The XDMF time series holds every frame's displacement, equal to the stored positions."""
+    import meshio
+
+    work, _ = tiny_run
+    with h5py.File(work / "results/sim/tiny_rods/trajectories.h5") as f:
+        pos = f["sequences/test_mid/positions"][()]
+    from latentsim.utils import working_directory
+
+    with working_directory(work / "results/sim/tiny_rods/paraview"):
+        with meshio.xdmf.TimeSeriesReader("test_mid.xdmf") as r:
+            points, cells = r.read_points_cells()
+            assert r.num_steps == len(pos)
+            t, point_data, _ = r.read_data(len(pos) - 1)
+    assert np.allclose(points, pos[0])
+    assert np.allclose(points + point_data["displacement"], pos[-1])
+
+
+def test_report_holds_tables_and_figures(tiny_run, tmp_path):
+    work, _ = tiny_run
+    report = tmp_path / "report.zip"
+    snakemake("--report", str(report), "--configfile", str(TINY), "--directory", str(work))
+    import zipfile
+
+    names = zipfile.ZipFile(report).namelist()
+    assert any(n.endswith("summary.csv") for n in names)
+    assert any(n.endswith("speed_accuracy.png") for n in names)
+    assert any(n.endswith("errors.png") for n in names)
+    for name in ("table2.csv", "table3.csv", "learning_curves.png", "latent_walk.png", "correlation.png", "table5.csv", "dynamics.csv", "keyframes.png", "aspect.csv",
+                 "aspect_ratio.png"):  # fmt: skip
+        assert any(n.endswith(name) for n in names), name
+
+
+def test_artefacts_record_config_version_and_seed(tiny_run):
+    work, _ = tiny_run
+    with h5py.File(work / "results/sim/tiny_rods/trajectories.h5") as f:
+        assert '"youngs_modulus"' in f.attrs["config"] and f.attrs["latentsim_version"]
+        assert f["sequences/test_mid"].attrs["split"] == "test"
+    with h5py.File(work / "results/autoencoder/tiny_rods/latents.h5") as f:
+        assert f.attrs["seed"] == 0 and '"latent_dim"' in f.attrs["config"]
+
+
+def test_editing_one_scenes_integrator_reruns_only_its_downstream_jobs(tiny_run, tmp_path):
+    work, _ = tiny_run
+    cfg = yaml.safe_load(TINY.read_text())
+    cfg["scenes"]["tiny_rods"]["integrator"]["epochs"] += 1
+    edited = tmp_path / "edited.yaml"
+    edited.write_text(yaml.safe_dump(cfg))
+    unchanged = planned_jobs(snakemake("-n", "all", "--configfile", str(TINY), "--directory", str(work)).stdout)
+    assert unchanged == [], unchanged
+    quiet = planned_jobs(snakemake("-n", "all", "--configfile", str(TINY), "--config", "progress=False", "--directory", str(work)).stdout)
+    assert quiet == [], f"progress bars must not trigger reruns: {quiet}"
+    jobs = planned_jobs(snakemake("-n", "all", "--configfile", str(edited), "--directory", str(work)).stdout)
+    methods = ("self_supervised", "supervised", "small")
+    assert sorted(jobs, key=str) == sorted(
+        [(stage, "tiny_rods") for stage in ("train_integrator", "rollout") for _ in methods]
+        + [("evaluate", "tiny_rods"), ("render", "tiny_rods"), ("summary", None), ("all", None)],
+        key=str,
+    )
+
+
+def test_tiny_neural_modes_studies_write_tables_and_figures(tiny_run):
+    """tiny_nm switches on every Neural Modes study: each writes its tables beside the paper's and its figures."""
+    import meshio
+    import pandas as pd
+
+    from latentsim.neural_modes import load_neural_modes
+    from latentsim.neural_modes.sheet import SHEET_METHODS
+    from latentsim.utils import working_directory
+
+    work, _ = tiny_run
+    res = work / "results/neural_modes/tiny_nm"
+    cfg = yaml.safe_load(TINY.read_text())["scenes"]["tiny_nm"]
+    st = cfg["nm_study"]
+    with h5py.File(res / "sheet/ground_truth.h5") as f:  # the configured set sizes, 2 modes
+        sizes = {k: len(f[f"sets/{k}/z"]) for k in ("train_grid", "train_random", "val", "test")}
+    assert sizes == {"train_grid": 3**2, "train_random": 9, "val": 2**2, "test": 3**2}
+    with h5py.File(res / "energy/ground_truth.h5") as f:
+        assert [len(f[f"sets/{k}/x"]) for k in ("train", "val", "test")] == [10, 4, 6]
+    t2 = pd.read_csv(res / "sheet/table2.csv")
+    assert t2["method"].tolist() == list(SHEET_METHODS.values())  # tiny_nm's built-in constraint adds the paper's map
+    assert t2["test_dE_avg_paper"].tolist() == [386, 245, 245, 2074, 2259, 2649]
+    assert np.isfinite(t2[["val_dE_avg", "test_dE_avg", "test_E_avg"]].to_numpy()).all()
+    assert len(pd.read_csv(res / "sheet/table3.csv")) == 3
+    structure = pd.read_csv(res / "sheet/structure.csv").set_index("method")
+    assert structure.loc["Neural Modes (grid)", "origin |n(0) - X| / |X|"] < 1e-6  # the issue's target
+    assert np.isfinite(structure["symmetry error max"]).all()  # the clamped sheet has the half-turn symmetry
+    for label in ("Neural Modes (stoch.)", "Neural Modes (grid)", "L2 Supervised"):  # built into their map
+        assert structure.loc[label, "symmetry error max"] < 1e-10, label
+    md = (res / "sheet/tables.md").read_text()
+    assert all(f"## {h}" in md for h in ("Table 2", "Table 3", "Table 4", "Table A1", "Fig. 4", "Fig. 3"))
+    for png in ("sheet/learning_curves.png", "sheet/latent_walk.png", "sheet/correlation.png", "keyframes/keyframes.png"):
+        assert (res / png).stat().st_size > 1000, png
+    t5 = pd.read_csv(res / "energy/table5.csv").set_index("method")
+    assert t5.index.tolist() == ["Ground truth", "PCA+AE", "Neural Modes"] and t5.loc["Ground truth", "paper all (x1e4)"] == 11.3
+    dyn = pd.read_csv(res / "dynamics/dynamics.csv").set_index("method")
+    assert len(dyn) == 7 and dyn.loc["full space, Newton", "error max"] == 0
+    assert (dyn["diverged frame"] == -1).all() and np.isfinite(dyn["error mean"]).all()
+    with h5py.File(res / "dynamics/nm_newton.h5") as f:
+        pos = f["sequences/bounce/positions"][()]
+    with h5py.File(work / "results/sim/tiny_nm/trajectories.h5") as f:
+        ref = f["sequences/bounce/positions"][()]
+    with working_directory(res / "dynamics/paraview"), meshio.xdmf.TimeSeriesReader("nm_newton.xdmf") as r:
+        points, _ = r.read_points_cells()
+        assert r.num_steps == len(pos)
+        _, data, _ = r.read_data(len(pos) - 1)
+    assert np.allclose(points + data["displacement"], pos[-1]) and np.allclose(data["error"], np.linalg.norm(pos[-1] - ref[-1], axis=1))
+    model = load_neural_modes(res / "neural_modes.pt")
+    with h5py.File(res / "keyframes/keyframes.h5") as f:
+        g = f["sequences/neural_modes"]
+        keys, kx = g.attrs["keyframes"], g["positions"][()]
+    with torch.no_grad():
+        want = model(torch.as_tensor(np.asarray(st["keyframes"]["poses"], dtype=np.float64) * cfg["neural_modes"]["box"])).numpy()
+    assert np.allclose(kx[keys], want, atol=1e-14)
+    # the aspect-ratio example (Fig. A2): both ends train, the middle is held out; the files agree with the model
+    from latentsim.neural_modes.aspect import load_family_model
+
+    asp = pd.read_csv(res / "aspect/aspect.csv")
+    assert asp["ratio"].tolist() == [1.0, 1.5, 2.0] and asp["split"].tolist() == ["train", "held out", "train"]
+    assert (asp["max |cos(l, y)|"] < 1e-10).all()  # tiny_nm builds l^T y = 0 into the map
+    assert np.isfinite(asp.drop(columns="split").to_numpy()).all() and (asp["E_avg ground truth"] > 0).all()
+    family_model = load_family_model(res / "aspect/neural_modes.pt")
+    with h5py.File(res / "aspect/family.h5") as f:
+        decoded, X = f["evaluation/modes_plus"][()], f["X"][()]
+    with torch.no_grad():
+        amplitude = st["aspect"].get("figure_amplitude", 0.5)  # the schema's default
+        want = family_model(torch.as_tensor(amplitude * cfg["neural_modes"]["box"] * np.eye(2)), 1).numpy()
+    assert np.allclose(decoded[1], want, atol=1e-14)
+    vtu = meshio.read(res / "aspect/paraview/ratio_1.500_mode_2.vtu")
+    assert np.allclose(vtu.points, X[1]) and np.allclose(vtu.points + vtu.point_data["displacement"], decoded[1, 1])
+    assert (res / "aspect/aspect_ratio.png").stat().st_size > 1000
+    for stage in ("sheet_ground_truth", "sheet_study", "energy_table", "dynamics", "aspect_ratio"):
+        assert (work / f"results/benchmarks/neural_modes/tiny_nm_{stage}.tsv").exists(), stage
+        assert (work / f"logs/neural_modes/tiny_nm_{stage}.log").read_text(), stage
+
+
+def test_editing_one_study_reruns_only_that_study(tiny_run, tmp_path):
+    """Study settings rerun their own study; Neural Modes training settings rerun what uses the trained
+    model, never the linear modes or the ground truth; the sample sets rerun their ground truth."""
+    work, _ = tiny_run
+
+    def jobs_after(edit):
+        cfg = yaml.safe_load(TINY.read_text())
+        edit(cfg["scenes"]["tiny_nm"])
+        path = tmp_path / "edited.yaml"
+        path.write_text(yaml.safe_dump(cfg))
+        return sorted(planned_jobs(snakemake("-n", "all", "--configfile", str(path), "--directory", str(work)).stdout), key=str)
+
+    def studies(sc):
+        sc["nm_study"]["sheet"]["epochs"] += 1
+        sc["nm_study"]["energy"]["ae_epochs"] += 1
+
+    assert jobs_after(studies) == sorted([("nm_sheet_study", "tiny_nm"), ("nm_sheet_tables", "tiny_nm"), ("nm_energy_table", "tiny_nm"), ("all", None)], key=str)
+    assert jobs_after(lambda sc: sc["nm_study"]["aspect"].update(epochs=4)) == sorted([("nm_aspect_ratio", "tiny_nm"), ("all", None)], key=str)
+    # the model also serves tiny_nm's neural_modes_reduced baseline: that rollout and what reads it rerun too
+    assert jobs_after(lambda sc: sc["neural_modes"].update(epochs=sc["neural_modes"]["epochs"] + 1)) == sorted(
+        [(r, "tiny_nm") for r in ("nm_train", "nm_energy_table", "nm_dynamics", "nm_keyframes", "reduced_rollout", "evaluate", "render")]
+        + [("nm_summary", None), ("summary", None), ("all", None)], key=str
+    )
+    assert jobs_after(lambda sc: sc["nm_study"]["sheet"].update(test_grid=4)) == sorted(
+        [(r, "tiny_nm") for r in ("nm_ground_truth", "nm_sheet_study", "nm_sheet_tables")] + [("all", None)], key=str
+    )
+
+
+def test_editing_a_variant_reruns_only_that_methods_jobs(tiny_run, tmp_path):
+    work, _ = tiny_run
+    cfg = yaml.safe_load(TINY.read_text())
+    cfg["integrator_variants"]["supervised"]["epochs"] = 7
+    edited = tmp_path / "edited.yaml"
+    edited.write_text(yaml.safe_dump(cfg))
+    jobs = planned_jobs(snakemake("-n", "all", "--configfile", str(edited), "--directory", str(work)).stdout, methods=True)
+    assert sorted(jobs, key=str) == sorted(
+        [("train_integrator", "tiny_rods", "supervised"), ("rollout", "tiny_rods", "supervised"), ("evaluate", "tiny_rods", None),
+         ("render", "tiny_rods", None), ("summary", None, None), ("all", None, None)],
+        key=str,
+    )  # fmt: skip
+
+
+def test_a_variant_of_another_size_trains_and_decodes_with_its_own_autoencoder(tiny_run, tmp_path):
+    """tiny_rods' ``small`` variant (latent 2, 16 wide) beside the scene's own model (latent 4, 32 wide)."""
+    import pandas as pd
+
+    work, _ = tiny_run
+    own = torch.load(work / "results/autoencoder/tiny_rods/autoencoder.pt", weights_only=True)["hparams"]
+    small = torch.load(work / "results/autoencoder/tiny_rods/small/autoencoder.pt", weights_only=True)["hparams"]
+    assert (own["latent_dim"], small["latent_dim"]) == (4, 2)
+    for method, r in (("self_supervised", 4), ("supervised", 4), ("small", 2)):
+        with h5py.File(work / f"results/rollout/tiny_rods/{method}/rollout.h5") as f:
+            assert {g["latents"].shape[-1] for g in f["sequences"].values()} == {r}, method
+    t1 = pd.read_csv(work / "results/evaluation/table1.csv").set_index(["scene", "method"])
+    assert t1.loc[("tiny_rods", "small"), "latent_dof"] == 2 and t1.loc[("tiny_rods", "self_supervised"), "latent_dof"] == 4
+    assert ("tiny_rods", "supervised") not in t1.index  # variants of the scene's own size stay out of Table 1
+    t2 = pd.read_csv(work / "results/evaluation/table2.csv").set_index(["scene", "method"])
+    assert t2.loc[("tiny_rods", "small"), "decoder_layers"] == "16" and t2.loc[("tiny_rods", "small"), "integrator_layers"] == "16"
+    sizes = pd.read_csv(work / "results/evaluation/sizes.csv").set_index("scene")
+    assert sizes.loc["tiny_rods", "variant_models"] == "small: latent 2, 16 / 16"
+    # its autoencoder is its own: editing it reruns the variant's jobs only
+    cfg = yaml.safe_load(TINY.read_text())
+    cfg["integrator_variants"]["small"]["autoencoder"]["latent_dim"] = 3
+    edited = tmp_path / "edited.yaml"
+    edited.write_text(yaml.safe_dump(cfg))
+    jobs = planned_jobs(snakemake("-n", "all", "--configfile", str(edited), "--directory", str(work)).stdout, methods=True)
+    assert sorted(jobs, key=str) == sorted(
+        [("train_variant_autoencoder", "tiny_rods", "small"), ("train_integrator", "tiny_rods", "small"), ("rollout", "tiny_rods", "small"),
+         ("evaluate", "tiny_rods", None), ("render", "tiny_rods", None), ("summary", None, None), ("all", None, None)],
+        key=str,
+    )  # fmt: skip
+
+
+def _h5_contents(path):
+    out = {}
+
+    def visit(name, obj):
+        for k, v in obj.attrs.items():
+            if not is_timing(k, TIMING_ATTRS):
+                out[f"{name}@{k}"] = v
+        if isinstance(obj, h5py.Dataset) and not is_timing(name.split("/")[-1], TIMING_DATASETS):
+            out[name] = obj[()]
+
+    with h5py.File(path) as f:
+        visit("/", f)
+        f.visititems(visit)
+    return out
+
+
+def test_same_seed_gives_identical_artefacts(tiny_run, tmp_path):
+    work_a, _ = tiny_run
+    work_b = tmp_path / "tiny_b"
+    snakemake("all", "--cores", "2", "--configfile", str(TINY), "--directory", str(work_b))
+    files = sorted(p.relative_to(work_a) for p in (work_a / "results").rglob("*") if p.suffix in (".h5", ".pt", ".npz") and p.name != "runtime.pt")
+    assert len(files) >= 5 * len(SCENES_TINY)
+    for rel in files:
+        a, b = work_a / rel, work_b / rel
+        if rel.suffix == ".npz":  # the exported NumPy runtime
+            with np.load(a) as na, np.load(b) as nb:
+                assert sorted(na.files) == sorted(nb.files), rel
+                assert all(np.array_equal(na[k], nb[k]) for k in na.files), rel
+            continue
+        if rel.suffix == ".pt":
+            ba, bb = torch.load(a, weights_only=True), torch.load(b, weights_only=True)
+            key = "state_dict" if "state_dict" in ba else "model"  # modules, or training checkpoints
+            sa, sb = ba[key], bb[key]
+            assert sa.keys() == sb.keys()
+            assert all(torch.equal(sa[k], sb[k]) for k in sa), rel
+            continue
+        ca, cb = _h5_contents(a), _h5_contents(b)
+        assert ca.keys() == cb.keys(), rel
+        for k in ca:
+            assert np.array_equal(np.asarray(ca[k]), np.asarray(cb[k]), equal_nan=np.asarray(ca[k]).dtype.kind == "f"), f"{rel}:{k}"
+
+
+def test_sigkill_mid_job_leaves_no_complete_looking_output(tmp_path):
+    """Kill the whole Snakemake process group while the simulation runs."""
+    cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(ROOT / "Snakefile"), "results/sim/tiny_rods/trajectories.h5",
+           "--cores", "1", "--configfile", str(TINY), "--directory", str(tmp_path)]  # fmt: skip
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True, env=dict(os.environ, CI="1"))
+    log = tmp_path / "logs/sim/tiny_rods.log"
+    try:
+        deadline = time.time() + 120
+        while time.time() < deadline and not (log.exists() and "linear solver" in log.read_text()):
+            time.sleep(0.05)
+        assert log.exists(), "the simulation never started"
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert not (tmp_path / "results/sim/tiny_rods/trajectories.h5").exists()
+    jobs = planned_jobs(snakemake("-n", "results/sim/tiny_rods/trajectories.h5", "--configfile", str(TINY), "--directory", str(tmp_path)).stdout)
+    assert ("simulate", "tiny_rods") in jobs
+
+
+def test_neural_modes_baseline_steps_in_the_scenes_neural_modes(tiny_run):
+    """tiny_nm lists neural_modes_reduced: its rollout lives in the trained Neural Modes' subspace
+    (as many coordinates as modes), keeps the held edges on their prescribed path, and is evaluated
+    beside the latent methods."""
+    import pandas as pd
+
+    work, _ = tiny_run
+    modes = yaml.safe_load(TINY.read_text())["scenes"]["tiny_nm"]["neural_modes"]["modes"]
+    with h5py.File(work / "results/rollout/tiny_nm/neural_modes_reduced/rollout.h5") as g:
+        assert g.attrs["method"] == "neural_modes_reduced" and g.attrs["subspace_dim"] == modes
+        seq = g["sequences/bounce"]
+        assert seq["latents"].shape[-1] == modes
+        D = g["dirichlet"][()]
+        last = seq.attrs["diverged_frame"] if seq.attrs["diverged_frame"] >= 0 else len(seq["positions"])
+        err = np.abs(seq["positions"][:last][:, D] - seq["dirichlet_positions"][:last]).max()
+        assert err < 1e-9  # the Dirichlet set is the subspace's rigid frame: held exactly
+        # every frame is the trained Neural Modes' map of its coordinates (not another subspace's)
+        from latentsim.neural_modes import load_neural_modes
+        from latentsim.neural_modes.dynamics import NeuralModesSubspace
+
+        sub = NeuralModesSubspace(load_neural_modes(work / "results/neural_modes/tiny_nm/neural_modes.pt"), D)
+        q, xD, x = seq["latents"][()], seq["dirichlet_positions"][()], seq["positions"][()]
+        assert last > 2 and np.abs(q[2:last]).max() > 0
+        for t in range(2, last):
+            assert np.allclose(sub.map(q[t].astype(np.float64), xD[t]), x[t], atol=1e-5 * np.abs(x).max())
+    table = pd.read_csv(work / "results/evaluation/tiny_nm/metrics.csv")
+    assert "neural_modes_reduced" in set(table["method"])
+
+
+@pytest.mark.parametrize("scene", ["tiny_cloth", "tiny_rods"])
+def test_compiled_runtime_replays_the_rollout_and_is_timed(tiny_run, scene):
+    """The rollout stage timed the compiled runtime beside the others; loaded from the exported runtime.npz
+    alone, it replays the stored rollout (from its first two latents and the boundary conditions) to float32
+    rounding; the floor benchmark runs on the scene's trajectories and times both runtimes."""
+    from latentsim import runtime
+    from latentsim.runtime import compiled as runtime_compiled
+
+    work, _ = tiny_run
+    out = work / f"results/rollout/{scene}/self_supervised"
+    with h5py.File(out / "rollout.h5") as g:
+        name, seq = next(iter(g["sequences"].items()))
+        assert seq.attrs["runtime"] in ("numpy", "compiled", "torchscript", "eager")
+        assert 0 < seq.attrs["compiled_step_ms"] < seq.attrs["eager_step_ms"]
+        Z, bc, xD, X = (seq[k][()] for k in ("latents", "bc", "dirichlet_positions", "positions"))
+    T = min(20, len(Z))
+    stepper = runtime_compiled.load_runtime(out / "runtime.npz")
+    res = runtime.rollout_runtime(stepper, Z[0], Z[1], bc[:T], np.ascontiguousarray(xD[:T]))
+    scale = np.abs(X[:T]).max()
+    assert np.abs(res["positions"] - X[:T]).max() < 1e-4 * scale
+    assert np.abs(np.diff(X[:T], axis=0)).max() > 1e-3 * scale  # the frames move: a replay, not a constant
+    bench = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks/bench_step_floor.py"), scene, "--results", str(work / "results"), "--config", str(TINY),
+         "--rounds", "1", "--full-frames", "2", "--repeats", "5", "--export", str(work / "floors")],
+        capture_output=True, text=True, timeout=300, env=dict(os.environ, PYTHONPATH=str(ROOT / "src")),
+    )  # fmt: skip
+    assert bench.returncode == 0, bench.stderr
+    assert "compiled_floor_speedup" in bench.stdout and "bare_floor_speedup" in bench.stdout and scene in bench.stdout
+    floor = runtime_compiled.load_runtime(work / "floors" / f"{scene}.npz")  # the floor network, as a runtime file
+    assert floor.r == 2 and floor.n == X.shape[1]
+
+
+@pytest.mark.parametrize("caption", sorted((ROOT / "workflow" / "report").glob("*.rst")), ids=lambda p: p.name)
+def test_report_captions_are_valid_restructuredtext(caption):
+    """snakemake --report renders every caption as reStructuredText: a bare |x| is a substitution
+    reference that is never defined (an error in the report), so norms must be literals."""
+    from docutils.core import publish_doctree
+    from docutils.utils import Reporter
+
+    doctree = publish_doctree(caption.read_text(), settings_overrides={"report_level": Reporter.SEVERE_LEVEL + 1, "halt_level": 5})
+    found = [n for n in doctree.findall() if n.tagname == "system_message"] + list(doctree.transform_messages)
+    messages = [m.astext() for m in found if int(m["level"]) >= Reporter.ERROR_LEVEL]
+    assert not messages, messages
