@@ -71,6 +71,30 @@ def validate_config(config: dict, schema_path=SCHEMA) -> dict:
     return config
 
 
+def schema_defaults(definition: str, schema_path=SCHEMA) -> dict:
+    """The defaults the schema declares for the properties of ``$defs/<definition>`` (e.g.
+    ``"autoencoder"``, ``"integrator"``, ``"neural_modes"``): the one table of defaults, for code
+    called outside the pipeline with a partial settings dict.  Nested objects get their own defaults
+    filled, as ``validate_config`` fills them."""
+    with open(schema_path) as fh:
+        schema = yaml.safe_load(fh)
+    if definition not in schema.get("$defs", {}):
+        raise KeyError(f"the config schema has no definition '{definition}'; it has {sorted(schema['$defs'])}")
+    out: dict = {}
+    _Validator({**schema["$defs"][definition], "$defs": schema["$defs"]}).validate(out)
+    return out
+
+
+def with_defaults(definition: str, settings: dict | None, what: str) -> dict:
+    """``settings`` over the schema's defaults for ``$defs/<definition>``; a key the schema does not
+    know raises a ``ConfigError`` naming ``what`` (the function that was called) and the key."""
+    defaults = schema_defaults(definition)
+    unknown = sorted(set(settings or {}) - set(defaults))
+    if unknown:
+        raise ConfigError(f"{what}: unknown setting(s) {unknown}; allowed: {sorted(defaults)}")
+    return {**defaults, **copy.deepcopy(settings or {})}
+
+
 def _check_variants(config: dict) -> None:
     """Every scene's ``variants`` entry must name a defined integrator variant; its sweep, one of its methods."""
     known = config.get("integrator_variants", {})
