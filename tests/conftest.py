@@ -1,7 +1,22 @@
-"""Shared test fixtures."""
+"""Shared test fixtures and markers.
+
+Tests live in three folders: ``unit`` (functions and classes on tiny inputs), ``physics`` (energies,
+solvers and analytic benchmarks) and ``workflow`` (Snakemake end to end, the benchmark scripts' smoke
+runs).  Everything under ``workflow`` is marked ``slow``: ``pytest -m "not slow" tests`` is the quick loop.
+"""
+
+from pathlib import Path
 
 import pytest
 import torch
+
+WORKFLOW = Path(__file__).resolve().parent / "workflow"
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if WORKFLOW in Path(str(item.fspath)).resolve().parents:
+            item.add_marker(pytest.mark.slow)
 
 
 @pytest.fixture(autouse=True, scope="module")
