@@ -78,6 +78,17 @@ def planned_jobs(output: str, methods: bool = False) -> list[tuple]:
     return jobs
 
 
+def planned_outputs(output: str) -> list[str]:
+    """'rule: outputs' of every job a dry run lists, sorted (the format of tests/workflow/data/default_jobs.txt)."""
+    jobs = []
+    for block in re.split(r"\n(?=(?:local)?rule \w+:)", output):
+        m = re.match(r"(?:local)?rule (\w+):", block.strip())
+        if m:
+            o = re.search(r"\n\s+output: ([^\n]*)", block)
+            jobs.append(f"{m.group(1)}: {o.group(1) if o else '-'}")
+    return sorted(jobs)
+
+
 def test_lint_is_clean():
     proc = snakemake("--lint", check=False)
     assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -97,6 +108,9 @@ def test_dry_run_of_default_config_lists_every_stage_for_every_scene(tmp_path):
             assert sorted(m for r, s, m in jobs if r == stage and s == scene) == sorted(scene_methods(cfg, scene)), (stage, scene)
     assert ("summary", None, None) in jobs
     assert sorted(((r, s) for r, s, _ in jobs if r.startswith("nm_")), key=str) == sorted(NM_JOBS_DEFAULT, key=str)
+    # the same jobs, with the same outputs, as the commit before the restructuring planned
+    recorded = [line for line in (ROOT / "tests/workflow/data/default_jobs.txt").read_text().splitlines() if not line.startswith("#")]
+    assert planned_outputs(out) == recorded
 
 
 def test_slurm_profile_dry_run(tmp_path):
