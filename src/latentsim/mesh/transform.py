@@ -129,14 +129,6 @@ def normalise(
     return v
 
 
-def _rodrigues(axis, degrees) -> np.ndarray:
-    axis = np.asarray(axis, dtype=float)
-    axis = axis / np.linalg.norm(axis)
-    t = np.deg2rad(degrees)
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(t) * K + (1 - np.cos(t)) * K @ K
-
-
 def place(
     vertices: np.ndarray,
     scale: float = 1.0,
@@ -151,7 +143,7 @@ def place(
     vertices : (n, 3)
     scale : float, uniform factor (1: none).
     rotate_axis : (3,) vector, needed when ``rotate_degrees`` is not 0.
-    rotate_degrees : float, right-handed about ``rotate_axis``.
+    rotate_degrees : float, right-handed about ``rotate_axis`` (:func:`rotation_matrix`).
     translate : (3,) vector, optional.
 
     Returns
@@ -162,7 +154,7 @@ def place(
     if scale != 1.0:
         V = V * float(scale)
     if rotate_degrees:
-        V = V @ _rodrigues(rotate_axis, rotate_degrees).T
+        V = V @ rotation_matrix(rotate_axis, rotate_degrees).T
     if translate:
         V = V + np.asarray(translate, dtype=float)
     return V
