@@ -52,7 +52,12 @@ from latentsim.mesh.geometry import (
 from latentsim.mesh.quality import check_mesh
 from latentsim.mesh.readers import Mesh, read_mesh, read_obj
 from latentsim.mesh.selection import select_dirichlet, select_vertices
-from latentsim.mesh.sources import DEFAULT_CACHE_DIR, MESH_SOURCES, fetch_mesh, sha256_of
+from latentsim.mesh.sources import (
+    DEFAULT_CACHE_DIR,
+    MESH_SOURCES,
+    fetch_mesh,
+    sha256_of,
+)
 from latentsim.mesh.surface import check_closed_surface, surface_of, weld
 from latentsim.mesh.tetgen import tetrahedralize, tetrahedralize_to
 from latentsim.mesh.transform import normalise, place, rotation_matrix

@@ -12,13 +12,19 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from itertools import permutations
-from typing import Sequence
 
 import numpy as np
 
 from latentsim.mesh.geometry import reorient, tet_volumes
-from latentsim.mesh.validation import MeshError, finite_float, positive_int, vector3, unit_vector
+from latentsim.mesh.validation import (
+    MeshError,
+    finite_float,
+    positive_int,
+    unit_vector,
+    vector3,
+)
 
 # ---------------------------------------------------------------------------
 # Rods

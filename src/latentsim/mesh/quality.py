@@ -15,7 +15,12 @@ from typing import Any
 
 import numpy as np
 
-from latentsim.mesh.geometry import TET_FACES, repeats_vertex, tet_volumes, triangle_areas
+from latentsim.mesh.geometry import (
+    TET_FACES,
+    repeats_vertex,
+    tet_volumes,
+    triangle_areas,
+)
 from latentsim.mesh.validation import (
     MeshError,
     as_cells,

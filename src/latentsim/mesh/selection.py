@@ -8,11 +8,18 @@ rod's root, clamped: also its second vertex).  Every error quotes the rule.
 
 from __future__ import annotations
 
-from typing import Any, Callable, Mapping
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import numpy as np
 
-from latentsim.mesh.validation import MeshError, as_vertices, axis_index, finite_float, vector3
+from latentsim.mesh.validation import (
+    MeshError,
+    as_vertices,
+    axis_index,
+    finite_float,
+    vector3,
+)
 
 #: The keys each rule type reads, besides ``type``.
 RULE_KEYS: dict[str, tuple[str, ...]] = {

@@ -19,7 +19,12 @@ from typing import Any
 
 import numpy as np
 
-from latentsim.mesh.geometry import enclosed_volume, remove_unreferenced, reorient, tet_volumes
+from latentsim.mesh.geometry import (
+    enclosed_volume,
+    remove_unreferenced,
+    reorient,
+    tet_volumes,
+)
 from latentsim.mesh.surface import check_closed_surface, weld
 from latentsim.mesh.validation import (
     MeshError,

@@ -7,7 +7,8 @@ for a unit axis ``k`` and angle ``t`` (right-handed, rotating column vectors).
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
