@@ -1,9 +1,9 @@
 """MeshError and the checks of the arrays and numbers every mesh function takes.
 
-All mesh functions validate their arguments through these few helpers, so a bad
+All mesh functions validate their arguments through these few functions, so a bad
 argument always raises :class:`MeshError` with a message that names the
 argument (or file, or mesh) and the offending value or index.  The ``what``
-argument of each helper is that name, e.g. ``"armadillo.vtu: tet"``.
+argument of each of them is that name, e.g. ``"armadillo.vtu: tet"``.
 """
 
 from __future__ import annotations
