@@ -15,8 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from latentsim.mesh import beam_tets
-from latentsim.stages.mesh import rod_stencils
+from latentsim.mesh import beam_tets, rod_stencils
 from latentsim.scene import build_potential
 from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings, lowest_modes, stiffness_matrix
 

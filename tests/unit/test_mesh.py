@@ -495,3 +495,76 @@ def test_check_mesh_unreferenced(caplog):
         M.check_mesh(p, tets=t, unreferenced="error")
     q, t2, kept = M.remove_unreferenced(p, t)
     assert len(q) == 4 and kept.tolist() == [0, 1, 2, 3] and (t2 == t).all()
+
+
+# ---------------------------------------------------------------------------
+# Scene meshes: rod stencils, placement, welding, decimation, Dirichlet rules
+# ---------------------------------------------------------------------------
+
+def test_rod_stencils_match_rod_bundle():
+    edges, triples, root_of = M.rod_stencils(3, 5)
+    _, e, roots = M.rod_bundle(3, 5, 1.0, 0.1)
+    np.testing.assert_array_equal(edges, e)
+    np.testing.assert_array_equal(np.unique(root_of), roots)
+    np.testing.assert_array_equal(root_of[:5], [0] * 5)
+    assert triples.shape == (9, 3)
+    # each triple is two consecutive edges of one rod
+    np.testing.assert_array_equal(triples[:, 1] - triples[:, 0], 1)
+    np.testing.assert_array_equal(triples[:, 2] - triples[:, 1], 1)
+    np.testing.assert_array_equal(root_of[triples[:, 0]], root_of[triples[:, 2]])
+
+
+def test_place_scales_then_rotates_then_translates():
+    v = np.array([[1.0, 0, 0], [0, 2.0, 0]])
+    out = M.place(v, scale=2.0, rotate_axis=[0, 0, 1], rotate_degrees=90, translate=[0, 0, 1])
+    np.testing.assert_array_equal(out, [[0, 2, 1], [-4, 0, 1]])  # quarter turns are exact
+    np.testing.assert_array_equal(M.place(v), v)
+    r = M.place(v, rotate_axis=[1, 1, 1], rotate_degrees=120)  # x -> y -> z -> x
+    np.testing.assert_allclose(r, [[0, 1, 0], [0, 0, 2]], atol=1e-15)
+
+
+def test_weld_merges_close_vertices_and_drops_collapsed_triangles():
+    p = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1e-9]])
+    tris = np.array([[0, 1, 2], [0, 2, 3], [0, 3, 4], [1, 4, 3], [4, 2, 0]])
+    v, f = M.weld(p, tris, 1e-6)
+    # vertex 4 joins 1: triangle 3 collapses, 2 becomes (0, 3, 1), 4 doubles 0 and both go
+    np.testing.assert_array_equal(v, p[:4])
+    np.testing.assert_array_equal(f, [[0, 2, 3], [0, 3, 1]])
+
+
+def test_tetrahedralize_to_decimates_a_dense_surface(bunny):
+    v, t = M.tetrahedralize_to(bunny.vertices, bunny.triangles, 2120, "bunny")
+    assert len(v) < len(bunny.vertices)  # TetGen alone cannot go below the surface's count
+    assert abs(len(v) - 2120) <= 0.05 * 2120
+    assert (M.tet_volumes(v, t) > 0).all()
+    M.check_closed_surface(M.surface_of(t))
+    assert M.check_mesh(v, tets=t, name="bunny")["problems"] == []
+
+
+def test_select_dirichlet_roots_and_config_filled_rules():
+    _, _, root_of = M.rod_stencils(2, 4)
+    v, _, _ = M.rod_bundle(2, 4, 1.0, 0.1)
+    np.testing.assert_array_equal(M.select_dirichlet(v, {"type": "roots"}, root_of), [0, 1, 4, 5])
+    np.testing.assert_array_equal(
+        M.select_dirichlet(v, {"type": "roots", "clamp": False}, root_of), [0, 4])
+    with pytest.raises(MeshError, match="needs a rod scene"):
+        M.select_dirichlet(v, {"type": "roots"})
+    # the schema fills every rule key; only the rule's own keys reach select_vertices
+    filled = {"type": "extreme", "axis": "y", "side": "min", "fraction": 0.0, "clamp": True,
+              "center": [0, 0, 0], "radius": 0.1, "indices": []}
+    np.testing.assert_array_equal(M.select_dirichlet(v, filled), [3, 7])
+
+
+def test_scene_mesh_beam():
+    cfg = {"generator": "beam_tets", "nx": 2, "ny": 1, "nz": 1, "length": 1.0, "width": 0.5,
+           "height": 0.5, "scale": 2.0, "rotate_degrees": 0.0, "translate": [0, 0, 1.0]}
+    rule = {"type": "extreme", "axis": "x", "side": "min", "fraction": 0.0}
+    arrays, quality = M.scene_mesh("beam", "tets", cfg, rule, sources={})
+    v0, t0 = M.beam_tets(2, 1, 1, 1.0, 0.5, 0.5)
+    np.testing.assert_array_equal(arrays["tets"], t0)
+    np.testing.assert_array_equal(arrays["rest_positions"], v0 * 2.0 + [0, 0, 1.0])
+    np.testing.assert_array_equal(arrays["surface"], M.surface_of(t0))
+    np.testing.assert_array_equal(arrays["dirichlet"], np.flatnonzero(v0[:, 0] == 0))
+    assert quality["volume_total"] == pytest.approx(8 * 0.25) and quality["problems"] == []
+    with pytest.raises(MeshError, match="needs model 'rods'"):
+        M.build_mesh("tets", {"generator": "rod_bundle"}, sources={})

@@ -1,0 +1,130 @@
+"""A scene's rest mesh from its config: generate or fetch and read, tetrahedralise, place, select.
+
+The config is the scene's ``mesh`` mapping (``generator``: ``rod_bundle``,
+``cloth_grid``, ``beam_tets`` or ``file``, the generator's sizes, and
+``scale``/``rotate_axis``/``rotate_degrees``/``translate``), its ``dirichlet``
+rule and the top-level ``meshes`` sources (``local_dir``, ``cache_dir``).
+The result is the dict of arrays the mesh stage writes to ``mesh.h5``.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+
+from latentsim.mesh.generators import beam_tets, cloth_grid, rod_bundle, rod_stencils
+from latentsim.mesh.geometry import remove_unreferenced
+from latentsim.mesh.quality import check_mesh
+from latentsim.mesh.readers import read_mesh
+from latentsim.mesh.selection import select_dirichlet
+from latentsim.mesh.sources import fetch_mesh
+from latentsim.mesh.surface import surface_of
+from latentsim.mesh.tetgen import tetrahedralize_to
+from latentsim.mesh.transform import place
+from latentsim.mesh.validation import MeshError
+
+logger = logging.getLogger(__name__)
+
+
+def _from_file(model: str, cfg: dict, sources: dict) -> dict[str, np.ndarray]:
+    """``rest_positions`` and the model's cells of the scene's mesh file.
+
+    A tet model keeps the file's tets unless ``target_vertices`` is set (> 0);
+    then the file's surface is tetrahedralised to about that many vertices.
+    """
+    path = fetch_mesh(cfg["file"], local_dir=sources.get("local_dir"),
+                      cache_dir=sources["cache_dir"])
+    m = read_mesh(path)
+    out = {"rest_positions": m.vertices}
+    if model == "tets":
+        if m.tets is not None and cfg.get("target_vertices") in (None, 0):
+            out["tets"] = m.tets
+        else:
+            surf = m.triangles if m.triangles is not None else surface_of(m.tets)
+            V, surf, _ = remove_unreferenced(m.vertices, surf)
+            out["rest_positions"], out["tets"] = tetrahedralize_to(
+                V, surf, int(cfg["target_vertices"]), str(path))
+    elif model == "shell":
+        if m.triangles is None:
+            raise MeshError(f"{path}: model 'shell' needs a triangle mesh")
+        out["triangles"] = m.triangles
+    else:
+        raise MeshError(
+            f"{path}: model '{model}' cannot be read from a file; use generator rod_bundle")
+    return out
+
+
+def _generated(model: str, cfg: dict) -> dict[str, np.ndarray]:
+    """``rest_positions`` and the cells of a procedural mesh (rods also: triples, root_of)."""
+    gen = cfg["generator"]
+    out = {}
+    if gen == "rod_bundle":
+        if model != "rods":
+            raise MeshError(f"mesh.generator 'rod_bundle' needs model 'rods', not '{model}'")
+        out["rest_positions"], _, _ = rod_bundle(cfg["n_rods"], cfg["vertices_per_rod"],
+                                                 cfg["length"], cfg["spacing"], cfg["direction"])
+        out["edges"], out["triples"], out["root_of"] = rod_stencils(cfg["n_rods"],
+                                                                    cfg["vertices_per_rod"])
+    elif gen == "cloth_grid":
+        out["rest_positions"], out["triangles"] = cloth_grid(
+            cfg["nx"], cfg["ny"], cfg["width"], cfg["height"], plane=cfg["plane"])
+    elif gen == "beam_tets":
+        out["rest_positions"], out["tets"] = beam_tets(
+            cfg["nx"], cfg["ny"], cfg["nz"], cfg["length"], cfg["width"], cfg["height"])
+    else:
+        raise MeshError(f"mesh.generator '{gen}' unknown")
+    return out
+
+
+def build_mesh(model: str, cfg: dict, sources: dict) -> dict[str, np.ndarray]:
+    """Arrays of a scene's mesh (before the Dirichlet selection).
+
+    Parameters
+    ----------
+    model : 'rods' | 'shell' | 'tets'
+    cfg : the scene's ``mesh`` config
+    sources : the top-level ``meshes`` config (local_dir, cache_dir)
+
+    Returns
+    -------
+    dict: the model's cells (``edges``, ``triples``, ``root_of`` for rods;
+    ``triangles`` for shells; ``tets`` for tets), then ``rest_positions``
+    (n, 3) float64 after ``scale``, ``rotate_degrees`` about ``rotate_axis``
+    and ``translate``.
+    """
+    out = _from_file(model, cfg, sources) if cfg["generator"] == "file" else _generated(model, cfg)
+    V = out.pop("rest_positions")
+    out["rest_positions"] = place(V, cfg.get("scale", 1.0), cfg.get("rotate_axis"),
+                                  cfg.get("rotate_degrees", 0.0), cfg.get("translate"))
+    return out
+
+
+def scene_mesh(scene: str, model: str, mesh_cfg: dict, dirichlet_rule: dict,
+               sources: dict) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """A scene's checked mesh with its Dirichlet set (and, for tets, its surface).
+
+    Returns
+    -------
+    arrays : :func:`build_mesh`'s arrays plus ``dirichlet`` (k,) int64 and,
+        for tets, ``surface`` (t, 3) int64.
+    quality : :func:`check_mesh`'s statistics.
+
+    Raises
+    ------
+    MeshError
+        A quality problem or an empty Dirichlet set, naming the scene.
+    """
+    arrays = build_mesh(model, mesh_cfg, sources)
+    quality = check_mesh(arrays["rest_positions"], tets=arrays.get("tets"),
+                         triangles=arrays.get("triangles"), name=scene)
+    arrays["dirichlet"] = select_dirichlet(arrays["rest_positions"], dirichlet_rule,
+                                           arrays.get("root_of"))
+    if len(arrays["dirichlet"]) == 0:
+        raise MeshError(f"scene '{scene}': the Dirichlet rule {dirichlet_rule} selects no vertex")
+    if model == "tets":
+        arrays["surface"] = surface_of(arrays["tets"])
+    logger.info("scene %s: %d vertices, %d Dirichlet; quality %s", scene,
+                len(arrays["rest_positions"]), len(arrays["dirichlet"]), quality)
+    return arrays, quality
