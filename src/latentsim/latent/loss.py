@@ -95,21 +95,12 @@ def integrator_loss(
     if use_penalty is None:
         use_penalty = not coords.hard_dirichlet
     clean = batch["z_prev"].shape[0]
+    if noise_scale and noise_scale > 0:
+        batch = with_training_noise(batch, noise_scale, generator)
     z1, z2 = batch["z_prev"], batch["z_prev2"]
     p, p1, p2 = batch["p"], batch["p_prev"], batch["p_prev2"]
     xD, xD1, xD2 = batch["xD"], batch["xD_prev"], batch["xD_prev2"]
     zt = batch.get("z")
-    if noise_scale and noise_scale > 0:
-        def noisy(z):
-            a = noise_scale * z.std(0, unbiased=False)
-            r = torch.rand(z.shape, generator=generator, dtype=z.dtype).to(z.device)
-            return z + (2.0 * r - 1.0) * a
-        z1n, z2n = noisy(z1), noisy(z2)
-        z1, z2 = torch.cat([z1, z1n]), torch.cat([z2, z2n])
-        p, p1, p2 = (torch.cat([a, a]) for a in (p, p1, p2))
-        xD, xD1, xD2 = (torch.cat([a, a]) for a in (xD, xD1, xD2))
-        if zt is not None:
-            zt = torch.cat([zt, zt])
     count = z1.shape[0]
     pred = integrator(z1, z2, p, p1, p2)
 
@@ -139,3 +130,23 @@ def integrator_loss(
         loss = loss + float(supervised_weight) * sup.to(loss)
     info = {"per_sample": per.detach(), "weights": w.detach(), "count": count, "prediction": pred.detach()}
     return loss, info
+
+
+def with_training_noise(batch: dict, noise_scale: float, generator: torch.Generator | None = None) -> dict:
+    """The batch doubled with perturbed copies (paper Eq. 5): the copies' ``z_prev``, ``z_prev2``
+    carry uniform noise in ``[-a, a]``, ``a = noise_scale * std`` (per latent dimension, over this
+    batch, separately for each); every other entry (BCs, Dirichlet targets, ``z``) is repeated.
+
+    batch : tensors of B rows each (:data:`latentsim.latent.data.BATCH_KEYS`) -> 2B rows each.
+    generator : CPU generator of the noise (z_prev's first, then z_prev2's).
+    """
+
+    def noisy(z):
+        a = noise_scale * z.std(0, unbiased=False)
+        r = torch.rand(z.shape, generator=generator, dtype=z.dtype).to(z.device)
+        return z + (2.0 * r - 1.0) * a
+
+    z1n, z2n = noisy(batch["z_prev"]), noisy(batch["z_prev2"])
+    out = {k: torch.cat([v, v]) for k, v in batch.items() if k not in ("z_prev", "z_prev2")}
+    out["z_prev"], out["z_prev2"] = torch.cat([batch["z_prev"], z1n]), torch.cat([batch["z_prev2"], z2n])
+    return out
