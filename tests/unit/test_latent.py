@@ -15,6 +15,7 @@ import os
 import pytest
 import torch
 
+from latentsim.config import ConfigError
 from latentsim.physics.base import EnergyTerm
 from latentsim.physics.incremental_potential import IncrementalPotential
 from latentsim.latent import (
@@ -609,3 +610,17 @@ def test_autoencoder_never_returns_worse_than_its_pca_start():
     assert hist["mse_final"] == hist["mse_initial"] < 1e-10
     with torch.no_grad():
         assert ((model(U) - U) ** 2).mean() < 1e-10
+
+
+def test_settings_come_from_the_schema():
+    """Partial settings take the config schema's defaults (pca_dim 0: the first width, capped at the
+    data dimension); a key the schema does not know stops the training, naming it."""
+    U = torch.randn(40, 12, generator=torch.Generator().manual_seed(0))
+    model, hist = fit_autoencoder(U, {"latent_dim": 2, "widths": [8], "epochs": 1, "batch_size": 16}, seed=0)
+    assert model.pca_dim == 8 and hist["epochs"] == 1
+    model, _ = fit_autoencoder(U, {"latent_dim": 2, "widths": [16], "epochs": 1, "batch_size": 16}, seed=0)
+    assert model.pca_dim == 12
+    with pytest.raises(ConfigError, match="fit_autoencoder.*'lr_decay'"):
+        fit_autoencoder(U, {"lr_decay": 0.5})
+    with pytest.raises(ConfigError, match="fit_integrator.*'checkpoint_every'"):
+        fit_integrator(model, RelativeCoordinates(4, [0]), None, [], {"checkpoint_every": 1})
