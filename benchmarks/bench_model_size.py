@@ -8,7 +8,7 @@ Trains the scene's autoencoder and integrator at the given sizes (the integrator
 exactly as a sizing-sweep point does (``sweep.train_point``, the config's seed), measures it as the
 sweep does (``sweep.measure_point``: mean and max vertex error over the bounding-box diagonal on every
 test sequence, the stress conditions), then times, in interleaved rounds and on one thread, full-space
-Newton frames of the first test sequence (``train.time_full_space``, as the rollout stage does), its
+Newton frames of the first test sequence (``latent.timing.time_full_space``, as the rollout stage does), its
 NumPy step, and the step of each ``--against`` runtime (e.g. the pipeline's paper-size network), and
 prints the speed-ups of the same process.  Training the armadillo takes about 11 minutes on one core.
 """
@@ -26,7 +26,7 @@ import torch  # noqa: E402
 from latentsim import runtime  # noqa: E402
 from latentsim.config import integrator_settings, load_config  # noqa: E402
 from latentsim.latent.sweep import measure_point, train_point  # noqa: E402
-from latentsim.stages.train import time_full_space  # noqa: E402
+from latentsim.latent.timing import time_full_space  # noqa: E402
 
 
 def main():

@@ -9,7 +9,7 @@ than any scene needs (latent ``--latent``, one hidden layer of ``--width`` in th
 decoder's branch is untrained, its output layer zero, so the runtime folds it to a linear decoder of
 ``--latent`` columns; the coordinates of the scene's config): its step still decodes every DoF
 through the output layer, so its time is a floor under every trained model's step on that mesh.
-Timed in the same process as full-space Newton frames of the scene's first test sequence (``train.time_full_space``, as the rollout
+Timed in the same process as full-space Newton frames of the scene's first test sequence (``latent.timing.time_full_space``, as the rollout
 stage times them), in interleaved rounds, one thread. Prints the full-space ms, the floor step in us,
 the floor's speed-up, and the step a 1000x speed-up would need, for the NumPy runtime and the compiled
 one (``latentsim.runtime.compiled``, one numba kernel call per step).
@@ -40,7 +40,8 @@ from latentsim import runtime  # noqa: E402
 from latentsim.runtime import compiled as runtime_compiled
 from latentsim.config import load_config  # noqa: E402
 from latentsim.latent import Autoencoder, LatentIntegrator  # noqa: E402
-from latentsim.stages.train import coordinates_for, load_sequences, time_full_space  # noqa: E402
+from latentsim.latent import coordinates_for, load_sequences  # noqa: E402
+from latentsim.latent.timing import time_full_space  # noqa: E402
 
 
 if runtime_compiled.available():  # numba is pinned; without it the bare bound is not printed

@@ -28,7 +28,7 @@ import torch
 
 from latentsim import latent
 from latentsim.scene import potential_from_artefact
-from latentsim.stages.train import autoencoder_coordinates, load_sequences
+from latentsim.latent import autoencoder_coordinates, load_sequences
 
 
 def main(argv=None):

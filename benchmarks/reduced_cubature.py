@@ -31,7 +31,8 @@ from latentsim.solve import reduced
 from latentsim.latent.baselines import fit_subspace_cubature, make_subspace
 from latentsim.solve.cubature import cubature_potential
 from latentsim.scene import potential_from_artefact
-from latentsim.stages.train import coordinates_for, load_sequences, time_full_space
+from latentsim.latent import coordinates_for, load_sequences
+from latentsim.latent.timing import time_full_space
 
 ROOT = Path(__file__).resolve().parents[1]
 

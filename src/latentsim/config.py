@@ -86,13 +86,24 @@ def schema_defaults(definition: str, schema_path=SCHEMA) -> dict:
 
 
 def with_defaults(definition: str, settings: dict | None, what: str) -> dict:
-    """``settings`` over the schema's defaults for ``$defs/<definition>``; a key the schema does not
-    know raises a ``ConfigError`` naming ``what`` (the function that was called) and the key."""
-    defaults = schema_defaults(definition)
-    unknown = sorted(set(settings or {}) - set(defaults))
+    """``settings`` over the schema's defaults for ``$defs/<definition>`` (nested objects merged key
+    by key); a key the schema does not know raises a ``ConfigError`` naming ``what`` (the function
+    that was called) and the key.  Values are not validated: the pipeline validates its config on
+    load; code called outside it takes responsibility for its settings."""
+    return _over(schema_defaults(definition), settings or {}, what)
+
+
+def _over(defaults: dict, settings: dict, what: str, path: str = "") -> dict:
+    """``settings`` over ``defaults``, nested objects merged key by key (so a partial nested block
+    keeps the defaults of the keys it leaves out)."""
+    unknown = sorted(set(settings) - set(defaults))
     if unknown:
-        raise ConfigError(f"{what}: unknown setting(s) {unknown}; allowed: {sorted(defaults)}")
-    return {**defaults, **copy.deepcopy(settings or {})}
+        raise ConfigError(f"{what}: unknown setting(s) {[path + k for k in unknown]}; allowed: {sorted(path + k for k in defaults)}")
+    out = dict(defaults)
+    for k, v in settings.items():
+        nested = isinstance(defaults[k], dict) and isinstance(v, dict) and defaults[k]
+        out[k] = _over(defaults[k], v, what, f"{path}{k}.") if nested else copy.deepcopy(v)
+    return out
 
 
 def _check_variants(config: dict) -> None:

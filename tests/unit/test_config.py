@@ -6,7 +6,18 @@ from pathlib import Path
 import pytest
 import yaml
 
-from latentsim.config import ConfigError, autoencoder_dir, autoencoder_settings, integrator_settings, load_config, sweep_point_settings, validate_config
+from latentsim.config import (
+    SCHEMA,
+    ConfigError,
+    autoencoder_dir,
+    autoencoder_settings,
+    integrator_settings,
+    load_config,
+    schema_defaults,
+    sweep_point_settings,
+    validate_config,
+    with_defaults,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -117,3 +128,35 @@ def test_a_sweep_method_the_scene_does_not_run_is_named(tiny):
     tiny["scenes"]["tiny_cloth"]["sweep"]["method"] = "supervised"  # defined, but tiny_cloth does not list it
     with pytest.raises(ConfigError, match=r"scenes\.tiny_cloth\.sweep\.method'.*'supervised'"):
         validate_config(tiny)
+
+
+@pytest.mark.parametrize("definition", ["autoencoder", "integrator", "rollout", "stability"])
+def test_every_setting_the_latent_code_reads_has_a_description_and_a_default(definition):
+    """The schema is the one table of defaults: code called with partial settings fills them from it."""
+    defs = yaml.safe_load(SCHEMA.read_text())["$defs"]
+    for key, prop in defs[definition]["properties"].items():
+        described = prop.get("description") or defs.get(prop.get("$ref", "").rsplit("/", 1)[-1], {}).get("description")
+        assert described, f"{definition}.{key} has no description"
+        assert "default" in prop, f"{definition}.{key} has no default"
+
+
+def test_defaults_the_code_kept_before_the_schema_held_them():
+    """Keys the pipeline's configs never set ran on the code's own defaults; the schema now holds
+    those same values, so the pipeline's trainings are unchanged."""
+    ae, integ = schema_defaults("autoencoder"), schema_defaults("integrator")
+    assert (ae["train_pca"], ae["pca_samples"], ae["coordinates"]) == (True, 4000, None)
+    assert (integ["lr_final"], integ["residual"], integ["supervised_weight"]) == (None, True, 0.0)
+    assert (integ["balancing_eps"], integ["use_penalty"]) == (0.01, None)
+    assert schema_defaults("rollout")["full_frames_timed"] == 20
+
+
+def test_partial_settings_take_the_schema_defaults_nested_blocks_key_by_key():
+    got = with_defaults("rollout", {"max_extent": 3.0, "stability": {"long_factor": 2}}, "rollout_scene")
+    full = schema_defaults("rollout")
+    assert got["max_extent"] == 3.0 and got["timing_repeats"] == full["timing_repeats"]
+    assert got["stability"] == {**full["stability"], "long_factor": 2}
+    assert with_defaults("integrator", None, "fit_integrator") == schema_defaults("integrator")
+    with pytest.raises(ConfigError, match=r"fit_integrator: unknown setting\(s\) \['checkpoint_every'\]"):
+        with_defaults("integrator", {"checkpoint_every": 1}, "fit_integrator")
+    with pytest.raises(ConfigError, match=r"stress_test: unknown setting\(s\) \['stability.speed'\]"):
+        with_defaults("rollout", {"stability": {"speed": [2.0]}}, "stress_test")

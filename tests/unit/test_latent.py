@@ -15,6 +15,7 @@ import os
 import pytest
 import torch
 
+from latentsim.config import ConfigError
 from latentsim.physics.base import EnergyTerm
 from latentsim.physics.incremental_potential import IncrementalPotential
 from latentsim.latent import (
@@ -432,13 +433,13 @@ def test_self_supervised_integrator_learns_implicit_euler(chain_setup, trained):
 
 def test_checkpoint_resume_equals_uninterrupted(chain_setup, tmp_path):
     ch, seqs, coords, ae = chain_setup
-    cfg = dict(widths=[16], epochs=6, lr=1e-3, batch_size=40, checkpoint_every=1)
+    cfg = dict(widths=[16], epochs=6, lr=1e-3, batch_size=40)
     full, hf = fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=3)
     path = tmp_path / "ckpt.pt"
-    fit_integrator(ae, coords, ch.pot, seqs, {**cfg, "epochs": 3}, seed=3, checkpoint_path=path)
+    fit_integrator(ae, coords, ch.pot, seqs, {**cfg, "epochs": 3}, seed=3, checkpoint_path=path, checkpoint_every=1)
     state = torch.load(path, weights_only=True)
     assert state["epoch"] == 3 and "optimizer" in state and len(state["optimizer"]["state"]) > 0
-    resumed, hr = fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=3, checkpoint_path=path)
+    resumed, hr = fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=3, checkpoint_path=path, checkpoint_every=1)
     assert hr["start_epoch"] == 3 and len(hr["loss"]) == 6
     assert hr["loss"] == hf["loss"]
     sf, sr = full.state_dict(), resumed.state_dict()
@@ -458,9 +459,9 @@ def test_a_checkpoint_of_another_training_is_not_resumed(chain_setup, tmp_path, 
     """After a config edit (or new data) the pipeline reruns the training with the old checkpoint on
     disk: it must start over, giving exactly a fresh run's result, never continue the old weights."""
     ch, seqs, coords, ae = chain_setup
-    cfg = dict(widths=[16], epochs=4, lr=1e-3, batch_size=40, checkpoint_every=1)
+    cfg = dict(widths=[16], epochs=4, lr=1e-3, batch_size=40)
     path = tmp_path / "ckpt.pt"
-    fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=3, checkpoint_path=path)
+    fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=3, checkpoint_path=path, checkpoint_every=1)
     new_cfg, new_seed, new_seqs = dict(cfg), 3, seqs
     if change == "widths":
         new_cfg["widths"] = [8]
@@ -476,7 +477,7 @@ def test_a_checkpoint_of_another_training_is_not_resumed(chain_setup, tmp_path, 
         new_cfg["epochs"] = 2
     fresh, hf = fit_integrator(ae, coords, ch.pot, new_seqs, new_cfg, seed=new_seed)
     with caplog.at_level("WARNING", logger="latentsim.latent"):
-        again, ha = fit_integrator(ae, coords, ch.pot, new_seqs, new_cfg, seed=new_seed, checkpoint_path=path)
+        again, ha = fit_integrator(ae, coords, ch.pot, new_seqs, new_cfg, seed=new_seed, checkpoint_path=path, checkpoint_every=1)
     assert "starting over" in caplog.text
     assert ha["start_epoch"] == 0 and ha["loss"] == hf["loss"]
     assert all(torch.equal(a, b) for a, b in zip(fresh.state_dict().values(), again.state_dict().values()))
@@ -487,9 +488,9 @@ def test_cosine_learning_rate_decay(chain_setup, tmp_path):
     """lr_final: the rate follows lr_final + (lr - lr_final)(1 + cos(pi e / E)) / 2 over the epochs
     (a function of the epoch, so a resumed run sets it alike); lr_final = lr is the constant run."""
     ch, seqs, coords, ae = chain_setup
-    cfg = dict(widths=[16], epochs=5, lr=1e-3, batch_size=40, checkpoint_every=1)
+    cfg = dict(widths=[16], epochs=5, lr=1e-3, batch_size=40)
     path = tmp_path / "cos.pt"
-    fit_integrator(ae, coords, ch.pot, seqs, {**cfg, "lr_final": 1e-5}, seed=3, checkpoint_path=path)
+    fit_integrator(ae, coords, ch.pot, seqs, {**cfg, "lr_final": 1e-5}, seed=3, checkpoint_path=path, checkpoint_every=1)
     last = torch.load(path, weights_only=True)["optimizer"]["param_groups"][0]["lr"]
     assert last == pytest.approx(1e-5 + 0.5 * (1e-3 - 1e-5) * (1 + math.cos(math.pi * 4 / 5)), rel=1e-12)
     const, hc = fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=3)
@@ -516,16 +517,16 @@ class _NaNAfter:
 
 def test_nan_raises_training_diverged_and_keeps_checkpoint(chain_setup, tmp_path):
     ch, seqs, coords, ae = chain_setup
-    cfg = dict(widths=[16], epochs=5, lr=1e-3, batch_size=40, checkpoint_every=1)  # 114 triplets -> 3 batches
+    cfg = dict(widths=[16], epochs=5, lr=1e-3, batch_size=40)  # 114 triplets -> 3 batches
     path = tmp_path / "ckpt.pt"
     with pytest.raises(TrainingDiverged, match="epoch 3") as exc:
-        fit_integrator(ae, coords, _NaNAfter(ch.pot, calls=2 * 3 + 1), seqs, cfg, seed=0, checkpoint_path=path)
+        fit_integrator(ae, coords, _NaNAfter(ch.pot, calls=2 * 3 + 1), seqs, cfg, seed=0, checkpoint_path=path, checkpoint_every=1)
     assert exc.value.epoch == 3 and exc.value.batch == 1
     assert not os.path.exists(str(path) + ".tmp")
     state = torch.load(path, weights_only=True)
     assert state["epoch"] == 2 and all(torch.isfinite(v).all() for v in state["model"].values())
     # resuming with a sane potential continues from epoch 2
-    _, hist = fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=0, checkpoint_path=path)
+    _, hist = fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=0, checkpoint_path=path, checkpoint_every=1)
     assert hist["start_epoch"] == 2 and len(hist["loss"]) == 5
 
 
@@ -609,3 +610,17 @@ def test_autoencoder_never_returns_worse_than_its_pca_start():
     assert hist["mse_final"] == hist["mse_initial"] < 1e-10
     with torch.no_grad():
         assert ((model(U) - U) ** 2).mean() < 1e-10
+
+
+def test_settings_come_from_the_schema():
+    """Partial settings take the config schema's defaults (pca_dim 0: the first width, capped at the
+    data dimension); a key the schema does not know stops the training, naming it."""
+    U = torch.randn(40, 12, generator=torch.Generator().manual_seed(0))
+    model, hist = fit_autoencoder(U, {"latent_dim": 2, "widths": [8], "epochs": 1, "batch_size": 16}, seed=0)
+    assert model.pca_dim == 8 and hist["epochs"] == 1
+    model, _ = fit_autoencoder(U, {"latent_dim": 2, "widths": [16], "epochs": 1, "batch_size": 16}, seed=0)
+    assert model.pca_dim == 12
+    with pytest.raises(ConfigError, match="fit_autoencoder.*'lr_decay'"):
+        fit_autoencoder(U, {"lr_decay": 0.5})
+    with pytest.raises(ConfigError, match="fit_integrator.*'checkpoint_every'"):
+        fit_integrator(model, RelativeCoordinates(4, [0]), None, [], {"checkpoint_every": 1})

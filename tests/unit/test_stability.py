@@ -30,7 +30,7 @@ def test_programs_scale_stop_reverse_and_repeat(program):
 
 def test_conditions_prescribe_the_rigid_motion_of_their_program(program):
     rest_D = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]])
-    conds = {c.name: c for c in stability.stress_conditions(program, rest_D, 0.1, train_frames=20, factors=(2.0,))}
+    conds = {c.name: c for c in stability.stress_conditions(program, rest_D, 0.1, train_frames=20, factors=(2.0,), long_factor=10, perturbation=0.5)}
     c = conds["speed_x2"]
     # first segment: both vertices translate at 2 * 0.2 m/s along x
     assert np.allclose(c.dirichlet_positions[5] - rest_D, [[0.4 * 0.1 * 5, 0, 0]] * 2)

@@ -1,5 +1,5 @@
-"""Stage: latent rollout of the test sequences (see latentsim.stages.train.rollout_scene)."""
-from latentsim.stages.train import rollout_scene
+"""Stage: latent rollout of the test sequences (see latentsim.stages.rollout.rollout_scene)."""
+from latentsim.stages.rollout import rollout_scene
 from latentsim.utils import run_stage
 
 

@@ -1,5 +1,5 @@
-"""Stage: autoencoder training (see latentsim.stages.train.train_autoencoder)."""
-from latentsim.stages.train import train_autoencoder
+"""Stage: autoencoder training (see latentsim.stages.autoencoder.train_autoencoder)."""
+from latentsim.stages.autoencoder import train_autoencoder
 from latentsim.utils import progress_enabled, run_stage
 
 

@@ -1,5 +1,5 @@
-"""Stage: latent integrator training (see latentsim.stages.train.train_integrator)."""
-from latentsim.stages.train import train_integrator
+"""Stage: latent integrator training (see latentsim.stages.integrator.train_integrator)."""
+from latentsim.stages.integrator import train_integrator
 from latentsim.utils import progress_enabled, run_stage
 
 

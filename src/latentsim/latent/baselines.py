@@ -27,7 +27,7 @@ to the reduced elastic forces at the subspace's projections of the training
 frames and replaces the elastic energy in the step.
 
 Each writes a rollout file in the trajectory layout of
-:func:`latentsim.stages.train.rollout_scene`, so :mod:`latentsim.report.evaluate` reads all
+:func:`latentsim.stages.rollout.rollout_scene`, so :mod:`latentsim.report.evaluate` reads all
 methods alike.  A step that fails (non-finite values, a reduced Hessian that
 is not positive definite, a line search that stalls) marks the frame as the
 divergence instead of stopping the stage.
@@ -48,7 +48,9 @@ from latentsim.solve.cubature import check_supported, cubature_potential, fit_cu
 from latentsim.io import atomic_h5, write_dataset
 from latentsim.scene import potential_from_artefact
 from latentsim.solve.implicit_euler import ImplicitEuler, NewtonFailed, NewtonSettings, lowest_modes
-from latentsim.stages.train import autoencoder_coordinates, load_sequences, time_full_space
+from latentsim.latent.data import load_sequences
+from latentsim.latent.serialization import autoencoder_coordinates
+from latentsim.latent.timing import time_full_space
 
 log = logging.getLogger(__name__)
 

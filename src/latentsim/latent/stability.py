@@ -25,10 +25,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
+from latentsim.config import with_defaults
+from latentsim.latent.autoencoder import decode_latents, encode_positions
+from latentsim.report.evaluate import bbox_diagonal
 from latentsim.scene import dirichlet_trajectory
-
-DEFAULT_FACTORS = (0.1, 0.5, 2.0, 5.0)
 
 
 @dataclass
@@ -53,7 +55,7 @@ def _label(f: float) -> str:
     return f"speed_x{f:g}".replace(".", "p")
 
 
-def stress_programs(bc: np.ndarray, train_frames: int, factors=DEFAULT_FACTORS, long_factor: int = 10) -> dict[str, np.ndarray]:
+def stress_programs(bc: np.ndarray, train_frames: int, factors, long_factor: int) -> dict[str, np.ndarray]:
     """Transformed BC programs of one test sequence.
 
     Parameters
@@ -89,8 +91,8 @@ def stress_programs(bc: np.ndarray, train_frames: int, factors=DEFAULT_FACTORS, 
     return out
 
 
-def stress_conditions(bc, rest_dirichlet, dt: float, train_frames: int, factors=DEFAULT_FACTORS,
-                      long_factor: int = 10, perturbation: float = 0.5) -> list[Condition]:  # fmt: skip
+def stress_conditions(bc, rest_dirichlet, dt: float, train_frames: int, factors, long_factor: int,
+                      perturbation: float) -> list[Condition]:  # fmt: skip
     """:func:`stress_programs` with the Dirichlet trajectories they prescribe.
 
     rest_dirichlet : (m, 3) rest positions of the Dirichlet vertices; dt : time step [s].
@@ -128,10 +130,6 @@ def survive_latent(integrator, ae, coords, z0, z1, condition: Condition, dirichl
     T when none), ``dirichlet_error_end`` (mean Dirichlet error / rest_diag
     at the last surviving frame) and ``dirichlet_error`` ((survived,) per frame).
     """
-    import torch
-
-    from latentsim import latent
-
     bc = torch.as_tensor(condition.bc, dtype=torch.float32)
     T = len(bc)
     z0 = torch.as_tensor(z0, dtype=torch.float32).clone()
@@ -155,7 +153,7 @@ def survive_latent(integrator, ae, coords, z0, z1, condition: Condition, dirichl
         xD_all = torch.as_tensor(condition.dirichlet_positions, dtype=torch.float64)
         for s in range(0, last, chunk):
             e = min(s + chunk, last)
-            x = latent.decode_latents(ae, coords, Z[s:e], xD_all[s:e]).cpu().numpy()
+            x = decode_latents(ae, coords, Z[s:e], xD_all[s:e]).cpu().numpy()
             ext = np.linalg.norm(x.max(-2) - x.min(-2), axis=-1)
             bad = ~np.isfinite(x).all(axis=(-1, -2)) | (ext > max_extent * rest_diag)
             x = np.where(np.isfinite(x), x, 0.0)
@@ -173,7 +171,8 @@ def survive_latent(integrator, ae, coords, z0, z1, condition: Condition, dirichl
 
 def stress_test(integrator, ae, coords, sequence: dict, rest_positions, dirichlet, dt: float, train_frames: int,
                 settings: dict, max_extent: float):  # fmt: skip
-    """Every stress condition of ``settings`` (a scene's ``rollout.stability``) on one test sequence.
+    """Every stress condition of ``settings`` (a scene's ``rollout.stability``; keys absent take the
+    config schema's defaults) on one test sequence.
 
     One implementation for the rollout stage's stability map and the sizing
     sweep's check.  The conditions start from the sequence's first two frames,
@@ -189,19 +188,14 @@ def stress_test(integrator, ae, coords, sequence: dict, rest_positions, dirichle
     ------
     (condition, result of :func:`survive_latent`), one condition at a time.
     """
-    import torch
-
-    from latentsim import latent
-    from latentsim.report.evaluate import bbox_diagonal
-
+    st = with_defaults("stability", settings, "stress_test")
     x = torch.as_tensor(sequence["positions"])
     xD = torch.as_tensor(sequence["dirichlet_positions"])
-    z = latent.encode_positions(ae, coords, x, xD)
+    z = encode_positions(ae, coords, x, xD)
     rest = np.asarray(rest_positions)
     conditions = stress_conditions(
         sequence["bc"], rest[dirichlet], float(dt), int(train_frames),
-        factors=settings.get("speed_factors", DEFAULT_FACTORS), long_factor=int(settings.get("long_factor", 10)),
-        perturbation=float(settings.get("perturbation", 0.5)),
+        factors=st["speed_factors"], long_factor=int(st["long_factor"]), perturbation=float(st["perturbation"]),
     )  # fmt: skip
     for c in conditions:
         yield c, survive_latent(integrator, ae, coords, z[0], z[1], c, dirichlet, bbox_diagonal(rest), float(max_extent),

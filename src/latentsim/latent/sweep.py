@@ -20,17 +20,24 @@ from __future__ import annotations
 import time
 
 import h5py
+import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 import torch
 
-from latentsim import latent
 from latentsim import runtime
-from latentsim.runtime import compiled as runtime_compiled
-from latentsim.latent import stability
+from latentsim.config import with_defaults
+from latentsim.latent.autoencoder import encode_positions, fit_autoencoder
+from latentsim.latent.coordinates import coordinates_for
+from latentsim.latent.data import load_sequences
+from latentsim.latent.rollout import rollout as latent_rollout
+from latentsim.latent.stability import stress_test
+from latentsim.latent.timing import time_steppers
+from latentsim.latent.training import fit_integrator
 from latentsim.report.evaluate import bbox_diagonal, vertex_errors, write_table
+from latentsim.report.plots import save_figure
+from latentsim.runtime import compiled as runtime_compiled
 from latentsim.scene import potential_from_artefact
-from latentsim.stages.train import coordinates_for, load_sequences, time_steppers
 
 
 def point_label(latent_dim: int, size: int) -> str:
@@ -63,10 +70,10 @@ def sweep_point(trajectories, autoencoder: dict, integrator: dict, rollout: dict
     Parameters
     ----------
     trajectories : the simulator's ``trajectories.h5``.
-    autoencoder, integrator : full settings of this point (the scene's, with
-        latent_dim and widths replaced).
+    autoencoder, integrator : settings of this point (the scene's, with
+        latent_dim and widths replaced; keys absent take the schema's defaults).
     rollout : the scene's rollout settings (``max_extent``, ``timing_repeats``,
-        ``stability``).
+        ``stability``; keys absent take the schema's defaults).
     stress : run the stress conditions of ``rollout["stability"]`` (unless
         that says ``enabled: false``) on the first test sequence.  Every row
         gets ``stress_conditions`` (how many ran), ``stress_failed`` (how many
@@ -86,27 +93,31 @@ def train_point(trajectories, autoencoder: dict, integrator: dict, seed: int, de
     ``rest`` positions, ``dirichlet`` indices, ``dt``, and ``train_seconds``;
     :func:`measure_point` takes it.
     """
-    ae_cfg = dict(autoencoder)
+    ae_cfg = with_defaults("autoencoder", autoencoder, "train_point")
+    int_cfg = with_defaults("integrator", integrator, "train_point")
     with h5py.File(trajectories, "r") as f:
-        coords = coordinates_for(f, ae_cfg.pop("coordinates", None))
+        coords = coordinates_for(f, ae_cfg["coordinates"])
         train = load_sequences(f, "train")
         tests = load_sequences(f, "test")
         potential = potential_from_artefact(f)
         rest = f["rest_positions"][()]
         dirichlet, dt = f["dirichlet"][()], float(f.attrs["dt"])
     U = torch.cat([coords.encode(torch.as_tensor(s["positions"]), torch.as_tensor(s["dirichlet_positions"])) for s in train.values()])
-    ae_cfg["pca_dim"] = ae_cfg.get("pca_dim") or None
     t0 = time.perf_counter()
-    ae, _ = latent.fit_autoencoder(U.to(torch.float32), ae_cfg, seed=seed, device=device)
+    ae, _ = fit_autoencoder(U.to(torch.float32), ae_cfg, seed=seed, device=device)
     ae = ae.cpu().eval()
-    integ, _ = latent.fit_integrator(ae, coords, potential, list(train.values()), dict(integrator), seed=seed, device=device)
+    integ, _ = fit_integrator(ae, coords, potential, list(train.values()), int_cfg, seed=seed, device=device)
     return dict(ae=ae, integrator=integ.cpu().eval(), coords=coords, train=train, tests=tests, rest=rest, dirichlet=dirichlet, dt=dt,
-                train_seconds=time.perf_counter() - t0, latent_dim=int(autoencoder["latent_dim"]),
-                autoencoder_widths=list(autoencoder["widths"]), integrator_widths=list(integrator["widths"]))  # fmt: skip
+                train_seconds=time.perf_counter() - t0, latent_dim=int(ae_cfg["latent_dim"]),
+                autoencoder_widths=list(ae_cfg["widths"]), integrator_widths=list(int_cfg["widths"]))  # fmt: skip
 
 
 def measure_point(point: dict, rollout: dict, stress: bool = True) -> pd.DataFrame:
-    """Roll out, time and stress-test a trained point (:func:`train_point`); one row per test sequence."""
+    """Roll out, time and stress-test a trained point (:func:`train_point`); one row per test sequence.
+
+    ``rollout``: the scene's rollout settings (keys absent take the schema's defaults).
+    """
+    rollout = with_defaults("rollout", rollout, "measure_point")
     ae, integ, coords, train, tests, rest = (point[k] for k in ("ae", "integrator", "coords", "train", "tests", "rest"))
     diag = bbox_diagonal(rest)
     # as the rollout stage: the fastest deployable runtime is timed
@@ -114,8 +125,8 @@ def measure_point(point: dict, rollout: dict, stress: bool = True) -> pd.DataFra
     rows = []
     for name, s in tests.items():
         x, xD = torch.as_tensor(s["positions"]), torch.as_tensor(s["dirichlet_positions"])
-        z = latent.encode_positions(ae, coords, x[:2], xD[:2])
-        res = latent.rollout(integ, ae, coords, z[0], z[1], torch.as_tensor(s["bc"]), xD,
+        z = encode_positions(ae, coords, x[:2], xD[:2])
+        res = latent_rollout(integ, ae, coords, z[0], z[1], torch.as_tensor(s["bc"]), xD,
                              max_extent=float(rollout["max_extent"]), rest_positions=torch.as_tensor(rest))  # fmt: skip
         T, div = len(x), int(res["diverged_frame"])
         ok = slice(0, T if div < 0 else div)
@@ -128,12 +139,12 @@ def measure_point(point: dict, rollout: dict, stress: bool = True) -> pd.DataFra
             mean_error=float(mean_e.mean()) if len(mean_e) else np.nan, max_error=float(max_e.max()) if len(max_e) else np.nan,
             step_ms=timing["step_ms"], runtime=timing["runtime"], train_seconds=point["train_seconds"],
         ))  # fmt: skip
-    st = dict(rollout.get("stability", {}))
+    st = rollout["stability"]
     failed, n_conditions = [], 0
-    if stress and st.get("enabled", True) and tests:
+    if stress and st["enabled"] and tests:
         train_frames = max(len(s["positions"]) for s in train.values())
-        for c, res in stability.stress_test(integ, ae, coords, next(iter(tests.values())), rest, point["dirichlet"], point["dt"], train_frames, st,
-                                            float(rollout["max_extent"])):  # fmt: skip
+        for c, res in stress_test(integ, ae, coords, next(iter(tests.values())), rest, point["dirichlet"], point["dt"], train_frames, st,
+                                  float(rollout["max_extent"])):  # fmt: skip
             n_conditions += 1
             if res["survived"] < res["frames"]:
                 failed.append(f"{c.name}@{res['survived']}")
@@ -181,10 +192,6 @@ def sweep_chart(table: pd.DataFrame, tolerance: float, scene: str, path, method:
 
     ``method``: whose loss the points trained with (the config's ``sweep.method``), named in the title.
     """
-    import matplotlib.pyplot as plt
-
-    from latentsim.report.plots import save_figure
-
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for k, (r, g) in enumerate(table.groupby("latent_dim")):
         colour = f"C{k % 10}"

@@ -217,7 +217,7 @@ def subspace_dynamics(f, model: NeuralModes, box: float, settings: dict, progres
 
     Every method of :data:`DYNAMICS_METHODS` steps the reduced implicit Euler of Eq. 15
     (``reduced.reduced_rollout``) from rest; the full-space Newton frame of the same sequence is timed
-    in the same process (``train.time_full_space``).  Returns ``sequence``, ``reference`` (T,n,3),
+    in the same process (``latent.timing.time_full_space``).  Returns ``sequence``, ``reference`` (T,n,3),
     ``dirichlet_positions``, ``full`` (timing), ``cubatures`` {neural|linear: Cubature}, ``runs`` {slug:
     reduced_rollout's dict + ``error`` (T,)} and ``rows`` (a DataFrame, the full-space row first).
     """
@@ -227,7 +227,7 @@ def subspace_dynamics(f, model: NeuralModes, box: float, settings: dict, progres
     from latentsim.solve.cubature import box_samples, cubature_potential, fit_cubature
     from latentsim.solve.reduced import ReducedSettings, reduced_rollout
     from latentsim.scene import potential_from_artefact
-    from latentsim.stages.train import time_full_space
+    from latentsim.latent.timing import time_full_space
 
     pot = potential_from_artefact(f)
     name = first_test_sequence(f)

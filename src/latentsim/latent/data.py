@@ -1,0 +1,63 @@
+"""The latent method's training data (Li et al. 2025, sec. 3.3): the simulator's sequences of
+one split (:func:`load_sequences`, from ``trajectories.h5``) and the latent integrator's
+ground-truth triplets ``(z_t, z_{t-1}, z_{t-2})`` with their boundary conditions
+(:func:`build_triplets`, rows named by :data:`BATCH_KEYS`).
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+
+from latentsim.io import require
+from latentsim.latent.autoencoder import Autoencoder, encode_positions
+from latentsim.latent.coordinates import RelativeCoordinates
+
+BATCH_KEYS = ("z", "z_prev", "z_prev2", "p", "p_prev", "p_prev2", "xD", "xD_prev", "xD_prev2")
+
+
+def load_sequences(f, split=None) -> dict:
+    """{name: {positions, dirichlet_positions, bc, split}} of one split (or all) of an open
+    ``trajectories.h5``; positions (T, n, 3), dirichlet_positions (T, m, 3), bc (T, k)."""
+    out = {}
+    for name, g in require(f, "sequences").items():
+        if split is not None and g.attrs["split"] != split:
+            continue
+        out[name] = {k: g[k][()] for k in ("positions", "dirichlet_positions", "bc")}
+        out[name]["split"] = str(g.attrs["split"])
+    if not out:
+        raise ValueError(f"{f.filename}: no sequence with split '{split}'")
+    return out
+
+
+def build_triplets(ae: Autoencoder, coords: RelativeCoordinates, sequences: Sequence[dict]) -> dict:
+    """Ground-truth training triplets of all sequences.
+
+    Each sequence dict holds ``positions`` (T, n, 3), ``dirichlet_positions``
+    (T, m, 3) and optionally ``bc`` (T, k) (absent -> k = 0).  Latents are the
+    frozen autoencoder's encodings.  Returns a dict with the keys of
+    :data:`BATCH_KEYS`, N = sum_s (T_s - 2) rows each (latents/BCs float32,
+    Dirichlet positions float64, on the autoencoder's device).
+    """
+    parts: dict[str, list] = {k: [] for k in BATCH_KEYS}
+    dev = ae.pca_in.weight.device
+    for s in sequences:
+        x = torch.as_tensor(s["positions"]).to(torch.float64)
+        xD = torch.as_tensor(s["dirichlet_positions"]).to(torch.float64)
+        T = x.shape[0]
+        bc = s.get("bc")
+        bc = torch.zeros(T, 0) if bc is None else torch.as_tensor(bc).reshape(T, -1)
+        bc = bc.to(dev, torch.float32)
+        if T < 3:
+            continue
+        z = encode_positions(ae, coords, x, xD)
+        xD = xD.to(dev)
+        for key, arr in (("z", z), ("p", bc), ("xD", xD)):
+            parts[key].append(arr[2:])
+            parts[key + "_prev"].append(arr[1:-1])
+            parts[key + "_prev2"].append(arr[:-2])
+    if not parts["z"]:
+        raise ValueError("no training triplets: every sequence needs at least 3 frames")
+    return {k: torch.cat(v) for k, v in parts.items()}
+

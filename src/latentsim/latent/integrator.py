@@ -1,0 +1,77 @@
+"""The latent integrator of Li et al. 2025 (sec. 3.3, Eq. 3): an MLP (SiLU) mapping
+``[z_{t-1}, z_{t-2}, p_t, p_{t-1}, p_{t-2}]`` to ``z_t``.
+
+Its training loss is :mod:`latentsim.latent.loss`, its training loop
+:mod:`latentsim.latent.training`.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+from torch import nn
+
+
+class LatentIntegrator(nn.Module):
+    """z_t = I(z_{t-1}, z_{t-2}, p_t, p_{t-1}, p_{t-2}) (paper Eq. 3).
+
+    An MLP with SiLU (Swish) activations.  Inputs are standardised with
+    statistics stored as buffers (:meth:`fit_normalization`).  With
+    ``residual=True`` (default) the network predicts the increment,
+    ``z_t = z_{t-1} + mu_dz + sigma_dz * MLP(q)``, where mu_dz, sigma_dz are
+    the mean/std of ``z_t - z_{t-1}`` over the training triplets: latents
+    change little per frame, so a zero MLP output already means "keep the
+    previous latent (plus the mean drift)".  With ``residual=False`` the
+    output is ``z_t = mu_z + sigma_z * MLP(q)`` (statistics of z_t).
+
+    Parameters
+    ----------
+    latent_dim : r.
+    bc_dim : k, length of one boundary-condition vector p_t (may be 0).
+    widths : hidden widths.
+    residual : see above.
+    """
+
+    def __init__(self, latent_dim: int, bc_dim: int, widths: Sequence[int], residual: bool = True):
+        super().__init__()
+        widths = [int(w) for w in widths]
+        self.hparams = {"latent_dim": int(latent_dim), "bc_dim": int(bc_dim), "widths": widths, "residual": bool(residual)}
+        self.latent_dim, self.bc_dim, self.residual = int(latent_dim), int(bc_dim), bool(residual)
+        in_dim = 2 * latent_dim + 3 * bc_dim
+        layers: list[nn.Module] = []
+        prev = in_dim
+        for w in widths:
+            layers += [nn.Linear(prev, w), nn.SiLU()]
+            prev = w
+        layers.append(nn.Linear(prev, latent_dim))
+        self.mlp = nn.Sequential(*layers)
+        self.register_buffer("in_mean", torch.zeros(in_dim))
+        self.register_buffer("in_std", torch.ones(in_dim))
+        self.register_buffer("out_mean", torch.zeros(latent_dim))
+        self.register_buffer("out_std", torch.ones(latent_dim))
+
+    @staticmethod
+    def _std(a: torch.Tensor) -> torch.Tensor:
+        s = a.std(0, unbiased=False) if a.shape[0] > 1 else torch.ones_like(a[0])
+        return torch.where(s > 1e-12, s, torch.ones_like(s))
+
+    @torch.no_grad()
+    def fit_normalization(self, z, z_prev, z_prev2, p, p_prev, p_prev2) -> None:
+        """Set the normalisation buffers from training triplets (each (N, .))."""
+        q = torch.cat([z_prev, z_prev2, p, p_prev, p_prev2], -1).to(self.in_mean)
+        self.in_mean.copy_(q.mean(0))
+        self.in_std.copy_(self._std(q))
+        tgt = (z - z_prev) if self.residual else z
+        tgt = tgt.to(self.out_mean)
+        self.out_mean.copy_(tgt.mean(0))
+        self.out_std.copy_(self._std(tgt))
+
+    def forward(self, z_prev, z_prev2, p, p_prev, p_prev2) -> torch.Tensor:
+        """All inputs (B, .) -> z_t (B, r)."""
+        dt = self.in_mean.dtype
+        z_prev = z_prev.to(dt)
+        q = torch.cat([z_prev, z_prev2.to(dt), p.to(dt), p_prev.to(dt), p_prev2.to(dt)], -1)
+        y = self.out_mean + self.out_std * self.mlp((q - self.in_mean) / self.in_std)
+        return z_prev + y if self.residual else y
+

@@ -1,0 +1,152 @@
+"""The latent integrator's loss (Li et al. 2025, sec. 3.3): the incremental potential of the
+decoded prediction (Eq. 4), with training noise on the input latents (Eq. 5) and data
+balancing by the previous step's mean velocity (Eq. 6); or the supervised L2 baseline.
+
+Physics is never re-implemented here: the energy is the scene's
+:class:`latentsim.physics.incremental_potential.IncrementalPotential`, evaluated in float64 on
+positions the autoencoder decodes.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+
+from latentsim.latent.autoencoder import Autoencoder, decode_latents
+from latentsim.latent.coordinates import RelativeCoordinates
+
+
+def balancing_weights(x_prev: torch.Tensor, x_prev2: torch.Tensor, dt: float, eps: float = 1e-2) -> torch.Tensor:
+    """Data-balancing weights 1 / max(|v_{t-1}|, eps) of paper Eq. 6.
+
+    v_{t-1} = (1/N) sum_j (x_{t-1}^j - x_{t-2}^j) / dt is the mean full-space
+    velocity (a 3-vector) of the previous step.  ``eps`` [m/s] keeps the weight
+    finite for samples at rest (v = 0), capping it at 1/eps.
+
+    x_prev, x_prev2 : (B, n, 3) -> (B,)
+    """
+    v = ((x_prev - x_prev2) / dt).mean(-2)
+    return 1.0 / torch.linalg.vector_norm(v, dim=-1).clamp_min(eps)
+
+
+def integrator_loss(
+    integrator: Callable,
+    ae: Autoencoder,
+    coords: RelativeCoordinates,
+    potential,
+    batch: dict,
+    mode: str = "self_supervised",
+    noise_scale: float = 0.1,
+    balancing: bool = True,
+    use_penalty: bool | None = None,
+    balancing_eps: float = 1e-2,
+    generator: torch.Generator | None = None,
+    supervised_weight: float = 0.0,
+):
+    """Loss of one minibatch of triplets.
+
+    Self-supervised (paper Eq. 4): the predicted latent is decoded (with the
+    frame-t Dirichlet positions) and the loss is the incremental potential
+    ``potential(x_t, x_{t-1}, x_{t-2}, targets=xD_t, penalty=use_penalty)``
+    where x_{t-1}, x_{t-2} are the *decoded* input latents.  Supervised: the
+    squared L2 distance ``|z_pred - z_t|^2`` to the ground-truth latent.
+
+    Training noise (Eq. 5, ``noise_scale > 0``): the batch is doubled with
+    copies whose z_{t-1}, z_{t-2} carry uniform noise in ``[-a, a]``,
+    ``a = noise_scale * std`` (per latent dimension, over this batch, separately
+    for z_{t-1} and z_{t-2}); BCs, Dirichlet targets (and, in supervised mode,
+    the target z_t) unchanged.
+
+    Data balancing (Eq. 6, ``balancing=True``): each sample's loss is
+    multiplied by :func:`balancing_weights` of its decoded x_{t-1}, x_{t-2}
+    (the perturbed ones for perturbed samples).
+
+    Supervision (``supervised_weight`` w > 0, self-supervised mode only; not in
+    the paper): the loss gains ``w * mean_b |(z_pred_b - z_b) / sigma|^2`` over
+    the unperturbed samples, sigma the integrator's output scale ``out_std``
+    (the spread of the training increments; 1 for a callable without one).
+    The incremental potential minimised in a small latent space is not the
+    full-space dynamics projected into it; the term pulls the integrator
+    towards the latter where the training data show it.
+
+    Parameters
+    ----------
+    integrator : maps (z_prev, z_prev2, p, p_prev, p_prev2) -> z (B, r).
+    ae : autoencoder (frozen, eval mode expected); coords : RelativeCoordinates.
+    potential : IncrementalPotential (its ``dt`` is used for balancing).
+    batch : dict of tensors, B rows each: ``z_prev, z_prev2`` (B, r),
+        ``p, p_prev, p_prev2`` (B, k), ``xD, xD_prev, xD_prev2`` (B, m, 3),
+        and ``z`` (B, r) ground truth (needed for ``mode="supervised"``).
+    use_penalty : Dirichlet penalty in the potential; ``None`` -> on unless
+        ``coords.hard_dirichlet`` (rods: roots re-applied exactly on decode).
+    generator : CPU generator for the noise.
+
+    Returns
+    -------
+    loss : scalar, mean over the (possibly doubled) batch of weight * per-sample loss.
+    info : dict with ``per_sample`` (unweighted per-sample losses, (B',)),
+        ``weights`` (B',), ``count`` B', ``prediction`` (B', r) (all detached).
+    """
+    if mode not in ("self_supervised", "supervised"):
+        raise ValueError(f"mode must be 'self_supervised' or 'supervised', got {mode!r}")
+    if supervised_weight < 0 or (supervised_weight > 0 and mode != "self_supervised"):
+        raise ValueError(f"supervised_weight must be >= 0 and is for the self-supervised loss; got {supervised_weight} with mode {mode!r}")
+    if use_penalty is None:
+        use_penalty = not coords.hard_dirichlet
+    clean = batch["z_prev"].shape[0]
+    if noise_scale and noise_scale > 0:
+        batch = with_training_noise(batch, noise_scale, generator)
+    z1, z2 = batch["z_prev"], batch["z_prev2"]
+    p, p1, p2 = batch["p"], batch["p_prev"], batch["p_prev2"]
+    xD, xD1, xD2 = batch["xD"], batch["xD_prev"], batch["xD_prev2"]
+    zt = batch.get("z")
+    count = z1.shape[0]
+    pred = integrator(z1, z2, p, p1, p2)
+
+    need_prev = mode == "self_supervised" or balancing
+    if need_prev:
+        with torch.no_grad():  # constants w.r.t. the integrator weights
+            x1 = decode_latents(ae, coords, z1, xD1)
+            x2 = decode_latents(ae, coords, z2, xD2)
+    if mode == "self_supervised":
+        x = decode_latents(ae, coords, pred, xD)
+        per = potential(x, x1, x2, targets=xD.to(torch.float64), penalty=bool(use_penalty))
+    else:
+        if zt is None:
+            raise ValueError("supervised loss needs the ground-truth latents batch['z']")
+        per = ((pred - zt.to(pred)) ** 2).sum(-1).to(torch.float64)
+    if balancing:
+        w = balancing_weights(x1, x2, float(potential.dt), balancing_eps).to(per)
+    else:
+        w = torch.ones_like(per)
+    loss = (w * per).mean()
+    if supervised_weight > 0:
+        if zt is None:
+            raise ValueError("supervised_weight needs the ground-truth latents batch['z']")
+        scale = getattr(integrator, "out_std", None)
+        scale = torch.ones_like(pred[0]) if scale is None else scale.to(pred)
+        sup = (((pred[:clean] - zt[:clean].to(pred)) / scale) ** 2).sum(-1).mean()
+        loss = loss + float(supervised_weight) * sup.to(loss)
+    info = {"per_sample": per.detach(), "weights": w.detach(), "count": count, "prediction": pred.detach()}
+    return loss, info
+
+
+def with_training_noise(batch: dict, noise_scale: float, generator: torch.Generator | None = None) -> dict:
+    """The batch doubled with perturbed copies (paper Eq. 5): the copies' ``z_prev``, ``z_prev2``
+    carry uniform noise in ``[-a, a]``, ``a = noise_scale * std`` (per latent dimension, over this
+    batch, separately for each); every other entry (BCs, Dirichlet targets, ``z``) is repeated.
+
+    batch : tensors of B rows each (:data:`latentsim.latent.data.BATCH_KEYS`) -> 2B rows each.
+    generator : CPU generator of the noise (z_prev's first, then z_prev2's).
+    """
+
+    def noisy(z):
+        a = noise_scale * z.std(0, unbiased=False)
+        r = torch.rand(z.shape, generator=generator, dtype=z.dtype).to(z.device)
+        return z + (2.0 * r - 1.0) * a
+
+    z1n, z2n = noisy(batch["z_prev"]), noisy(batch["z_prev2"])
+    out = {k: torch.cat([v, v]) for k, v in batch.items() if k not in ("z_prev", "z_prev2")}
+    out["z_prev"], out["z_prev2"] = torch.cat([batch["z_prev"], z1n]), torch.cat([batch["z_prev2"], z2n])
+    return out

@@ -1,0 +1,221 @@
+"""Training the latent integrator (Li et al. 2025, sec. 3.3): minibatch Adam on the loss of
+:mod:`latentsim.latent.loss` over the ground-truth triplets of the training sequences, the
+autoencoder frozen; with checkpoints that a killed training resumes from exactly.
+
+:func:`fit_integrator` is the loop; its steps are the setup (frozen autoencoder, potential on the
+device, triplets), the integrator's construction, one epoch, the learning-rate schedule and the
+checkpoint (:func:`training_fingerprint` says which training a checkpoint belongs to).
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import logging
+import math
+import os
+from typing import Any, Sequence
+
+import torch
+from torch import nn
+from tqdm import tqdm
+
+from latentsim.config import with_defaults
+from latentsim.latent.autoencoder import Autoencoder
+from latentsim.latent.base import TrainingDiverged, minibatches, potential_on, resolve_device
+from latentsim.latent.coordinates import RelativeCoordinates
+from latentsim.latent.data import build_triplets
+from latentsim.latent.integrator import LatentIntegrator
+from latentsim.latent.loss import integrator_loss
+from latentsim.latent.serialization import atomic_save
+from latentsim.physics.kernels import with_compiled_elastic
+
+log = logging.getLogger(__name__)
+
+
+def training_fingerprint(cfg: dict, seed: int, hparams: dict, data: dict, ae: nn.Module) -> str:
+    """sha256 of what determines an integrator's training: its settings (without ``epochs`` at a
+    constant learning rate, where a longer run continues a shorter one exactly), the seed, the
+    architecture, the training triplets and the autoencoder's weights.  A checkpoint resumes only
+    a training with the same fingerprint."""
+    drop = {"epochs"} if cfg["lr_final"] is None else set()
+    h = hashlib.sha256(json.dumps({"cfg": {k: v for k, v in cfg.items() if k not in drop}, "seed": seed, "hparams": hparams}, sort_keys=True, default=str).encode())
+    for name, t in [*sorted(data.items()), *ae.state_dict().items()]:
+        h.update(name.encode())
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def fit_integrator(
+    ae: Autoencoder,
+    coords: RelativeCoordinates,
+    potential,
+    sequences: Sequence[dict],
+    config: dict | None = None,
+    seed: int = 0,
+    device="cpu",
+    progress: bool = False,
+    checkpoint_path: str | os.PathLike | None = None,
+    checkpoint_every: int = 10,
+    compiled: bool = True,
+):
+    """Train a :class:`LatentIntegrator` on ground-truth triplets.
+
+    Parameters
+    ----------
+    ae : trained autoencoder (a frozen, eval-mode copy is used).
+    coords : RelativeCoordinates of the scene.
+    potential : IncrementalPotential of the scene (the self-supervised loss).
+    sequences : training sequences (see :func:`latentsim.latent.data.build_triplets`).
+    config : settings of the config schema's ``integrator`` (widths, epochs, lr, lr_final (cosine
+        decay of the learning rate to it; None: constant), batch_size, mode ('self_supervised' |
+        'supervised'), noise_scale, supervised_weight, balancing, balancing_eps, use_penalty,
+        residual); those absent take the schema's defaults (:func:`latentsim.config.with_defaults`).
+    seed : seeds weight init, minibatch order and the training noise.
+    checkpoint_path : when set, the integrator, optimiser, RNG state and history are saved every
+        ``checkpoint_every`` epochs (and after the last) via a temp file and ``os.replace``; if
+        the file exists at start and belongs to this training (:func:`training_fingerprint`:
+        same settings, seed, architecture, training triplets and autoencoder; a run with more
+        epochs may extend a shorter one at a constant learning rate), training resumes from it,
+        else it starts over (logged) and overwrites it.  On CPU a resumed run is bitwise
+        identical to an uninterrupted one.
+    compiled : on the CPU, the loss's elastic energy runs the simulator's compiled
+        kernels (``physics.kernels.with_compiled_elastic``: the same formulas, 5-8x
+        faster than the batched PyTorch energy under autograd); False: the terms'
+        PyTorch energies.
+
+    Returns
+    -------
+    integrator : trained, eval mode, on ``device``.
+    history : ``loss`` (per-epoch mean weighted training loss), ``latent_mse``
+        (per-epoch mean |z_pred - z_t|^2 / r on the clean half of each
+        batch), ``start_epoch`` (0, or the epoch resumed from), ``n_triplets``.
+
+    Raises
+    ------
+    TrainingDiverged : a non-finite loss or gradient; the checkpoint on disk
+        (if any) is the last good one.
+    """
+    cfg = with_defaults("integrator", config, "fit_integrator")
+    if cfg["mode"] not in ("self_supervised", "supervised"):
+        raise ValueError(f"mode must be 'self_supervised' or 'supervised', got {cfg['mode']!r}")
+    device = resolve_device(device)
+    ae_f, pot, data = _training_setup(ae, coords, potential, sequences, device, compiled)
+    integ = _new_integrator(data, cfg, seed, device)
+    opt = torch.optim.Adam(integ.parameters(), lr=float(cfg["lr"]))
+    gen = torch.Generator().manual_seed(seed)
+    history: dict[str, Any] = {"loss": [], "latent_mse": [], "start_epoch": 0, "n_triplets": data["z"].shape[0]}
+    epochs, every = int(cfg["epochs"]), max(1, int(checkpoint_every))
+    start, fingerprint = 0, None
+    if checkpoint_path is not None:
+        fingerprint = training_fingerprint(cfg, seed, integ.hparams, data, ae_f)
+        start = _resume(checkpoint_path, fingerprint, epochs, integ, opt, gen, history)
+    bar = tqdm(range(start, epochs), desc="integrator", disable=not progress, leave=False)
+    for epoch in bar:
+        _set_learning_rate(opt, cfg, epoch, epochs)
+        loss, mse = _integrator_epoch(integ, opt, ae_f, coords, pot, data, cfg, gen, epoch)
+        history["loss"].append(loss)
+        history["latent_mse"].append(mse)
+        bar.set_postfix(loss=f"{history['loss'][-1]:.4e}")
+        if checkpoint_path is not None and ((epoch + 1) % every == 0 or epoch + 1 == epochs):
+            _save_checkpoint(checkpoint_path, fingerprint, seed, epoch + 1, integ, opt, gen, history)
+    integ.eval()
+    return integ, history
+
+
+def _training_setup(ae: Autoencoder, coords: RelativeCoordinates, potential, sequences: Sequence[dict], device: torch.device, compiled: bool):
+    """A frozen eval-mode copy of the autoencoder on ``device``, the potential there (its elastic
+    energy on the compiled kernels where ``compiled`` and on the CPU), and the training triplets."""
+    ae_f = copy.deepcopy(ae).to(device).eval()
+    ae_f.requires_grad_(False)
+    pot = potential_on(potential, device)
+    if compiled and device.type == "cpu":
+        pot = with_compiled_elastic(pot)
+    return ae_f, pot, build_triplets(ae_f, coords, sequences)
+
+
+def _new_integrator(data: dict, cfg: dict, seed: int, device: torch.device) -> LatentIntegrator:
+    """An untrained integrator of settings ``cfg`` (weights seeded by ``seed``), normalised by the
+    statistics of the triplets ``data``, on ``device``."""
+    r, k = data["z"].shape[1], data["p"].shape[1]
+    fork = [device.index or 0] if device.type == "cuda" else []
+    with torch.random.fork_rng(devices=fork):
+        torch.manual_seed(seed)
+        integ = LatentIntegrator(r, k, cfg["widths"], residual=bool(cfg["residual"]))
+    integ.fit_normalization(*(data[key].cpu() for key in ("z", "z_prev", "z_prev2", "p", "p_prev", "p_prev2")))
+    return integ.to(device)
+
+
+def _set_learning_rate(opt, cfg: dict, epoch: int, epochs: int) -> None:
+    """With ``lr_final`` set, the cosine decay from ``lr`` to it: a function of the epoch alone (a
+    resumed run gets the same rates); else the constant ``lr`` the optimiser holds."""
+    if cfg["lr_final"] is not None:
+        lr0, lr1 = float(cfg["lr"]), float(cfg["lr_final"])
+        for group in opt.param_groups:
+            group["lr"] = lr1 + 0.5 * (lr0 - lr1) * (1.0 + math.cos(math.pi * epoch / epochs))
+
+
+def _integrator_epoch(integ: LatentIntegrator, opt, ae: Autoencoder, coords: RelativeCoordinates, pot, data: dict, cfg: dict, gen: torch.Generator, epoch: int):
+    """One epoch of Adam over the triplets ``data`` in minibatches; the mean weighted loss and the
+    mean latent MSE on the clean samples."""
+    integ.train()
+    tot, mse, cnt = 0.0, 0.0, 0
+    for b, idx in enumerate(minibatches(data["z"].shape[0], int(cfg["batch_size"]), gen)):
+        idx = idx.to(data["z"].device)
+        batch = {key: val[idx] for key, val in data.items()}
+        loss, info = integrator_loss(
+            integ, ae, coords, pot, batch,
+            mode=cfg["mode"], noise_scale=float(cfg["noise_scale"]), balancing=bool(cfg["balancing"]),
+            use_penalty=cfg["use_penalty"], balancing_eps=float(cfg["balancing_eps"]), generator=gen,
+            supervised_weight=float(cfg["supervised_weight"]),
+        )  # fmt: skip
+        if not torch.isfinite(loss):
+            raise TrainingDiverged(epoch + 1, b)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        if any(q.grad is not None and not torch.isfinite(q.grad).all() for q in integ.parameters()):
+            raise TrainingDiverged(epoch + 1, b, what="gradient")
+        opt.step()
+        nb = idx.numel()
+        tot += float(loss.detach()) * nb
+        mse += float(((info["prediction"][:nb] - batch["z"]) ** 2).mean()) * nb
+        cnt += nb
+    return tot / cnt, mse / cnt
+
+
+def _resume(path, fingerprint: str, epochs: int, integ: LatentIntegrator, opt, gen: torch.Generator, history: dict) -> int:
+    """Load the checkpoint at ``path`` into the integrator, optimiser, generator and history when
+    it belongs to this training (same fingerprint, no more than ``epochs`` done); the epoch to
+    start from (0 when there is none or it belongs to another training)."""
+    if not os.path.exists(path):
+        return 0
+    state = torch.load(os.fspath(path), map_location="cpu", weights_only=True)
+    if state.get("fingerprint") != fingerprint or int(state["epoch"]) > epochs:
+        log.warning("checkpoint %s belongs to another training (settings, seed, architecture, data or a longer run): starting over", path)
+        return 0
+    integ.load_state_dict(state["model"])
+    opt.load_state_dict(state["optimizer"])
+    gen.set_state(state["generator"])
+    history["loss"] = list(state["history"]["loss"])
+    history["latent_mse"] = list(state["history"]["latent_mse"])
+    history["start_epoch"] = int(state["epoch"])
+    return history["start_epoch"]
+
+
+def _save_checkpoint(path, fingerprint: str, seed: int, epoch_done: int, integ: LatentIntegrator, opt, gen: torch.Generator, history: dict) -> None:
+    """Write the state after ``epoch_done`` epochs atomically (the last good one stays on disk
+    until the new one is complete)."""
+    atomic_save(
+        {
+            "epoch": epoch_done,
+            "fingerprint": fingerprint,
+            "seed": seed,
+            "hparams": integ.hparams,
+            "model": integ.state_dict(),
+            "optimizer": opt.state_dict(),
+            "generator": gen.get_state(),
+            "history": {"loss": history["loss"], "latent_mse": history["latent_mse"]},
+        },
+        path,
+    )

@@ -1,0 +1,71 @@
+"""Stage of rule ``train_autoencoder`` (workflow/rules/autoencoder.smk): the autoencoder of
+Li et al. 2025 (sec. 3.2) fitted on every training frame of a scene's ``trajectories.h5``, and
+every sequence encoded with its reconstruction error.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import h5py
+import numpy as np
+import torch
+
+from latentsim.config import with_defaults
+from latentsim.io import atomic_h5, write_dataset
+from latentsim.latent.autoencoder import decode_latents, encode_positions, fit_autoencoder
+from latentsim.latent.coordinates import coordinates_for
+from latentsim.latent.data import load_sequences
+from latentsim.latent.serialization import save_module
+from latentsim.report.evaluate import bbox_diagonal
+
+log = logging.getLogger(__name__)
+
+
+def reconstruction_errors(ae, coords, seq: dict, diag: float) -> tuple[float, float]:
+    """Mean and max vertex error / bbox diagonal of encode-decode over a sequence."""
+    x = torch.as_tensor(seq["positions"])
+    xD = torch.as_tensor(seq["dirichlet_positions"])
+    with torch.no_grad():
+        z = encode_positions(ae, coords, x, xD)
+        xr = decode_latents(ae, coords, z, xD).cpu().numpy()
+    d = np.linalg.norm(xr - seq["positions"], axis=-1) / diag
+    return float(d.mean()), float(d.max())
+
+
+def train_autoencoder(trajectories, settings: dict, seed: int, device: str, out_model, out_latents, progress=False):
+    """Fit the autoencoder on every training frame; encode every sequence.
+
+    ``settings``: the scene's ``autoencoder`` block (keys absent take the schema's defaults), which
+    ``out_latents`` records as its config.
+    """
+    cfg = with_defaults("autoencoder", settings, "train_autoencoder")
+    with h5py.File(trajectories, "r") as f:
+        coords = coordinates_for(f, cfg["coordinates"])
+        train = load_sequences(f, "train")
+        every = load_sequences(f)
+        diag = bbox_diagonal(f["rest_positions"][()])
+    U = torch.cat([coords.encode(torch.as_tensor(s["positions"]), torch.as_tensor(s["dirichlet_positions"])) for s in train.values()])
+    t0 = time.perf_counter()
+    ae, history = fit_autoencoder(U.to(torch.float32), cfg, seed=seed, device=device, progress=progress)
+    seconds = time.perf_counter() - t0
+    ae = ae.cpu()
+    log.info(
+        "autoencoder: %d frames of %d dims -> %d latents, %.1f s, mse %.3e (PCA start) -> %.3e (kept: %s)",
+        U.shape[0], U.shape[1], cfg["latent_dim"], seconds, history["mse_initial"], history["mse_final"], history["kept"],
+    )  # fmt: skip
+    save_module(out_model, ae, extra={"coordinates": coords.mode, "train_seconds": seconds})
+    with atomic_h5(out_latents, config=settings, seed=seed) as g:
+        g.attrs["train_seconds"] = seconds
+        g.attrs["kept"] = history["kept"]
+        write_dataset(g, "loss", np.asarray(history["loss"], dtype=np.float64))
+        grp = g.create_group("sequences", track_order=True)
+        for name, s in every.items():
+            mean_e, max_e = reconstruction_errors(ae, coords, s, diag)
+            z = encode_positions(ae, coords, torch.as_tensor(s["positions"]), torch.as_tensor(s["dirichlet_positions"]))
+            h = grp.create_group(name)
+            h.attrs["split"] = s["split"]
+            h.attrs["mean_error"], h.attrs["max_error"] = mean_e, max_e
+            write_dataset(h, "latents", z.numpy())
+            log.info("reconstruction %s (%s): mean %.3e, max %.3e of the bbox diagonal", name, s["split"], mean_e, max_e)

@@ -1,0 +1,51 @@
+"""Stage of rule ``train_integrator`` (workflow/rules/integrator.smk): the latent integrator of
+Li et al. 2025 (sec. 3.3; self-supervised, Eqs. 4-6, or a supervised variant) fitted on a
+scene's training sequences through its trained autoencoder, with a checkpoint that a killed
+training resumes from.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+
+import h5py
+import numpy as np
+
+from latentsim.config import with_defaults
+from latentsim.io import atomic_h5, write_dataset
+from latentsim.latent.data import load_sequences
+from latentsim.latent.serialization import autoencoder_coordinates, load_autoencoder, save_module
+from latentsim.latent.training import fit_integrator
+from latentsim.scene import potential_from_artefact
+
+log = logging.getLogger(__name__)
+
+
+def train_integrator(trajectories, ae_path, settings: dict, seed: int, device: str, out_model, out_history, checkpoint=None, progress=False):
+    """Fit the latent integrator (self-supervised or supervised) on the training sequences.
+
+    ``settings``: the method's ``integrator`` block (keys absent take the schema's defaults), which
+    ``out_history`` records as its config.
+    """
+    cfg = with_defaults("integrator", settings, "train_integrator")
+    with h5py.File(trajectories, "r") as f:
+        coords = autoencoder_coordinates(f, ae_path)
+        train = load_sequences(f, "train")
+        potential = potential_from_artefact(f)
+    ae = load_autoencoder(ae_path)
+    t0 = time.perf_counter()
+    integ, history = fit_integrator(ae, coords, potential, list(train.values()), cfg, seed=seed, device=device, progress=progress, checkpoint_path=checkpoint)
+    seconds = time.perf_counter() - t0
+    log.info("integrator (%s): %d triplets, %.1f s, final loss %.4e", cfg["mode"], history["n_triplets"], seconds, history["loss"][-1])
+    save_module(out_model, integ.cpu(), extra={"mode": cfg["mode"], "train_seconds": seconds})
+    with atomic_h5(out_history, config=settings, seed=seed) as g:
+        g.attrs["train_seconds"] = seconds
+        g.attrs["start_epoch"] = int(history["start_epoch"])
+        write_dataset(g, "loss", np.asarray(history["loss"], dtype=np.float64))
+        write_dataset(g, "latent_mse", np.asarray(history["latent_mse"], dtype=np.float64))
+    # the checkpoint serves a killed training only: left behind, a forced rerun of the same training would
+    # resume at its last epoch and record a training time of a second
+    if checkpoint is not None and os.path.exists(checkpoint):
+        os.remove(checkpoint)

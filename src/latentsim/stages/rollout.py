@@ -1,0 +1,137 @@
+"""Stage of rule ``rollout`` (workflow/rules/rollout.smk): the autoregressive rollout of one
+latent-integrator method on every test sequence of a scene (Li et al. 2025, sec. 3.3), in the
+trajectory layout, with the deployable runtime exported and one latent step timed beside
+full-space Newton frames (same-run speed-ups, Table 2), and the stress conditions of
+:mod:`latentsim.latent.stability`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import h5py
+import torch
+
+from latentsim import runtime
+from latentsim.config import with_defaults
+from latentsim.io import atomic_h5, write_dataset
+from latentsim.latent.autoencoder import encode_positions
+from latentsim.latent.coordinates import coordinates_for
+from latentsim.latent.data import load_sequences
+from latentsim.latent.rollout import rollout
+from latentsim.latent.serialization import load_autoencoder, load_extra, load_integrator
+from latentsim.latent.stability import stress_test
+from latentsim.latent.timing import time_full_space, time_jvps, time_steppers
+from latentsim.runtime import compiled as runtime_compiled
+from latentsim.scene import potential_from_artefact
+
+log = logging.getLogger(__name__)
+
+SCENE_ARRAYS = ("rest_positions", "masses", "dirichlet", "edges", "triangles", "tets", "root_of")
+SCENE_ATTRS = ("model", "dt", "gravity", "scene")
+
+
+def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out, method: str = "self_supervised", runtime_paths=None):
+    """Autoregressive rollout of every test sequence, in the trajectory layout.
+
+    ``settings``: the scene's ``rollout`` block (keys absent take the schema's defaults), which
+    ``out`` records as its config.  ``method`` names the integrator (self_supervised or a config
+    variant) in the file's ``method`` attribute; ``mode`` records its loss.
+    ``runtime_paths``: (``.npz``, ``.pt``) files to export the deployable
+    runtime to (:mod:`latentsim.runtime`).  One latent step is timed with the
+    NumPy runtime, the compiled one (:mod:`latentsim.runtime.compiled`, where
+    numba imports), TorchScript and eager PyTorch, and a few full-space Newton
+    frames in the same process, so the speed-up is a same-run ratio.
+    """
+    cfg = with_defaults("rollout", settings, "rollout_scene")
+    ae, integ = load_autoencoder(ae_path), load_integrator(integrator_path)
+    extra, ae_extra = load_extra(integrator_path), load_extra(ae_path)
+    scene = _read_scene(trajectories, ae_extra.get("coordinates"), cfg)
+    steppers = _steppers(ae, integ, scene["coords"], runtime_paths)
+    with atomic_h5(out, config=settings) as g:
+        for k, v in {**scene["attrs"], **scene["full"]}.items():
+            g.attrs[k] = v
+        g.attrs["method"] = method
+        g.attrs["mode"] = extra.get("mode", "self_supervised")
+        g.attrs["integrator_train_seconds"] = float(extra.get("train_seconds", float("nan")))
+        g.attrs["autoencoder_train_seconds"] = float(ae_extra.get("train_seconds", float("nan")))
+        for k, v in scene["arrays"].items():
+            write_dataset(g, k, v)
+        grp = g.create_group("sequences", track_order=True)
+        for name, s in scene["tests"].items():
+            _roll_out(grp.create_group(name), name, s, integ, ae, scene, steppers, method, cfg)
+        if cfg["stability"]["enabled"] and scene["tests"]:
+            _stress(g.create_group("stability", track_order=True), integ, ae, scene, cfg)
+
+
+def _read_scene(trajectories, coordinates: str | None, cfg: dict) -> dict:
+    """What the rollout needs of a scene's ``trajectories.h5``: ``coords``, the ``tests``
+    sequences, ``train_frames`` (the longest training sequence), the ``potential``, the scene's
+    ``arrays`` and ``attrs`` (copied to the output) and ``full``, the full-space timing."""
+    with h5py.File(trajectories, "r") as f:
+        tests = load_sequences(f, "test")
+        return {
+            "coords": coordinates_for(f, coordinates),
+            "tests": tests,
+            "train_frames": max(len(s["positions"]) for s in load_sequences(f, "train").values()),
+            "potential": potential_from_artefact(f),
+            "arrays": {k: f[k][()] for k in SCENE_ARRAYS if k in f},
+            "attrs": {k: f.attrs[k] for k in SCENE_ATTRS},
+            "full": time_full_space(f, next(iter(tests)), int(cfg["full_frames_timed"])) if tests else {},
+        }
+
+
+def _steppers(ae, integ, coords, runtime_paths) -> dict:
+    """The steppers to time: eager PyTorch, and with ``runtime_paths`` the runtime exported there
+    and read back (NumPy, compiled where numba imports, TorchScript)."""
+    steppers = {"eager": runtime.EagerStepper(ae, integ, coords)}
+    if runtime_paths is not None:
+        npz, pt = runtime_paths
+        runtime.export_runtime(ae, integ, coords, npz)
+        runtime.export_runtime(ae, integ, coords, pt)
+        steppers.update(runtime_compiled.deployable_steppers(runtime._read_npz(npz)))  # numpy, compiled: from the file
+        steppers["torchscript"] = runtime.load_runtime(pt)
+    return steppers
+
+
+def _roll_out(h, name: str, s: dict, integ, ae, scene: dict, steppers: dict, method: str, cfg: dict) -> None:
+    """Roll out test sequence ``s`` from its first two frames, time one step, write group ``h``."""
+    coords = scene["coords"]
+    x, xD = torch.as_tensor(s["positions"]), torch.as_tensor(s["dirichlet_positions"])
+    z01 = encode_positions(ae, coords, x[:2], xD[:2])
+    t0 = time.perf_counter()
+    res = rollout(integ, ae, coords, z01[0], z01[1], torch.as_tensor(s["bc"]), xD,
+                  potential=scene["potential"], max_extent=cfg["max_extent"], rest_positions=torch.as_tensor(scene["arrays"]["rest_positions"]))  # fmt: skip
+    wall = time.perf_counter() - t0
+    timing = time_steppers(steppers, z01[1], z01[0], s["bc"][-1], s["dirichlet_positions"][-1], cfg["timing_repeats"])
+    if "numpy" in steppers:
+        timing.update(time_jvps(ae, steppers["numpy"], coords, z01[1], cfg["timing_repeats"]))
+    h.attrs["split"] = "test"
+    h.attrs["method"] = method
+    h.attrs["diverged_frame"] = int(res["diverged_frame"])
+    h.attrs["rollout_seconds"] = wall
+    for k, v in timing.items():
+        h.attrs[k] = v
+    write_dataset(h, "positions", res["positions"].numpy())
+    write_dataset(h, "latents", res["latents"].numpy())
+    write_dataset(h, "dirichlet_positions", s["dirichlet_positions"])
+    write_dataset(h, "bc", s["bc"])
+    write_dataset(h, "kinetic_energy", res["kinetic_energy"].numpy())
+    log.info("rollout %s: %d frames, diverged at %d, %.3f ms/step (%s)", name, len(x), res["diverged_frame"], timing["step_ms"], timing)
+
+
+def _stress(grp, integ, ae, scene: dict, cfg: dict) -> None:
+    """The stress conditions of ``cfg["stability"]`` on the first test sequence, one group each."""
+    name, s = next(iter(scene["tests"].items()))
+    grp.attrs["sequence"] = name
+    arrays = scene["arrays"]
+    conditions = stress_test(integ, ae, scene["coords"], s, arrays["rest_positions"], arrays["dirichlet"], float(scene["attrs"]["dt"]),
+                             scene["train_frames"], cfg["stability"], float(cfg["max_extent"]))  # fmt: skip
+    for c, r in conditions:
+        h = grp.create_group(c.name)
+        for k in ("frames", "survived", "dirichlet_error_end"):
+            h.attrs[k] = r[k]
+        h.attrs["perturbation"] = c.perturbation
+        write_dataset(h, "dirichlet_error", r["dirichlet_error"])
+        log.info("stability %s: survived %d of %d frames, Dirichlet error at the end %.3e", c.name, r["survived"], r["frames"], r["dirichlet_error_end"])
