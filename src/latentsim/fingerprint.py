@@ -34,10 +34,11 @@ import numpy as np
 import pandas as pd
 import torch
 
-# attributes that record wall time or a choice made by timing; and the provenance text, which names
-# versions rather than results
+# attributes that record wall time or a choice made by timing
 TIMING_NAMES = frozenset({"seconds", "runtime", "frame_ms", "step_ms"})
-SKIPPED_ATTRS = frozenset({"latentsim_version"})
+# provenance: the package version and the validated config slice, which lists every setting with its
+# default (a setting added to the schema with the value the code already used changes it, not the results)
+SKIPPED_ATTRS = frozenset({"latentsim_version", "config"})
 # results/<stage>/... whose arrays converge to the Newton tolerance on any processor
 PHYSICS_STAGES = ("mesh", "sim")
 
