@@ -76,7 +76,7 @@ def bench_scene(name, sc, arrays, pot, frames, warmup, hessian, path="kernels", 
     NumPy closed forms and PyTorch energies, as before the kernels).
     """
     settings = NewtonSettings(**dict(sc["newton"], hessian=hessian, fused_trial=path == "kernels"))
-    solver = ImplicitEuler(pot, settings, kernels=path != "reference", threads=threads)
+    solver = ImplicitEuler(pot, settings, threads=threads)
     seq = sc["sequences"][0]
     T = min(int(seq["frames"]), frames + warmup + 1)
     p = bc_parameters(seq, T)

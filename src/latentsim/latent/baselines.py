@@ -47,7 +47,9 @@ from latentsim.solve import reduced
 from latentsim.solve.cubature import check_supported, cubature_potential, fit_cubature
 from latentsim.io import atomic_h5, write_dataset
 from latentsim.scene import potential_from_artefact
-from latentsim.solve.implicit_euler import ImplicitEuler, NewtonFailed, NewtonSettings, lowest_modes
+from latentsim.solve.implicit_euler import ImplicitEuler, NewtonFailed, NewtonSettings
+from latentsim.solve.modes import lowest_modes
+from latentsim.solve.subspaces import DecoderSubspace, LinearSubspace
 from latentsim.stages.train import autoencoder_coordinates, load_sequences, time_full_space
 
 log = logging.getLogger(__name__)
@@ -96,11 +98,11 @@ def make_subspace(method: str, ae, coords, train: dict, settings: dict, potentia
     if method == "pca_reduced":
         X = np.concatenate([s["positions"] for s in train.values()])
         XD = np.concatenate([s["dirichlet_positions"] for s in train.values()])
-        return reduced.LinearSubspace.from_frames(coords, X, XD, r)
+        return LinearSubspace.from_frames(coords, X, XD, r)
     if method == "modes_reduced":
         return modes_subspace(coords, potential, rest_positions, r)
     if method == "fulton_reduced":
-        return reduced.DecoderSubspace(ae, coords)
+        return DecoderSubspace(ae, coords)
     if method == "neural_modes_reduced":
         from latentsim.neural_modes import load_neural_modes
         from latentsim.neural_modes.dynamics import NeuralModesSubspace
@@ -117,14 +119,14 @@ def make_subspace(method: str, ae, coords, train: dict, settings: dict, potentia
     raise ValueError(f"unknown baseline {method!r}; known: {list(BASELINES)}")
 
 
-def modes_subspace(coords, potential, rest_positions, r: int) -> reduced.LinearSubspace:
-    """The r lowest vibration modes of the rest state as a :class:`reduced.LinearSubspace` of
+def modes_subspace(coords, potential, rest_positions, r: int) -> LinearSubspace:
+    """The r lowest vibration modes of the rest state as a :class:`~latentsim.solve.subspaces.LinearSubspace` of
     ``coords`` (zero on the Dirichlet vertices, which follow their prescribed motion)."""
     X = np.asarray(rest_positions, dtype=np.float64)
     _, V, free = lowest_modes(potential, r, X)
     full = np.zeros((X.size, r))
     full[free] = V
-    return reduced.LinearSubspace.from_vectors(coords, X, potential.dirichlet.cpu().numpy(), full)
+    return LinearSubspace.from_vectors(coords, X, potential.dirichlet.cpu().numpy(), full)
 
 
 def fit_subspace_cubature(potential, subspace, train: dict, settings: dict):
