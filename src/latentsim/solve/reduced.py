@@ -136,7 +136,7 @@ class ReducedImplicitEuler:
     settings : :class:`ReducedSettings`.
     solver_options : keyword arguments for the internal
         :class:`latentsim.solve.implicit_euler.ImplicitEuler` that evaluates gradients and
-        Hessians (e.g. its kernel choice).
+        Hessians (e.g. its ``threads``).
     """
 
     def __init__(self, subspace, potential: IncrementalPotential, settings: ReducedSettings | None = None, solver_options=None):
