@@ -11,7 +11,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "physics"))
 from test_physics import BETA, rod_cantilever, static_solve, tet_cantilever  # noqa: E402
 
-from latentsim.solve.implicit_euler import lowest_modes  # noqa: E402
+from latentsim.solve.modes import lowest_modes  # noqa: E402
 
 print("| model | DoF | tip deflection / Euler-Bernoulli | omega_1 / analytic | omega_2 / analytic |")
 print("|---|---|---|---|---|")

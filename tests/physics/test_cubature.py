@@ -14,7 +14,8 @@ from latentsim.physics.base import EnergyTerm
 from latentsim.mesh import beam_tets
 from latentsim.solve.reduced import ReducedSettings, reduced_rollout
 from latentsim.scene import build_potential
-from latentsim.solve.implicit_euler import ImplicitEuler, lowest_modes
+from latentsim.solve.implicit_euler import ImplicitEuler
+from latentsim.solve.modes import lowest_modes
 from test_kernels import MODELS, scene, states  # the small tets / rods / shell scenes
 
 DT = 1.0 / 30.0

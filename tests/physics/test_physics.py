@@ -17,7 +17,8 @@ import torch
 
 from latentsim.mesh import beam_tets, rod_stencils
 from latentsim.scene import build_potential
-from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings, lowest_modes, stiffness_matrix
+from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings
+from latentsim.solve.modes import lowest_modes, stiffness_matrix
 
 G = 9.81
 BETA = (1.875104068711961, 4.694091132974175)

@@ -18,15 +18,12 @@ import torch
 
 from latentsim.latent import Autoencoder, RelativeCoordinates
 from latentsim.mesh import beam_tets
-from latentsim.solve.reduced import (
-    DecoderSubspace,
-    LinearSubspace,
-    ReducedImplicitEuler,
-    ReducedSettings,
-    reduced_rollout,
-)
+from latentsim.latent.baselines import modes_subspace
 from latentsim.scene import build_potential
 from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings
+from latentsim.solve.modes import lowest_modes, stiffness_matrix
+from latentsim.solve.reduced import ReducedImplicitEuler, ReducedSettings, reduced_rollout
+from latentsim.solve.subspaces import DecoderSubspace, LinearSubspace
 
 DT = 1.0 / 30.0
 
@@ -172,9 +169,6 @@ def test_modes_subspace_spans_the_vibration_modes_and_follows_the_clamp(beam, mo
     """modes_reduced: q = 0 is the rest shape carried by the clamp's translation, and the
     directions are the M-orthonormal lowest modes (zero on the clamp), whose reduced stiffness
     J^T K J is diag(omega^2)."""
-    from latentsim.latent.baselines import modes_subspace
-    from latentsim.solve.implicit_euler import lowest_modes, stiffness_matrix
-
     V, D, pot, _ = beam
     coords = RelativeCoordinates(len(V), D, "mean") if mode == "mean" else _hard_coords(V, D)
     sub = modes_subspace(coords, pot, V, 3)
@@ -194,8 +188,6 @@ def test_modes_subspace_is_the_same_on_every_call(beam):
     """The linear-modes basis is reproducible: ARPACK's own start vector is random (and advances
     between calls in one process), so without the fixed start and sign the basis, and every latent
     rolled out in it, differs from run to run."""
-    from latentsim.solve.implicit_euler import lowest_modes
-
     V, _, pot, _ = beam
     (w1, V1, _), (w2, V2, _) = lowest_modes(pot, 4, V), lowest_modes(pot, 4, V)
     assert np.array_equal(w1, w2) and np.array_equal(V1, V2)

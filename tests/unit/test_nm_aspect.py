@@ -18,7 +18,7 @@ from latentsim import neural_modes as nm
 from latentsim.neural_modes import aspect as nm_aspect
 from latentsim.latent import save_module
 from latentsim.mesh import cloth_grid
-from latentsim.solve.implicit_euler import stiffness_matrix
+from latentsim.solve.modes import stiffness_matrix
 
 ONE_THREAD = True  # tiny networks (conftest)
 MATERIAL = {"youngs_modulus": 1e6, "poisson_ratio": 0.3, "density": 1000.0, "thickness": 0.003}

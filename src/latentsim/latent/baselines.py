@@ -43,11 +43,15 @@ import numpy as np
 import torch
 
 from latentsim import latent
+from latentsim.io import atomic_h5, write_dataset
+from latentsim.neural_modes import load_neural_modes
+from latentsim.neural_modes.dynamics import NeuralModesSubspace
+from latentsim.scene import potential_from_artefact
 from latentsim.solve import reduced
 from latentsim.solve.cubature import check_supported, cubature_potential, fit_cubature
-from latentsim.io import atomic_h5, write_dataset
-from latentsim.scene import potential_from_artefact
-from latentsim.solve.implicit_euler import ImplicitEuler, NewtonFailed, NewtonSettings, lowest_modes
+from latentsim.solve.implicit_euler import ImplicitEuler, NewtonFailed, NewtonSettings
+from latentsim.solve.modes import lowest_modes
+from latentsim.solve.subspaces import DecoderSubspace, LinearSubspace
 from latentsim.latent.data import load_sequences
 from latentsim.latent.serialization import autoencoder_coordinates
 from latentsim.latent.timing import time_full_space
@@ -98,15 +102,12 @@ def make_subspace(method: str, ae, coords, train: dict, settings: dict, potentia
     if method == "pca_reduced":
         X = np.concatenate([s["positions"] for s in train.values()])
         XD = np.concatenate([s["dirichlet_positions"] for s in train.values()])
-        return reduced.LinearSubspace.from_frames(coords, X, XD, r)
+        return LinearSubspace.from_frames(coords, X, XD, r)
     if method == "modes_reduced":
         return modes_subspace(coords, potential, rest_positions, r)
     if method == "fulton_reduced":
-        return reduced.DecoderSubspace(ae, coords)
+        return DecoderSubspace(ae, coords)
     if method == "neural_modes_reduced":
-        from latentsim.neural_modes import load_neural_modes
-        from latentsim.neural_modes.dynamics import NeuralModesSubspace
-
         if neural_modes is None:
             raise ValueError("neural_modes_reduced needs the scene's trained Neural Modes (rule nm_train; a neural_modes block in the scene)")
         model = load_neural_modes(neural_modes)
@@ -119,14 +120,14 @@ def make_subspace(method: str, ae, coords, train: dict, settings: dict, potentia
     raise ValueError(f"unknown baseline {method!r}; known: {list(BASELINES)}")
 
 
-def modes_subspace(coords, potential, rest_positions, r: int) -> reduced.LinearSubspace:
-    """The r lowest vibration modes of the rest state as a :class:`reduced.LinearSubspace` of
+def modes_subspace(coords, potential, rest_positions, r: int) -> LinearSubspace:
+    """The r lowest vibration modes of the rest state as a :class:`~latentsim.solve.subspaces.LinearSubspace` of
     ``coords`` (zero on the Dirichlet vertices, which follow their prescribed motion)."""
     X = np.asarray(rest_positions, dtype=np.float64)
     _, V, free = lowest_modes(potential, r, X)
     full = np.zeros((X.size, r))
     full[free] = V
-    return reduced.LinearSubspace.from_vectors(coords, X, potential.dirichlet.cpu().numpy(), full)
+    return LinearSubspace.from_vectors(coords, X, potential.dirichlet.cpu().numpy(), full)
 
 
 def fit_subspace_cubature(potential, subspace, train: dict, settings: dict):
@@ -201,31 +202,37 @@ def baseline_rollouts(trajectories, ae_path, method: str, settings: dict, out, p
             else:
                 q0, q1 = subspace.project(x[0], xD[0]), subspace.project(x[1], xD[1])
                 res = reduced.reduced_rollout(subspace, potential, q0, q1, xD, solver=solver)
-            wall = time.perf_counter() - t0
-            ms = res["step_ms"][np.isfinite(res["step_ms"])]
-            step_ms = float(np.median(ms)) if len(ms) else float("nan")
-            h = grp.create_group(name)
-            h.attrs["split"] = "test"
-            h.attrs["method"] = method
-            h.attrs["diverged_frame"] = int(res["diverged_frame"])
-            h.attrs["failure"] = res.get("failure", "")  # why the step at diverged_frame failed
-            h.attrs["rollout_seconds"] = wall
-            h.attrs["step_ms"] = step_ms
-            h.attrs["integrate_ms"] = step_ms
-            h.attrs["decode_ms"] = 0.0
-            h.attrs["mean_iterations"] = float(res["iterations"][2:].mean()) if len(x) > 2 else 0.0
-            write_dataset(h, "positions", res["positions"])
-            write_dataset(h, "latents", np.asarray(res["latents"], dtype=np.float32))
-            write_dataset(h, "dirichlet_positions", xD)
-            write_dataset(h, "bc", s["bc"])
-            write_dataset(h, "step_ms", res["step_ms"])
-            write_dataset(h, "iterations", res["iterations"])
-            with torch.no_grad():
-                X = torch.as_tensor(res["positions"])
-                ke = np.full(len(x), np.nan)
-                ke[1:] = potential.kinetic_energy(X[1:], X[:-1]).numpy()
-            write_dataset(h, "kinetic_energy", ke)
-            log.info("%s %s: %d frames, diverged at %d, median %.2f ms/step, %.1f iterations/step",
-                     method, name, len(x), res["diverged_frame"], step_ms, h.attrs["mean_iterations"])  # fmt: skip
-            if res.get("failure"):
-                log.warning("%s %s: the step to frame %d failed: %s", method, name, res["diverged_frame"], res["failure"])
+            write_sequence(grp.create_group(name), name, method, s, res, time.perf_counter() - t0, potential)
+
+
+def write_sequence(h, name: str, method: str, sequence: dict, res: dict, wall: float, potential) -> None:
+    """One test sequence's baseline rollout ``res`` (the layout of ``reduced_rollout``) into the
+    group h: its attributes (divergence, failure, timings, mean iterations), positions, latents,
+    the prescribed motion, per-step times and iterations, and the kinetic energy of the frames."""
+    x, xD = sequence["positions"], sequence["dirichlet_positions"]
+    ms = res["step_ms"][np.isfinite(res["step_ms"])]
+    step_ms = float(np.median(ms)) if len(ms) else float("nan")
+    h.attrs["split"] = "test"
+    h.attrs["method"] = method
+    h.attrs["diverged_frame"] = int(res["diverged_frame"])
+    h.attrs["failure"] = res.get("failure", "")  # why the step at diverged_frame failed
+    h.attrs["rollout_seconds"] = wall
+    h.attrs["step_ms"] = step_ms
+    h.attrs["integrate_ms"] = step_ms
+    h.attrs["decode_ms"] = 0.0
+    h.attrs["mean_iterations"] = float(res["iterations"][2:].mean()) if len(x) > 2 else 0.0
+    write_dataset(h, "positions", res["positions"])
+    write_dataset(h, "latents", np.asarray(res["latents"], dtype=np.float32))
+    write_dataset(h, "dirichlet_positions", xD)
+    write_dataset(h, "bc", sequence["bc"])
+    write_dataset(h, "step_ms", res["step_ms"])
+    write_dataset(h, "iterations", res["iterations"])
+    with torch.no_grad():
+        X = torch.as_tensor(res["positions"])
+        ke = np.full(len(x), np.nan)
+        ke[1:] = potential.kinetic_energy(X[1:], X[:-1]).numpy()
+    write_dataset(h, "kinetic_energy", ke)
+    log.info("%s %s: %d frames, diverged at %d, median %.2f ms/step, %.1f iterations/step",
+             method, name, len(x), res["diverged_frame"], step_ms, h.attrs["mean_iterations"])  # fmt: skip
+    if res.get("failure"):
+        log.warning("%s %s: the step to frame %d failed: %s", method, name, res["diverged_frame"], res["failure"])

@@ -65,7 +65,7 @@ from torch import nn
 
 from latentsim.physics.incremental_potential import IncrementalPotential
 from latentsim.physics.kernels import with_compiled_elastic
-from latentsim.solve.implicit_euler import fix_sign, lowest_modes
+from latentsim.solve.modes import fix_sign, lowest_modes
 from latentsim.solve.constrained import ConstrainedNewton
 
 log = logging.getLogger(__name__)

@@ -4,8 +4,9 @@ The solver of the Neural Modes ground truth (Wang et al. 2024, Eq. 9; ``latentsi
 
     n(z) = argmin_x E(x)   s.t.   C^T (x - X - l) = 0,
 
-by Newton's method on the KKT system, with the terms' per-stencil Hessians assembled sparsely
-(``latentsim.solve.sparse``): the direction dx solves
+by Newton's method on the KKT system (the one Newton loop and line search of
+``latentsim.solve.newton``), with the elastic Hessian of the compiled assembly
+(``latentsim.solve.assembly``): the direction dx solves
 
     [H  C] [dx]   [-g]
     [C' 0] [mu] = [ 0]
@@ -22,13 +23,18 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse
 import scipy.sparse.linalg
 import torch
 
 from latentsim.physics.incremental_potential import IncrementalPotential
-from latentsim.solve.implicit_euler import CompiledAssembly, stiffness_matrix
-from latentsim.solve.sparse import HessianPattern, LinearSolver, NotPositiveDefinite, scatter_gradient, symmetric_from_upper
+from latentsim.solve.assembly import CompiledAssembly
+from latentsim.solve.modes import stiffness_matrix
+from latentsim.solve.newton import LineSearch, minimise
+from latentsim.solve.sparse import HessianPattern, LinearSolver, NotPositiveDefinite, symmetric_from_upper
+
+# the KKT iteration's line search: below 1e-13 |E| the search still runs, and the full step is
+# taken only where it fails
+KKT_LINE_SEARCH = LineSearch(armijo=1e-4, min_step=1e-10, energy_resolution=1e-13, search_unresolvable=True)
 
 
 @dataclass
@@ -79,27 +85,16 @@ class ConstrainedNewton:
         # indefinite exact Hessian falls back to SuperLU on the full matrix (see _direction)
         self.linear = LinearSolver(self.pattern)
         self.damping0 = 1e-3 * abs(K0.diagonal()).mean() / m3.mean()
-        # the simulator's compiled kernels (None without numba: the terms' closed forms below)
+        # the simulator's compiled kernels
         self.assembly = CompiledAssembly.of(potential.terms, self.pattern, n, threads=min(2, torch.get_num_threads()))
 
     def energy(self, x) -> float:
-        if self.assembly is not None:
-            return float(self.assembly.energy(x.reshape(-1, 3)))
-        with torch.no_grad():
-            return float(self.pot.elastic(torch.from_numpy(x.reshape(-1, 3))))
+        """Elastic energy at x (3n,)."""
+        return float(self.assembly.energy(x.reshape(-1, 3)))
 
     def grad_hess(self, x, project):
         """Elastic gradient (3n,) and the free-DoF Hessian (+ the regularising diagonal), upper CSR."""
-        if self.assembly is not None:
-            return self.assembly.gradient_hessian(x.reshape(-1, 3), self.diag, project)
-        xt = torch.from_numpy(x.reshape(-1, 3))
-        grads, blocks = [], []
-        for term in self.pot.terms:
-            g, H = term.local_gradient_hessian(term.gather(xt), project=project)
-            grads.append(g.numpy())
-            blocks.append(H.numpy())
-        g = scatter_gradient(self.n, self.stencils, grads)
-        return g, self.pattern.assemble(blocks, self.diag)  # upper triangle, the pattern's CSR
+        return self.assembly.gradient_hessian(x.reshape(-1, 3), self.diag, project)
 
     def constraints(self, l) -> np.ndarray:
         """C (f, c): the columns whose inner products with y must vanish."""
@@ -127,57 +122,13 @@ class ConstrainedNewton:
             if C.shape[1]:
                 yf = yf - C @ np.linalg.solve(CtC, C.T @ yf)
             y[self.free] = yf
-        g_ref = max(float(np.linalg.norm(self._gradient(X + l)[self.free])), 1e-300)
-        x = X + l + y
-        e = self.energy(x)
-        damping, stalls, levenberg = 0.0, 0, 0
-        for it in range(max_iter + 1):
-            g, H = self.grad_hess(x, project=False)
-            gf = g[self.free]
-            r = float(np.linalg.norm(gf - C @ np.linalg.solve(CtC, C.T @ gf))) if C.shape[1] else float(np.linalg.norm(gf))
-            if r <= rtol * g_ref or stalls >= 3 or it == max_iter:
-                break
-            # exact Hessian, shifted by a multiple of M (Levenberg) until the step is a descent
-            # direction (for the KKT step, dx^T (H + d M) dx = -g^T dx: positive curvature)
-            while True:
-                Hs = H
-                if damping:
-                    Hs = H.copy()
-                    Hs.data[self.pattern.diagonal_slots] += damping * self.mass_diagonal
-                dx = self._direction(Hs, gf, C)
-                if gf @ dx < 0 or damping > 1e12 * self.damping0:
-                    break
-                damping = max(4 * damping, self.damping0)
-                levenberg += 1
-            if not gf @ dx < 0:
-                break  # the projected gradient is at round-off level
-            damping = 0.25 * damping if damping > self.damping0 else 0.0
-            slope = float(gf @ dx)
-            step = np.zeros_like(x)
-            step[self.free] = dx
-            alpha = 1.0
-            while alpha > 1e-10:
-                e_try = self.energy(x + alpha * step)
-                if np.isfinite(e_try) and e_try <= e + 1e-4 * alpha * slope:
-                    break
-                alpha *= 0.5
-            else:
-                if -slope > 1e-13 * max(abs(e), 1e-300):
-                    damping = max(4 * damping, self.damping0)
-                    stalls += 1
-                    continue
-                alpha, e_try = 1.0, self.energy(x + step)
-            stalls = stalls + 1 if e - e_try < etol * abs(e) else 0
-            x, e = x + alpha * step, e_try
+        g_ref = max(float(np.linalg.norm(self.assembly.energy_gradient((X + l).reshape(-1, 3))[1][self.free])), 1e-300)
+        problem = _KKTProblem(self, C, rtol * g_ref, etol)
+        x0 = X + l + y
+        x, result = minimise(problem, x0, self.energy(x0), KKT_LINE_SEARCH, max_iter)
         yv = (x - X - l)[self.free]
         cons = abs(C[:, 0] @ yv) / max(np.linalg.norm(C[:, 0]) * np.linalg.norm(yv), 1e-300) if np.any(l) else 0.0
-        return x, CompliantInfo(it, r / g_ref, cons, e, levenberg)
-
-    def _gradient(self, x):
-        xt = torch.from_numpy(x.reshape(-1, 3))
-        with torch.no_grad():
-            grads = [t.local_gradient_hessian(t.gather(xt), project=False)[0].numpy() for t in self.pot.terms]
-        return scatter_gradient(self.n, self.stencils, grads)
+        return x, CompliantInfo(result.iterations, problem.residual / g_ref, cons, result.energy, problem.levenberg)
 
     def _direction(self, U, gf, C):
         """dx minimising the quadratic model on {C^T dx = 0}: a - B (C^T B)^{-1} C^T a, with
@@ -192,6 +143,57 @@ class ConstrainedNewton:
         if not C.shape[1]:
             return a
         return a - B @ np.linalg.solve(C.T @ B, C.T @ a)
+
+
+class _KKTProblem:
+    """One constrained solve as the problem of :func:`latentsim.solve.newton.minimise`: the KKT
+    residual test, the KKT direction with Levenberg shifts of the exact Hessian, and the stall
+    rule (three successive steps each lowering E by less than ``etol`` |E|)."""
+
+    def __init__(self, solver: ConstrainedNewton, C, tolerance: float, etol: float):
+        self.solver, self.C, self.CtC, self.tolerance, self.etol = solver, C, C.T @ C, tolerance, etol
+        self.damping, self.stalls, self.levenberg = 0.0, 0, 0
+        self.residual = float("nan")
+
+    def stop(self, x, it) -> bool:
+        g, self.H = self.solver.grad_hess(x, project=False)
+        gf = self.gf = g[self.solver.free]
+        C = self.C
+        self.residual = r = float(np.linalg.norm(gf - C @ np.linalg.solve(self.CtC, C.T @ gf))) if C.shape[1] else float(np.linalg.norm(gf))
+        return r <= self.tolerance or self.stalls >= 3
+
+    def direction(self, x, it):
+        # exact Hessian, shifted by a multiple of M (Levenberg) until the step is a descent
+        # direction (for the KKT step, dx^T (H + d M) dx = -g^T dx: positive curvature)
+        sv, H, gf = self.solver, self.H, self.gf
+        while True:
+            Hs = H
+            if self.damping:
+                Hs = H.copy()
+                Hs.data[sv.pattern.diagonal_slots] += self.damping * sv.mass_diagonal
+            dx = sv._direction(Hs, gf, self.C)
+            if gf @ dx < 0 or self.damping > 1e12 * sv.damping0:
+                break
+            self.damping = max(4 * self.damping, sv.damping0)
+            self.levenberg += 1
+        if not gf @ dx < 0:
+            return None  # the projected gradient is at round-off level
+        self.damping = 0.25 * self.damping if self.damping > sv.damping0 else 0.0
+        slope = float(gf @ dx)
+        step = np.zeros_like(x)
+        step[sv.free] = dx
+        return step, slope
+
+    def trial(self, x, alpha, searching):
+        return self.solver.energy(x), None
+
+    def accept(self, trial, e_old, seconds):
+        self.stalls = self.stalls + 1 if e_old - trial.energy < self.etol * abs(e_old) else 0
+
+    def line_search_failed(self, it, seconds):
+        # a resolvable decrease that no step length reaches: damp more and retry from x
+        self.damping = max(4 * self.damping, self.solver.damping0)
+        self.stalls += 1
 
 
 def compliant_mode(potential, rest_positions, l, y0=None, free_dofs=None, rigid=None, metric="euclidean", **kwargs):

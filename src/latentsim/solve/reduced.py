@@ -26,13 +26,14 @@ spanning all free DoFs this is exactly the full solver's test.  L-BFGS
 is the Hessian-free alternative.
 
 The full-space gradient and Hessian come from :class:`latentsim.solve.implicit_euler.ImplicitEuler`
-(the terms' ``local_gradient_hessian`` and the sparse assembly of
-:mod:`latentsim.solve.sparse`); physics is not re-implemented here.
+(the compiled assembly of :mod:`latentsim.solve.assembly`); physics is not re-implemented here.
+Both minimisers run the one Newton loop and line search of :mod:`latentsim.solve.newton`.
 
 A subspace is any object with ``dim``, ``n_vertices``, ``hard_dirichlet``,
 ``dirichlet`` and ``jacobian(q, xD) -> (x (n, 3), J (3n, r))`` /
-``map(q, xD) -> x``: :class:`LinearSubspace` (x = X + U q in the relative
-coordinates) and :class:`DecoderSubspace` (the autoencoder's decoder).
+``map(q, xD) -> x``: :class:`~latentsim.solve.subspaces.LinearSubspace` (x = X + U q in the
+relative coordinates) and :class:`~latentsim.solve.subspaces.DecoderSubspace` (the autoencoder's
+decoder), re-exported here.
 """
 
 from __future__ import annotations
@@ -46,6 +47,8 @@ import torch
 
 from latentsim.physics.incremental_potential import IncrementalPotential, dirichlet_penalty
 from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings
+from latentsim.solve.newton import LineSearch, minimise
+from latentsim.solve.subspaces import DecoderSubspace, LinearSubspace
 
 __all__ = [
     "DecoderSubspace",
@@ -67,113 +70,6 @@ class ReducedFailed(RuntimeError):
     def __init__(self, message, info=None):
         super().__init__(message)
         self.info = info
-
-
-# ---------------------------------------------------------------------------
-# subspaces
-# ---------------------------------------------------------------------------
-def _relative_decode(coords, u: np.ndarray, xD: np.ndarray) -> np.ndarray:
-    """Positions (n, 3) from an encoded vector u (d,) by the coordinates' own decode."""
-    with torch.no_grad():
-        return coords.decode(torch.from_numpy(np.asarray(u, dtype=np.float64)), torch.from_numpy(np.asarray(xD, dtype=np.float64))).numpy()
-
-
-def _encoded_rows(coords) -> np.ndarray:
-    """(d,) full-space DoF index of each entry of the encoded vector."""
-    v = coords.encoded_vertices.numpy()
-    return (3 * v[:, None] + np.arange(3)).reshape(-1)
-
-
-class LinearSubspace:
-    """x = decode_relative(u0 + U q, x*_D): a linear subspace of the relative coordinates.
-
-    Parameters
-    ----------
-    coords : :class:`latentsim.latent.RelativeCoordinates` (``roots`` mode imposes
-        the Dirichlet vertices exactly; ``mean`` mode leaves them to the penalty).
-    u0 : (d,) offset in the encoded coordinates (e.g. the mean training frame).
-    basis : (d, r) columns spanning the subspace.
-    """
-
-    def __init__(self, coords, u0, basis):
-        self.coords = coords
-        self.u0 = np.asarray(u0, dtype=np.float64).reshape(-1)
-        self.basis = np.asarray(basis, dtype=np.float64)
-        if self.basis.shape[0] != coords.dim or self.u0.shape[0] != coords.dim:
-            raise ValueError(f"basis {self.basis.shape} / offset {self.u0.shape} do not match the coordinates' dimension {coords.dim}")
-        self.dim = int(self.basis.shape[1])
-        self.n_vertices = int(coords.n)
-        self.hard_dirichlet = bool(coords.hard_dirichlet)
-        self.dirichlet = coords.dirichlet.numpy()
-        self._J = np.zeros((3 * self.n_vertices, self.dim))
-        self._J[_encoded_rows(coords)] = self.basis
-
-    @classmethod
-    def from_frames(cls, coords, positions, dirichlet_positions, r: int):
-        """PCA subspace of r components of frames (T, n, 3) with prescribed (T, m, 3)."""
-        from latentsim.latent import pca_basis
-
-        U = coords.encode(torch.as_tensor(positions, dtype=torch.float64), torch.as_tensor(dirichlet_positions, dtype=torch.float64))
-        mean, V, _ = pca_basis(U.reshape(-1, coords.dim), r)
-        return cls(coords, mean.numpy(), V.numpy().T)
-
-    @classmethod
-    def from_vectors(cls, coords, rest_positions, dirichlet, vectors):
-        """Subspace about the rest state spanned by full-space vectors (3n, r), e.g. vibration
-        modes (their rows on vertices the coordinates do not encode are dropped)."""
-        X = np.asarray(rest_positions, dtype=np.float64)
-        u0 = coords.encode(torch.as_tensor(X), torch.as_tensor(X[np.asarray(dirichlet, dtype=np.int64)])).numpy().reshape(-1)
-        return cls(coords, u0, np.asarray(vectors, dtype=np.float64)[_encoded_rows(coords)])
-
-    def map(self, q, xD) -> np.ndarray:
-        return _relative_decode(self.coords, self.u0 + self.basis @ np.asarray(q, dtype=np.float64), xD)
-
-    def jacobian(self, q, xD):
-        return self.map(q, xD), self._J
-
-    def project(self, x, xD) -> np.ndarray:
-        """Least-squares reduced coordinates of positions x (n, 3)."""
-        u = self.coords.encode(torch.as_tensor(x, dtype=torch.float64), torch.as_tensor(xD, dtype=torch.float64)).numpy()
-        return np.linalg.lstsq(self.basis, u - self.u0, rcond=None)[0]
-
-
-class DecoderSubspace:
-    """x = decode_relative(Decoder(q), x*_D): the autoencoder's latent space (Fulton et al. 2019).
-
-    The decoder is folded into float64 NumPy layers (:func:`latentsim.runtime.fold_decoder`)
-    so that the map is smooth to round-off for the line search, and J comes
-    from forward mode with all r tangents at once.
-    """
-
-    def __init__(self, ae, coords):
-        from latentsim.runtime import NumpyStepper, fold_decoder
-
-        self.ae, self.coords = ae, coords
-        self.net = NumpyStepper(fold_decoder(ae, coords), dtype=np.float64)
-        self._rows = _encoded_rows(coords)
-        self.dim = int(ae.latent_dim)
-        self.n_vertices = int(coords.n)
-        self.hard_dirichlet = bool(coords.hard_dirichlet)
-        self.dirichlet = coords.dirichlet.numpy()
-
-    def map(self, q, xD) -> np.ndarray:
-        return self.net.decode_from_u(self.net.decode_network(np.asarray(q, dtype=np.float64)), xD)
-
-    def jacobian(self, q, xD):
-        return self.net.decode_jacobian(np.asarray(q, dtype=np.float64), xD)
-
-    def curvature(self, q, xD, grad) -> np.ndarray:
-        """sum_i g_i d^2 x_i / dq dq (r, r) for a full-space gradient g (3n,): the term
-        Gauss-Newton drops.  The relative-coordinates decode is affine in the encoded
-        vector, so only the decoder's second derivatives enter."""
-        return self.net.decode_curvature(np.asarray(q, dtype=np.float64), np.asarray(grad)[self._rows])
-
-    def project(self, x, xD) -> np.ndarray:
-        """The encoder's latent of positions x (n, 3)."""
-        from latentsim.latent import encode_positions
-
-        z = encode_positions(self.ae, self.coords, torch.as_tensor(x, dtype=torch.float64), torch.as_tensor(xD, dtype=torch.float64))
-        return z.double().numpy()
 
 
 # ---------------------------------------------------------------------------
@@ -240,7 +136,7 @@ class ReducedImplicitEuler:
     settings : :class:`ReducedSettings`.
     solver_options : keyword arguments for the internal
         :class:`latentsim.solve.implicit_euler.ImplicitEuler` that evaluates gradients and
-        Hessians (e.g. its kernel choice).
+        Hessians (e.g. its ``threads``).
     """
 
     def __init__(self, subspace, potential: IncrementalPotential, settings: ReducedSettings | None = None, solver_options=None):
@@ -330,21 +226,6 @@ class ReducedImplicitEuler:
         (g,) = torch.autograd.grad(e, xt)
         return float(e.detach()), g.numpy().reshape(-1)
 
-    def _line_search(self, q, dq, e, slope, x_prev, x_prev2, xD, info):
-        s = self.settings
-        resolvable = -slope > s.energy_resolution * max(abs(e), 1e-300)
-        alpha = 1.0
-        while True:
-            q_try = q + alpha * dq
-            x_try = self.subspace.map(q_try, xD)
-            e_try = self.energy(x_try, x_prev, x_prev2, xD)
-            if not resolvable or (np.isfinite(e_try) and e_try <= e + s.armijo * alpha * slope):
-                return q_try, x_try, e_try
-            alpha *= 0.5
-            if alpha < s.min_step:
-                raise ReducedFailed(f"line search failed at iteration {info.iterations}", info)
-
-    # -- one time step -----------------------------------------------------------
     def step(self, q_prev, q_prev2, x_prev, x_prev2, xD, q_init=None):
         """Advance one step.
 
@@ -373,98 +254,134 @@ class ReducedImplicitEuler:
         q, x, e = best
         info = ReducedStepInfo(energies=[e])
         self._tm = info.timings
-        if self.settings.method == "lbfgs":
-            return self._lbfgs(q, x, e, x_prev, x_prev2, xD, info)
-        return self._newton(q, x, e, x_prev, x_prev2, xD, info)
-
-    def _newton(self, q, x, e, x_prev, x_prev2, xD, info):
         s = self.settings
-        tol = s.tolerance * self.f_ref
-        for it in range(s.max_iterations + 1):
-            info.iterations = it
-            t0 = time.perf_counter()
-            x, J = self.subspace.jacobian(q, xD)
-            t1 = time.perf_counter()
-            info.timings["map"] += t1 - t0
-            d0 = info.timings["derivatives"]
-            grad, gq, Hq = self._reduced_system(x, J, x_prev, x_prev2, xD, project=s.hessian == "projected")
-            if self._converged(J, grad, tol, info):
-                return q, x, info
-            if it == s.max_iterations:
-                break
-            L = None
-            if s.map_curvature and hasattr(self.subspace, "curvature"):
-                # the full gradient does not vanish at a reduced minimum, so the map's
-                # curvature matters: without it Gauss-Newton converges only linearly
-                try:
-                    L = np.linalg.cholesky(Hq + self.subspace.curvature(q, xD, grad))
-                except np.linalg.LinAlgError:
-                    info.gauss_newton += 1
+        problem = (_LbfgsProblem if s.method == "lbfgs" else _NewtonProblem)(self, x_prev, x_prev2, xD, info)
+        q, result = minimise(problem, q, e, LineSearch(s.armijo, s.min_step, s.energy_resolution), s.max_iterations)
+        if result.stopped:
+            return q, problem.x, info
+        raise ReducedFailed(f"{problem.name}no convergence in {s.max_iterations} iterations "
+                            f"(tangent gradient {info.gradient_norm:.3e}, tolerance {problem.tol:.3e})", info)  # fmt: skip
+
+
+class _ReducedProblem:
+    """One reduced step as the problem of :func:`latentsim.solve.newton.minimise` over q: trials
+    map q and evaluate E_total(phi(q)); a failed line search raises :class:`ReducedFailed`."""
+
+    name = ""  # the method, in front of the no-convergence message
+
+    def __init__(self, solver: ReducedImplicitEuler, x_prev, x_prev2, xD, info: ReducedStepInfo):
+        self.solver, self.x_prev, self.x_prev2, self.xD, self.info = solver, x_prev, x_prev2, xD, info
+        self.tol = solver.settings.tolerance * solver.f_ref
+        self.x = None  # phi(q) at the last stop()
+
+    def trial(self, q, alpha, searching):
+        x = self.solver.subspace.map(q, self.xD)
+        return self.solver.energy(x, self.x_prev, self.x_prev2, self.xD), x
+
+    def accept(self, trial, e_old, seconds):
+        self.info.energies.append(trial.energy)
+
+    def line_search_failed(self, it, seconds):
+        raise ReducedFailed(f"line search failed at iteration {it}", self.info)
+
+
+class _NewtonProblem(_ReducedProblem):
+    """Newton on J^T H J (+ the map's curvature where it keeps the matrix positive definite), a
+    dense Cholesky solve; the exact Hessian falls back to the projected one."""
+
+    def stop(self, q, it) -> bool:
+        sv, info = self.solver, self.info
+        info.iterations = it
+        t0 = time.perf_counter()
+        self.x, self.J = sv.subspace.jacobian(q, self.xD)
+        self.t1 = time.perf_counter()
+        info.timings["map"] += self.t1 - t0
+        self.d0 = info.timings["derivatives"]
+        project = sv.settings.hessian == "projected"
+        self.grad, self.gq, self.Hq = sv._reduced_system(self.x, self.J, self.x_prev, self.x_prev2, self.xD, project=project)
+        return sv._converged(self.J, self.grad, self.tol, info)
+
+    def direction(self, q, it):
+        sv, s, info = self.solver, self.solver.settings, self.info
+        gq, Hq = self.gq, self.Hq
+        L = None
+        if s.map_curvature and hasattr(sv.subspace, "curvature"):
+            # the full gradient does not vanish at a reduced minimum, so the map's
+            # curvature matters: without it Gauss-Newton converges only linearly
             try:
-                L = L if L is not None else np.linalg.cholesky(Hq)
+                L = np.linalg.cholesky(Hq + sv.subspace.curvature(q, self.xD, self.grad))
             except np.linalg.LinAlgError:
-                if s.hessian == "projected":
-                    raise ReducedFailed("the reduced projected Hessian is not positive definite", info) from None
-                info.projected += 1
-                _, gq, Hq = self._reduced_system(x, J, x_prev, x_prev2, xD, project=True)
-                L = np.linalg.cholesky(Hq + 1e-12 * np.trace(Hq) / len(Hq) * np.eye(len(Hq)))
-            dq = -np.linalg.solve(L.T, np.linalg.solve(L, gq))
-            slope = float(gq @ dq)
-            t2 = time.perf_counter()
-            info.timings["reduce"] += t2 - t1 - (info.timings["derivatives"] - d0)
-            q, x, e = self._line_search(q, dq, e, slope, x_prev, x_prev2, xD, info)
-            info.timings["line_search"] += time.perf_counter() - t2
-            info.energies.append(e)
-        raise ReducedFailed(f"no convergence in {s.max_iterations} iterations (tangent gradient {info.gradient_norm:.3e}, tolerance {tol:.3e})", info)
+                info.gauss_newton += 1
+        try:
+            L = L if L is not None else np.linalg.cholesky(Hq)
+        except np.linalg.LinAlgError:
+            if s.hessian == "projected":
+                raise ReducedFailed("the reduced projected Hessian is not positive definite", info) from None
+            info.projected += 1
+            _, gq, Hq = sv._reduced_system(self.x, self.J, self.x_prev, self.x_prev2, self.xD, project=True)
+            L = np.linalg.cholesky(Hq + 1e-12 * np.trace(Hq) / len(Hq) * np.eye(len(Hq)))
+        dq = -np.linalg.solve(L.T, np.linalg.solve(L, gq))
+        slope = float(gq @ dq)
+        info.timings["reduce"] += time.perf_counter() - self.t1 - (info.timings["derivatives"] - self.d0)
+        return dq, slope
 
-    def _lbfgs(self, q, x, e, x_prev, x_prev2, xD, info):
-        """L-BFGS (two-loop recursion) with the reduced mass matrix J^T M J / h^2 as initial Hessian."""
-        s = self.settings
-        tol = s.tolerance * self.f_ref
-        h2 = self.potential.dt ** 2
-        m3 = np.repeat(self.inner.masses, 3)
-        hist: list = []
-        g_old = q_old = None
-        H0 = None
-        for it in range(s.max_iterations + 1):
-            info.iterations = it
-            x, J = self.subspace.jacobian(q, xD)
-            grad = self.energy_gradient(x, x_prev, x_prev2, xD)[1]
-            gq = J.T @ grad
-            if self._converged(J, grad, tol, info):
-                return q, x, info
-            if it == s.max_iterations:
-                break
-            if H0 is None:
-                M0 = (J * (m3 / h2)[:, None]).T @ J
-                if self.penalty and len(self.D):
-                    JD = J[self._Ddofs]
-                    M0 += 2.0 * self.w_bc * (JD.T @ JD)
-                H0 = np.linalg.cholesky(M0 + 1e-12 * np.trace(M0) / len(M0) * np.eye(len(M0)))
-            if g_old is not None:
-                sv, yv = q - q_old, gq - g_old
-                if sv @ yv > 1e-12 * np.linalg.norm(sv) * np.linalg.norm(yv):
-                    hist.append((sv, yv, 1.0 / (sv @ yv)))
-                    hist = hist[-s.lbfgs_memory:]
-            d = gq.copy()
-            alphas = []
-            for sv, yv, rho in reversed(hist):
-                a = rho * (sv @ d)
-                alphas.append(a)
-                d -= a * yv
-            d = np.linalg.solve(H0.T, np.linalg.solve(H0, d))
-            for (sv, yv, rho), a in zip(hist, reversed(alphas)):
-                d += sv * (a - rho * (yv @ d))
-            dq = -d
+    def accept(self, trial, e_old, seconds):
+        super().accept(trial, e_old, seconds)
+        self.info.timings["line_search"] += seconds
+
+
+class _LbfgsProblem(_ReducedProblem):
+    """L-BFGS (two-loop recursion) with the reduced mass matrix J^T M J / h^2 as initial Hessian."""
+
+    name = "L-BFGS: "
+
+    def __init__(self, solver, x_prev, x_prev2, xD, info):
+        super().__init__(solver, x_prev, x_prev2, xD, info)
+        self.h2 = solver.potential.dt ** 2
+        self.m3 = np.repeat(solver.inner.masses, 3)
+        self.hist: list = []
+        self.g_old = self.q_old = None
+        self.H0 = None
+
+    def stop(self, q, it) -> bool:
+        sv, info = self.solver, self.info
+        info.iterations = it
+        self.x, self.J = sv.subspace.jacobian(q, self.xD)
+        grad = sv.energy_gradient(self.x, self.x_prev, self.x_prev2, self.xD)[1]
+        self.gq = self.J.T @ grad
+        return sv._converged(self.J, grad, self.tol, info)
+
+    def direction(self, q, it):
+        solver, J, gq = self.solver, self.J, self.gq
+        if self.H0 is None:
+            M0 = (J * (self.m3 / self.h2)[:, None]).T @ J
+            if solver.penalty and len(solver.D):
+                JD = J[solver._Ddofs]
+                M0 += 2.0 * solver.w_bc * (JD.T @ JD)
+            self.H0 = np.linalg.cholesky(M0 + 1e-12 * np.trace(M0) / len(M0) * np.eye(len(M0)))
+        H0 = self.H0
+        if self.g_old is not None:
+            s_k, y_k = q - self.q_old, gq - self.g_old
+            if s_k @ y_k > 1e-12 * np.linalg.norm(s_k) * np.linalg.norm(y_k):
+                self.hist.append((s_k, y_k, 1.0 / (s_k @ y_k)))
+                self.hist = self.hist[-solver.settings.lbfgs_memory:]
+        d = gq.copy()
+        alphas = []
+        for s_k, y_k, rho in reversed(self.hist):
+            a = rho * (s_k @ d)
+            alphas.append(a)
+            d -= a * y_k
+        d = np.linalg.solve(H0.T, np.linalg.solve(H0, d))
+        for (s_k, y_k, rho), a in zip(self.hist, reversed(alphas)):
+            d += s_k * (a - rho * (y_k @ d))
+        dq = -d
+        slope = float(gq @ dq)
+        if not slope < 0:
+            self.hist.clear()
+            dq = -np.linalg.solve(H0.T, np.linalg.solve(H0, gq))
             slope = float(gq @ dq)
-            if not slope < 0:
-                hist.clear()
-                dq = -np.linalg.solve(H0.T, np.linalg.solve(H0, gq))
-                slope = float(gq @ dq)
-            q_old, g_old = q, gq
-            q, x, e = self._line_search(q, dq, e, slope, x_prev, x_prev2, xD, info)
-            info.energies.append(e)
-        raise ReducedFailed(f"L-BFGS: no convergence in {s.max_iterations} iterations (tangent gradient {info.gradient_norm:.3e}, tolerance {tol:.3e})", info)
+        self.q_old, self.g_old = q, gq
+        return dq, slope
 
 
 # ---------------------------------------------------------------------------

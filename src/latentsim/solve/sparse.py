@@ -235,13 +235,11 @@ class LinearSolver:
         # changes within a scene, so the symbolic analysis (phase 11, fill-in
         # reducing ordering) runs once; each Newton iteration only refactors
         # numerically and solves (phase 23).
-        if self._pardiso is None:
-            import pypardiso
+        import pypardiso  # here, not at the top: an optional dependency that loads MKL (heavy)
 
+        if self._pardiso is None:
             self._pardiso = pypardiso.PyPardisoSolver(mtype=2)
             self._pardiso.msglvl = 0
-        import pypardiso
-
         p = self._pardiso
         b = np.asfortranarray(b, dtype=np.float64)
         if not self._analysed:
@@ -260,7 +258,7 @@ class LinearSolver:
 
 def _pardiso_available() -> bool:
     try:
-        import pypardiso  # noqa: F401
+        import pypardiso  # noqa: F401  (optional, loads MKL: imported only to ask)
     except Exception:  # pragma: no cover - depends on the install
         return False
     return True

@@ -1,0 +1,149 @@
+r"""Newton's method with a backtracking (Armijo) line search: the one minimiser of every solver.
+
+Every solver of the package minimises an energy E over its own unknowns x,
+
+- the positions of the free DoFs, one implicit-Euler step (Martin et al. 2011; Li et al. 2025,
+  Eq. 1; :mod:`latentsim.solve.implicit_euler`),
+- the reduced coordinates q of a subspace (Fulton et al. 2019; :mod:`latentsim.solve.reduced`),
+- the positions under linear constraints, the Neural Modes ground truth (Wang et al. 2024, Eq. 9;
+  :mod:`latentsim.solve.constrained`),
+
+by the iteration (Nocedal and Wright 2006, Algorithm 3.1 for the line search)
+
+    x_{k+1} = x_k + alpha_k dx_k,
+    alpha_k = the first of 1, 1/2, 1/4, ... (>= min_step) with
+              E(x_k + alpha dx_k) <= E(x_k) + c alpha g_k . dx_k      (Armijo, c = ``armijo``),
+
+where the problem supplies the direction dx_k and the slope g_k . dx_k < 0: the sparse solve of
+the full space, the dense r x r solve (or L-BFGS recursion) of a subspace, the KKT solve with
+Levenberg shifts.  Near convergence the predicted decrease -g . dx falls below what E resolves in
+float64 (``energy_resolution`` |E|); Armijo would then compare round-off, so the full step is
+taken.
+
+A problem is any object with
+
+- ``stop(x, k) -> bool``: evaluates what its tests need at x (and keeps it for ``direction``);
+  True ends the iteration (converged, or the problem's own stopping rule).  It may raise.
+- ``direction(x, k) -> (dx, slope) | None``: the step at the x of the last ``stop`` and
+  g . dx; None when there is no descent direction (the iteration ends).
+- ``trial(x, alpha, searching) -> (E, payload)``: E at a trial point x = x_k + alpha dx_k,
+  with whatever the problem computed alongside (given back in the accepted :class:`Trial`);
+  ``searching`` is False for the full step taken without a search (unresolvable decrease).
+- ``accept(trial, e_old, seconds)``: the line search accepted ``trial`` (``seconds``: its time).
+- ``line_search_failed(k, seconds)``: no step length down to ``min_step`` met Armijo: raise,
+  or return to evaluate x_k again as iteration k + 1.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["LineSearch", "NewtonInfo", "Trial", "line_search", "minimise"]
+
+
+@dataclass
+class LineSearch:
+    """Settings of the backtracking line search.
+
+    armijo : the sufficient-decrease constant c.
+    min_step : the smallest step length tried.
+    energy_resolution : the relative decrease |g . dx| / |E| below which E cannot resolve the
+        Armijo test.
+    search_unresolvable : False: below the resolution take the full step without searching;
+        True: search anyway and take the full step only when the search fails (where it
+        would fail on a resolvable decrease, the problem's ``line_search_failed`` decides).
+    """
+
+    armijo: float = 1e-4
+    min_step: float = 1e-10
+    energy_resolution: float = 1e-12
+    search_unresolvable: bool = False
+
+
+@dataclass
+class Trial:
+    """An accepted step: its length, the new iterate and energy, and the problem's payload."""
+
+    alpha: float
+    x: np.ndarray
+    energy: float
+    payload: object = None
+
+
+@dataclass
+class NewtonInfo:
+    """How :func:`minimise` ended: ``status`` 'stopped' (the problem's ``stop`` held),
+    'no descent' (``direction`` gave None) or 'max_iterations'; ``iterations`` the k it ended at;
+    ``energy`` E at the returned x."""
+
+    iterations: int
+    energy: float
+    status: str
+
+    @property
+    def stopped(self) -> bool:
+        return self.status == "stopped"
+
+
+def line_search(trial, x, e: float, dx, slope: float, settings: LineSearch) -> Trial | None:
+    """Backtracking from the full step x + dx until Armijo holds (see the module docstring).
+
+    Parameters
+    ----------
+    trial : the problem's ``trial(x, alpha, searching) -> (E, payload)``.
+    x, dx : the iterate and the direction (any shape, the same).
+    e, slope : E(x) and g . dx (< 0).
+
+    Returns
+    -------
+    The accepted :class:`Trial`, or None when no step length down to ``min_step`` met Armijo
+    on a decrease E can resolve.
+    """
+    s = settings
+    resolvable = -slope > s.energy_resolution * max(abs(e), 1e-300)
+    if resolvable or s.search_unresolvable:
+        alpha = 1.0
+        while alpha >= s.min_step:
+            x_try = x + alpha * dx
+            e_try, payload = trial(x_try, alpha, True)
+            if np.isfinite(e_try) and e_try <= e + s.armijo * alpha * slope:
+                return Trial(alpha, x_try, e_try, payload)
+            alpha *= 0.5
+        if resolvable:
+            return None
+    x_try = x + dx
+    e_try, payload = trial(x_try, 1.0, False)
+    return Trial(1.0, x_try, e_try, payload)
+
+
+def minimise(problem, x, e: float, settings: LineSearch, max_iterations: int):
+    """Newton's method with the line search on ``problem`` from x (E(x) = e).
+
+    Iteration k = 0, 1, ..., max_iterations: ``stop`` at x_k; then (k < max_iterations) the
+    direction, the line search and the step.
+
+    Returns
+    -------
+    x : the last iterate, info : :class:`NewtonInfo`.
+    """
+    for k in range(max_iterations + 1):
+        if problem.stop(x, k):
+            return x, NewtonInfo(k, e, "stopped")
+        if k == max_iterations:
+            break
+        step = problem.direction(x, k)
+        if step is None:
+            return x, NewtonInfo(k, e, "no descent")
+        dx, slope = step
+        t0 = time.perf_counter()
+        accepted = line_search(problem.trial, x, e, dx, slope, settings)
+        seconds = time.perf_counter() - t0
+        if accepted is None:
+            problem.line_search_failed(k, seconds)
+            continue
+        problem.accept(accepted, e, seconds)
+        x, e = accepted.x, accepted.energy
+    return x, NewtonInfo(max_iterations, e, "max_iterations")
