@@ -5,7 +5,7 @@ from snakemake.exceptions import WorkflowError
 
 from latentsim.stages import neural_modes as nm_pipeline
 from latentsim.latent.baselines import BASELINES
-from latentsim.report.evaluate import layers_text
+from latentsim.report.tables import layers_text
 from latentsim.latent.sweep import parse_label, point_label
 from latentsim.config import (
     ConfigError,

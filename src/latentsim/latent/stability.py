@@ -192,7 +192,7 @@ def stress_test(integrator, ae, coords, sequence: dict, rest_positions, dirichle
     import torch
 
     from latentsim import latent
-    from latentsim.report.evaluate import bbox_diagonal
+    from latentsim.report.metrics import bbox_diagonal
 
     x = torch.as_tensor(sequence["positions"])
     xD = torch.as_tensor(sequence["dirichlet_positions"])

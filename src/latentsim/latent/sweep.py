@@ -28,7 +28,8 @@ from latentsim import latent
 from latentsim import runtime
 from latentsim.runtime import compiled as runtime_compiled
 from latentsim.latent import stability
-from latentsim.report.evaluate import bbox_diagonal, vertex_errors, write_table
+from latentsim.report.metrics import bbox_diagonal, vertex_errors
+from latentsim.report.tables import write_table
 from latentsim.scene import potential_from_artefact
 from latentsim.stages.train import coordinates_for, load_sequences, time_steppers
 

@@ -18,7 +18,7 @@ from latentsim import latent
 from latentsim import runtime
 from latentsim.runtime import compiled as runtime_compiled
 from latentsim.latent import stability
-from latentsim.report.evaluate import bbox_diagonal
+from latentsim.report.metrics import bbox_diagonal
 from latentsim.io import atomic_h5, require, write_dataset
 from latentsim.scene import potential_from_artefact
 from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings
