@@ -185,9 +185,7 @@ def all_targets():
     ]
     out += expand("results/evaluation/{scene}/metrics.csv", scene=SCENES)
     out += expand("results/evaluation/{scene}/frames.png", scene=SCENES)
-    out += [
-        f"results/sweep/{scene}/choice.csv" for scene in SCENES if sweep_points(scene)
-    ]
+    out += list(sweep_choices().values())
     out += ["results/evaluation/summary.csv", "results/evaluation/summary.md"]
     return out
 
