@@ -62,6 +62,7 @@ from latentsim.latent import (
     load_autoencoder,
     load_integrator,
 )
+from latentsim.report.metrics import bbox_diagonal
 from latentsim.report.paper import LI2025_TABLE1, LI2025_TABLE2
 from latentsim.stages.mesh import prepare_mesh
 from latentsim.solve.reduced import (
@@ -140,7 +141,7 @@ def paper_networks(coords, rest, latent_dim, dec_widths, int_widths, seed=0, pca
     while 3 * smooth_fields(rest[:1], degree)[0].shape[1] < p + 8:
         degree += 1
     Phi, degs = smooth_fields(rest, degree)
-    diag = float(np.linalg.norm(np.ptp(rest, axis=0)))
+    diag = bbox_diagonal(rest)
     N = p + 32
     amp = 0.03 * diag / np.maximum(degs, 1.0) ** 2
     coef = rng.standard_normal((N, Phi.shape[1], 3)) * amp[None, :, None]

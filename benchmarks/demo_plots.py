@@ -7,9 +7,9 @@ truth against the rollout side by side at a few frames, a GIF clip, the
 kinetic energy over time and an XDMF series of the rollout with its per-vertex
 error (open ``paraview/<scene>_<sequence>_<method>.xdmf`` in ParaView, then *Warp By Vector* on
 ``displacement``).  Across scenes, where the files exist: the speed-accuracy
-chart and a stability map from ``results/evaluation/summary.csv`` (the latent
-rollout against the full-space solver, the only two methods the pipeline has
-so far), and the training histories of ``results/integrator/*/history.h5``.
+chart and a stability map from ``results/evaluation/summary.csv`` (every
+method against the full-space solver), and the training histories of
+``results/integrator/*/history.h5``.
 Nothing here is part of the workflow; it shows what the functions draw.
 """
 
@@ -24,8 +24,8 @@ import h5py
 import numpy as np
 import pandas as pd
 
-from latentsim.report import plots
-from latentsim.report import render
+from latentsim.report import paraview, plots, render
+from latentsim.report.tables import speed_accuracy_rows, stability_table
 
 
 def _frames_to_show(T: int, diverged: int, k=4) -> list[int]:
@@ -80,7 +80,7 @@ def scene_figures(scene: str, out: Path) -> None:
     if methods:
         plots.energy_curves_from_files(truth, methods, seq, out / f"{scene}_{seq}_energy.png")
     for name, p in methods.items():
-        r = render.write_xdmf_series(p, seq, out / "paraview" / f"{scene}_{seq}_{name}.xdmf", reference=truth)
+        r = paraview.write_xdmf_series(p, seq, out / "paraview" / f"{scene}_{seq}_{name}.xdmf", reference=truth)
         print(f"{scene}/{seq}/{name}: XDMF series, {r['frames']} steps, fields {r['fields']}")
 
 
@@ -88,21 +88,20 @@ def summary_figures(out: Path) -> None:
     table = Path("results/evaluation/summary.csv")
     if table.exists():
         df = pd.read_csv(table)
-        latent = df.assign(ms_per_frame=df["latent_ms"])
-        full = df.assign(method="full_space_newton", ms_per_frame=df["full_ms"], mean_error=0.0, diverged_frame=-1)
-        both = pd.concat([latent, full], ignore_index=True)
+        both = speed_accuracy_rows(df)  # every method, and the full-space solver at error 0
         pts = plots.speed_accuracy_chart(both, out / "speed_accuracy.png")
         print("speed-accuracy: on the front ->", pts.loc[pts["on_front"], ["scene", "method"]].values.tolist())
         for scene in sorted(df["scene"].unique())[:1]:
             plots.speed_accuracy_chart(both, out / f"speed_accuracy_{scene}.png", scene=scene)
+        st = stability_table(df)
         stab = pd.DataFrame(
             {
-                "method": df["method"],
-                "condition": df["scene"] + "/" + df["sequence"],
-                "frames_survived": np.where(df["diverged_frame"] >= 0, df["diverged_frame"], df["frames"]),
-                "frames": df["frames"],
-                "bc_error": df["dirichlet_error"],
-                "diverged_frame": df["diverged_frame"],
+                "method": st["scene"] + " / " + st["method"],
+                "condition": st["sequence"],
+                "frames_survived": st["survived"],
+                "frames": st["frames"],
+                "bc_error": st["dirichlet_error"],
+                "diverged_frame": st["diverged_frame"],
             }
         )
         plots.stability_heatmap(stab, out / "stability.png", title="test sequences: frames survived (BC: mean Dirichlet error)")

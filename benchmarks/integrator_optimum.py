@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from latentsim import latent
+from latentsim.report.metrics import bbox_diagonal
 from latentsim.scene import potential_from_artefact
 from latentsim.latent import autoencoder_coordinates, load_sequences
 
@@ -46,7 +47,7 @@ def main(argv=None):
         coords = autoencoder_coordinates(f, ae_path)
         test = load_sequences(f, "test")
         pot = potential_from_artefact(f)
-        diag = float(np.linalg.norm(np.ptp(f["rest_positions"][()], axis=0)))
+        diag = bbox_diagonal(f["rest_positions"][()])
     ae = latent.load_autoencoder(ae_path).double()
     b = {k: v.double() for k, v in latent.build_triplets(ae, coords, list(test.values())).items()}
     with torch.no_grad():

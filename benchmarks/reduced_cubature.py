@@ -30,6 +30,7 @@ from latentsim import latent
 from latentsim.solve import reduced
 from latentsim.latent.baselines import fit_subspace_cubature, make_subspace
 from latentsim.solve.cubature import cubature_potential
+from latentsim.report.metrics import bbox_diagonal
 from latentsim.scene import potential_from_artefact
 from latentsim.latent import coordinates_for, load_sequences
 from latentsim.latent.timing import time_full_space
@@ -56,7 +57,7 @@ def main():
     seq = tests[name]
     T = args.frames or len(seq["positions"])
     ref, xD = seq["positions"][:T], seq["dirichlet_positions"][:T]
-    diag = float(np.linalg.norm(X.max(0) - X.min(0)))
+    diag = bbox_diagonal(X)
     n_el = sum(len(t.stencils) for t in pot.terms)
     print(f"{args.scene}: {X.size:,} DoF, {n_el:,} elements; test '{name}', {T} frames; "
           f"full-space Newton {full.get('full_ms', float('nan')):.2f} ms/frame (same run)\n")  # fmt: skip

@@ -1,10 +1,103 @@
-"""The summary's glance tables: one row per scene and method, and the grid of the compared methods."""
+"""Evaluation: the metrics of a rollout (report.metrics), the per-scene table (stages.evaluate), and the
+summary's tables (report.tables): one row per scene and method, and the grid of the compared methods."""
 
+import h5py
 import numpy as np
 import pandas as pd
 
-from latentsim.report.evaluate import glance_grid, glance_table, speed_accuracy_rows, summarise, table1, table2
-from latentsim.report.plots import speed_accuracy_chart
+from latentsim.report.metrics import bbox_diagonal, kinetic_energy, rollout_metrics, vertex_errors
+from latentsim.report.plots import rollout_curves, speed_accuracy_chart
+from latentsim.report.tables import glance_grid, glance_table, speed_accuracy_rows, table1, table2
+from latentsim.stages.evaluate import evaluate_scene, summarise
+
+
+def _swing(T=20, n=6):
+    """(T,n,3) a row of vertices swinging about the first; (n,3) its rest shape."""
+    rest = np.stack([0.1 * np.arange(n), np.zeros(n), np.zeros(n)], axis=1)
+    t = np.arange(T)[:, None]
+    x = np.repeat(rest[None], T, axis=0)
+    x[..., 1] = 0.05 * np.sin(0.4 * t) * rest[None, :, 0]
+    return x, rest
+
+
+def test_bbox_diagonal_and_vertex_errors():
+    assert np.isclose(bbox_diagonal(np.array([[0.0, 0, 0], [3, 0, 0], [1, 4, 0]])), 5.0)
+    x, _ = _swing()
+    pred = x.copy()
+    pred[..., 2] += 0.01  # every vertex 0.01 away ...
+    pred[:, -1, 2] += 0.02  # ... but the last, 0.03 away
+    d = np.full(x.shape[1], 0.01)
+    d[-1] = 0.03
+    mean_e, max_e = vertex_errors(pred, x, 0.5)
+    np.testing.assert_allclose(mean_e, np.full(len(x), d.mean() / 0.5))
+    np.testing.assert_allclose(max_e, np.full(len(x), 0.03 / 0.5))
+
+
+def test_kinetic_energy_of_uniform_motion():
+    """Every vertex at velocity v: 1/2 (sum m) |v|^2 from frame 1 on, 0 at frame 0 (no previous frame)."""
+    rest = np.random.default_rng(0).normal(size=(5, 3))
+    m, v, dt = np.array([1.0, 2.0, 0.5, 0.25, 1.25]), np.array([0.3, -0.4, 1.2]), 0.01
+    x = rest[None] + v * dt * np.arange(7)[:, None, None]
+    ke = kinetic_energy(x, m, dt)
+    assert ke[0] == 0.0
+    np.testing.assert_allclose(ke[1:], 0.5 * m.sum() * (v @ v))
+
+
+def test_rollout_metrics_of_a_shifted_and_a_diverged_rollout():
+    x, rest = _swing()
+    diag, D = bbox_diagonal(rest), np.array([0])
+    shifted = x + np.array([0.0, 0.0, 0.01])
+    m, c = rollout_metrics(shifted, x, x[:, D], D, np.ones(len(rest)), 0.01, diag, -1)
+    assert list(m) == ["frames", "diverged_frame", "mean_error", "max_error", "dirichlet_error", "kinetic_ratio", "end_error",
+                       "end_motion", "end_motion_truth"]  # fmt: skip
+    assert m["frames"] == 20 and m["diverged_frame"] == -1
+    for k in ("mean_error", "max_error", "dirichlet_error", "end_error"):
+        assert np.isclose(m[k], 0.01 / diag), k
+    # a rigid shift moves nothing: the same kinetic energy and the same residual motion as the truth
+    assert np.isclose(m["kinetic_ratio"], 1.0) and np.isclose(m["end_motion"], m["end_motion_truth"]) and m["end_motion"] > 0
+    np.testing.assert_allclose(c["ke_pred"], c["ke_truth"], atol=1e-15)
+    diverged = shifted.copy()
+    diverged[12:] = np.nan
+    m, c = rollout_metrics(diverged, x, x[:, D], D, np.ones(len(rest)), 0.01, diag, 12)
+    assert np.isclose(m["mean_error"], 0.01 / diag) and np.isnan(m["end_error"]) and np.isnan(m["end_motion"])
+    assert len(c["mean_error"]) == len(c["ke_pred"]) == 12 and c["frames"] == 20 and c["diverged_frame"] == 12
+
+
+def _write(path, rest, sequences, method=None):
+    """A trajectory-layout file: ground truth (no method) or a rollout (method, latents, step_ms, diverged_frame)."""
+    with h5py.File(path, "w") as f:
+        f.attrs["dt"] = 0.01
+        f["rest_positions"], f["masses"], f["dirichlet"] = rest, np.ones(len(rest)), np.array([0])
+        if method:
+            f.attrs["method"] = method
+        for name, (x, div) in sequences.items():
+            g = f.create_group(f"sequences/{name}")
+            g["positions"], g["dirichlet_positions"], g["frame_ms"] = x, x[:, [0]], np.full(len(x), 4.0)
+            if method:
+                g["latents"] = np.zeros((len(x), 3))
+                g.attrs["diverged_frame"], g.attrs["step_ms"] = div, 0.5
+    return path
+
+
+def test_evaluate_scene_one_row_per_method_and_sequence(tmp_path):
+    x, rest = _swing()
+    gt = _write(tmp_path / "trajectories.h5", rest, {"s0": (x, -1), "s1": (x, -1)})
+    ok = _write(tmp_path / "ok.h5", rest, {"s0": (x + [0, 0, 0.01], -1), "s1": (x, -1)}, method="self_supervised")
+    bad = x.copy()
+    bad[8:] = np.nan
+    div = _write(tmp_path / "div.h5", rest, {"s1": (bad, 8)}, method="supervised_5x256")
+    df, curves = evaluate_scene("a", gt, [ok, div])
+    assert list(zip(df["method"], df["sequence"])) == [("self_supervised", "s0"), ("self_supervised", "s1"), ("supervised_5x256", "s1")]
+    assert list(df.columns[:12]) == ["scene", "method", "sequence", "frames", "diverged_frame", "mean_error", "max_error",
+                                     "dirichlet_error", "kinetic_ratio", "end_error", "end_motion", "end_motion_truth"]  # fmt: skip
+    r = df.set_index(["method", "sequence"])
+    assert np.isclose(r.loc[("self_supervised", "s0"), "mean_error"], 0.01 / bbox_diagonal(rest))
+    assert r.loc[("self_supervised", "s1"), "mean_error"] == 0.0 and r.loc[("supervised_5x256", "s1"), "diverged_frame"] == 8
+    # the simulator's median frame time over one latent step
+    assert np.isclose(r.loc[("self_supervised", "s0"), "speedup"], 8.0) and (r["dof"] == rest.size).all() and (r["latent_dim"] == 3).all()
+    assert set(curves) == {"self_supervised", "supervised_5x256"} and len(curves["supervised_5x256"]["s1"]["mean_error"]) == 8
+    rollout_curves("a", curves, tmp_path / "errors.png")
+    assert (tmp_path / "errors.png").stat().st_size > 0
 
 
 def _metrics():

@@ -1,4 +1,4 @@
-"""Charts, renders, clips and ParaView series (latentsim.report.plots, latentsim.report.render).
+"""Charts, renders, clips and ParaView series (latentsim.report.plots, .render, .paraview; the Pareto front of .metrics).
 
 Everything runs on hand-made points and tiny synthetic trajectory files (a
 3-rod comb, a 4x3 cloth, a two-tet block), so the module takes a few seconds.
@@ -12,8 +12,7 @@ import pandas as pd
 import pytest
 from PIL import Image
 
-from latentsim.report import plots
-from latentsim.report import render
+from latentsim.report import metrics, paraview, plots, render
 from latentsim.io import ArtefactError
 from latentsim.utils import working_directory
 
@@ -26,21 +25,21 @@ def test_pareto_front_hand_made_points():
     errors = [0.5, 0.2, 0.1, 0.3, 2.0, 0.1]
     # D is dominated by B (faster, more accurate); F ties C's error but is slower
     expected = [True, True, True, False, True, False]
-    np.testing.assert_array_equal(plots.pareto_front(times, errors), expected)
+    np.testing.assert_array_equal(metrics.pareto_front(times, errors), expected)
 
 
 def test_pareto_front_ties_duplicates_and_nan():
     # duplicates: both on the front; same time, larger error: dominated
-    m = plots.pareto_front([1.0, 1.0, 1.0, 2.0], [0.3, 0.3, 0.4, 0.1])
+    m = metrics.pareto_front([1.0, 1.0, 1.0, 2.0], [0.3, 0.3, 0.4, 0.1])
     np.testing.assert_array_equal(m, [True, True, False, True])
     # a diverged method (NaN error), however fast, is excluded and dominates nothing
-    m = plots.pareto_front([0.1, 1.0, 2.0, np.inf], [np.nan, 0.5, 0.6, 0.01])
+    m = metrics.pareto_front([0.1, 1.0, 2.0, np.inf], [np.nan, 0.5, 0.6, 0.01])
     np.testing.assert_array_equal(m, [False, True, False, False])
     # all NaN: empty front; one point: on the front
-    assert not plots.pareto_front([np.nan], [np.nan]).any()
-    assert plots.pareto_front([3.0], [1e-9]).all()
+    assert not metrics.pareto_front([np.nan], [np.nan]).any()
+    assert metrics.pareto_front([3.0], [1e-9]).all()
     with pytest.raises(ValueError, match="differ in length"):
-        plots.pareto_front([1.0, 2.0], [1.0])
+        metrics.pareto_front([1.0, 2.0], [1.0])
 
 
 # --------------------------------------------------------------------------- charts
@@ -223,6 +222,11 @@ def test_energy_and_training_curves(tmp_path):
     assert out["yscale"] == "symlog"
     with pytest.raises(ArtefactError, match="latent_mse"):
         plots.training_curves({"run": h5}, tmp_path / "t3.png", key="latent_mse")
+
+
+def test_empty_figure_says_why(tmp_path):
+    plots.empty_figure(tmp_path / "none.png", "no stress conditions were run")
+    _png(tmp_path / "none.png")  # the text: dark pixels on white
 
 
 # --------------------------------------------------------------------------- tiny trajectory files
@@ -426,7 +430,7 @@ def test_render_clip_gif(tmp_path):
 
 def test_write_xdmf_series_reads_back(example, tmp_path):
     out = tmp_path / "paraview" / "seq_rollout.xdmf"
-    r = render.write_xdmf_series(example["ok"], "seq", out, reference=example["gt"])
+    r = paraview.write_xdmf_series(example["ok"], "seq", out, reference=example["gt"])
     n, T = len(example["rest"]), example["T"]
     assert r["frames"] == T and r["fields"] == ["displacement", "dirichlet", "error"]
     assert out.exists() and (out.parent / "seq_rollout.h5").exists()
@@ -447,20 +451,20 @@ def test_write_xdmf_series_reads_back(example, tmp_path):
 
 
 def test_write_xdmf_series_divergence_and_guards(example, tmp_path):
-    r = render.write_xdmf_series(example["div"], "seq", tmp_path / "d.xdmf")
+    r = paraview.write_xdmf_series(example["div"], "seq", tmp_path / "d.xdmf")
     assert r["frames"] == 5 and r["fields"] == ["displacement", "dirichlet"]
     with working_directory(tmp_path), meshio.xdmf.TimeSeriesReader("d.xdmf") as rd:
         rd.read_points_cells()
         assert rd.num_steps == 5
         assert np.isfinite(rd.read_data(4)[1]["displacement"]).all()
-    r = render.write_xdmf_series(example["div"], "seq", tmp_path / "all.xdmf", stop_at_divergence=False)
+    r = paraview.write_xdmf_series(example["div"], "seq", tmp_path / "all.xdmf", stop_at_divergence=False)
     assert r["frames"] == example["T"]
     with pytest.raises(ValueError, match="overwrite the input"):
-        render.write_xdmf_series(example["ok"], "seq", tmp_path / "trajectories.xdmf", reference=example["gt"])
+        paraview.write_xdmf_series(example["ok"], "seq", tmp_path / "trajectories.xdmf", reference=example["gt"])
     with pytest.raises(ArtefactError, match="no sequence 'other'"):
-        render.write_xdmf_series(example["ok"], "other", tmp_path / "o.xdmf")
+        paraview.write_xdmf_series(example["ok"], "other", tmp_path / "o.xdmf")
     with pytest.raises(ValueError, match=r"\.xdmf"):
-        render.write_xdmf_series(example["ok"], "seq", tmp_path / "o.vtu")
+        paraview.write_xdmf_series(example["ok"], "seq", tmp_path / "o.vtu")
 
 
 def test_energy_curves_from_files(example, tmp_path):

@@ -68,7 +68,7 @@ def test_point_labels_round_trip():
 
 
 def test_sizes_table_sets_ours_beside_the_papers_and_the_sweeps_choice(tmp_path):
-    from latentsim.report.evaluate import layers_text, sizes_table
+    from latentsim.report.tables import layers_text, sizes_table
 
     df = _rows([(2, "8 8", 100, [0.001, 0.004], False), (4, "32 32", 900, [0.0005, 0.001], False)])
     path = tmp_path / "choice.csv"
@@ -87,7 +87,7 @@ def test_sizes_table_sets_ours_beside_the_papers_and_the_sweeps_choice(tmp_path)
 
 
 def test_sizes_table_names_a_choice_file_without_the_columns_it_needs(tmp_path):
-    from latentsim.report.evaluate import sizes_table
+    from latentsim.report.tables import sizes_table
 
     bad = tmp_path / "choice.csv"
     pd.DataFrame({"latent_dim": [2]}).to_csv(bad, index=False)
@@ -96,7 +96,7 @@ def test_sizes_table_names_a_choice_file_without_the_columns_it_needs(tmp_path):
 
 
 def test_sizes_table_compares_with_the_papers_size_where_the_sweep_trained_it(tmp_path):
-    from latentsim.report.evaluate import sizes_table
+    from latentsim.report.tables import sizes_table
 
     df = _rows([(2, "32 32", 100, [0.010], False), (4, "200 200 200", 900, [0.004], False), (8, "200 200 200", 950, [0.5], True)])
     df["integrator_widths"] = "32 32"

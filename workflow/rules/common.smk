@@ -5,7 +5,7 @@ from snakemake.exceptions import WorkflowError
 
 from latentsim.stages import neural_modes as nm_pipeline
 from latentsim.latent.baselines import BASELINES
-from latentsim.report.evaluate import layers_text
+from latentsim.report.tables import layers_text
 from latentsim.latent.sweep import parse_label, point_label
 from latentsim.config import (
     ConfigError,
@@ -185,9 +185,7 @@ def all_targets():
     ]
     out += expand("results/evaluation/{scene}/metrics.csv", scene=SCENES)
     out += expand("results/evaluation/{scene}/frames.png", scene=SCENES)
-    out += [
-        f"results/sweep/{scene}/choice.csv" for scene in SCENES if sweep_points(scene)
-    ]
+    out += list(sweep_choices().values())
     out += ["results/evaluation/summary.csv", "results/evaluation/summary.md"]
     return out
 

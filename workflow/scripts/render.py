@@ -1,5 +1,5 @@
-"""Stage: frames, clip and ParaView series of a scene's methods (see latentsim.report.evaluate.render_scene)."""
-from latentsim.report.evaluate import render_scene
+"""Stage: frames, clip and ParaView series of a scene's methods (see latentsim.stages.evaluate.render_scene)."""
+from latentsim.stages.evaluate import render_scene
 from latentsim.utils import run_stage
 
 

@@ -1,5 +1,5 @@
-"""Stage: summary tables and charts across scenes (see latentsim.report.evaluate.summarise)."""
-from latentsim.report.evaluate import summarise
+"""Stage: summary tables and charts across scenes (see latentsim.stages.evaluate.summarise)."""
+from latentsim.stages.evaluate import summarise
 from latentsim.utils import run_stage
 
 

@@ -1,7 +1,7 @@
 """Stage: the sizing sweep's choice and chart (see latentsim.latent.sweep.choose)."""
 import pandas as pd
 
-from latentsim.report.evaluate import write_table
+from latentsim.report.tables import write_table
 from latentsim.latent.sweep import choose, sweep_chart
 from latentsim.utils import run_stage
 

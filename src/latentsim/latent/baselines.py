@@ -27,7 +27,7 @@ to the reduced elastic forces at the subspace's projections of the training
 frames and replaces the elastic energy in the step.
 
 Each writes a rollout file in the trajectory layout of
-:func:`latentsim.stages.rollout.rollout_scene`, so :mod:`latentsim.report.evaluate` reads all
+:func:`latentsim.stages.rollout.rollout_scene`, so :mod:`latentsim.stages.evaluate` reads all
 methods alike.  A step that fails (non-finite values, a reduced Hessian that
 is not positive definite, a line search that stalls) marks the frame as the
 divergence instead of stopping the stage.

@@ -29,7 +29,7 @@ import torch
 
 from latentsim.config import with_defaults
 from latentsim.latent.autoencoder import decode_latents, encode_positions
-from latentsim.report.evaluate import bbox_diagonal
+from latentsim.report.metrics import bbox_diagonal
 from latentsim.scene import dirichlet_trajectory
 
 

@@ -34,7 +34,8 @@ from latentsim.latent.rollout import rollout as latent_rollout
 from latentsim.latent.stability import stress_test
 from latentsim.latent.timing import time_steppers
 from latentsim.latent.training import fit_integrator
-from latentsim.report.evaluate import bbox_diagonal, vertex_errors, write_table
+from latentsim.report.metrics import bbox_diagonal, vertex_errors
+from latentsim.report.tables import write_table
 from latentsim.report.plots import save_figure
 from latentsim.runtime import compiled as runtime_compiled
 from latentsim.scene import potential_from_artefact

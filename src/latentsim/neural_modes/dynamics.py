@@ -28,6 +28,7 @@ import numpy as np
 from scipy.special import erf
 
 from latentsim.neural_modes import NeuralModes
+from latentsim.report.metrics import bbox_diagonal
 
 log = logging.getLogger(__name__)
 
@@ -237,7 +238,7 @@ def subspace_dynamics(f, model: NeuralModes, box: float, settings: dict, progres
     if len(ref) < 3:
         raise ValueError(f"{f.filename}: sequence {name!r} has {len(ref)} frames; the dynamics study needs at least 3")
     X = f["rest_positions"][()]
-    diag = float(np.linalg.norm(X.max(0) - X.min(0)))
+    diag = bbox_diagonal(X)
     full = time_full_space(f, name, int(settings["full_frames_timed"]))
     D = pot.dirichlet.numpy()
     subspaces = {"neural": NeuralModesSubspace(model, D), "linear": NeuralModesSubspace(model, D, linear_only=True)}

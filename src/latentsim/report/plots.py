@@ -1,19 +1,23 @@
 """Charts for the cross-method evaluation (matplotlib, Agg backend, no display).
 
 Every function takes plain arrays, a :class:`pandas.DataFrame` or artefact
-paths, writes one image atomically (:func:`latentsim.io.atomic_path`; the
-format follows the path's suffix, PNG by default) and returns what it drew, so
-tests and callers can check the numbers without reading pixels.
+paths, writes one image atomically (:func:`save_figure`; the format follows
+the path's suffix, PNG by default) and returns what it drew, so tests and
+callers can check the numbers without reading pixels.  The numbers drawn
+come from :mod:`latentsim.report.metrics`.
 
-- :func:`pareto_front`: non-dominated (faster *and* more accurate) points;
 - :func:`speed_accuracy_chart`: log ms/frame against log error per method,
-  Pareto front marked; one scene or small multiples across scenes;
+  Pareto front (:func:`latentsim.report.metrics.pareto_front`) marked; one
+  scene or small multiples across scenes;
+- :func:`rollout_curves`: per test sequence, vertex error, Dirichlet error and
+  kinetic energy over time, one line per method (Li et al. Figs. 8-12);
 - :func:`stability_heatmap`: method x condition -> frames survived, with the
   end boundary-condition error; diverged cells hatched;
 - :func:`energy_curves`: kinetic energy (and incremental potential) over time,
   ground truth against methods (:func:`energy_curves_from_files` recomputes
   the kinetic energy from trajectory files);
-- :func:`training_curves`: loss histories of several runs on one log axis.
+- :func:`training_curves`: loss histories of several runs on one log axis;
+- :func:`empty_figure`: a figure that only says why there is nothing to draw.
 """
 
 from __future__ import annotations
@@ -32,12 +36,15 @@ from matplotlib.lines import Line2D
 from matplotlib.ticker import NullFormatter
 
 from latentsim.io import ArtefactError, atomic_path, require
+from latentsim.report.metrics import kinetic_energy, pareto_front
 
 __all__ = [
+    "empty_figure",
     "energy_curves",
     "energy_curves_from_files",
     "method_colours",
-    "pareto_front",
+    "rollout_curves",
+    "save_figure",
     "speed_accuracy_chart",
     "stability_heatmap",
     "training_curves",
@@ -65,44 +72,6 @@ def method_colours(methods) -> dict:
     names = sorted({str(m) for m in methods})
     cmap = plt.get_cmap("tab10" if len(names) <= 10 else "tab20")
     return {m: cmap(i % cmap.N) for i, m in enumerate(names)}
-
-
-# --------------------------------------------------------------------------- Pareto front
-
-
-def pareto_front(times, errors) -> np.ndarray:
-    """Mask of the non-dominated points (lower-left front: fast and accurate).
-
-    Point ``i`` is dominated when another point ``j`` is no slower and no less
-    accurate, and strictly better in one of the two.  Identical points do not
-    dominate each other (duplicates are all on the front).  Points whose time
-    or error is NaN or infinite (e.g. a diverged method) are never on the front
-    and dominate nothing.
-
-    Parameters
-    ----------
-    times : (p,) float
-        Cost per point, e.g. ms per frame.
-    errors : (p,) float
-        Error per point.
-
-    Returns
-    -------
-    on_front : (p,) bool
-    """
-    t = np.asarray(times, dtype=float).ravel()
-    e = np.asarray(errors, dtype=float).ravel()
-    if t.shape != e.shape:
-        raise ValueError(f"pareto_front: times {t.shape} and errors {e.shape} differ in length")
-    ok = np.isfinite(t) & np.isfinite(e)
-    tv, ev = t[ok], e[ok]
-    # dominated[i] = any_j (t_j <= t_i & e_j <= e_i & (t_j < t_i | e_j < e_i))
-    no_worse = (tv[None, :] <= tv[:, None]) & (ev[None, :] <= ev[:, None])
-    better = (tv[None, :] < tv[:, None]) | (ev[None, :] < ev[:, None])
-    dominated = (no_worse & better).any(axis=1)
-    mask = np.zeros(t.shape, dtype=bool)
-    mask[np.flatnonzero(ok)] = ~dominated
-    return mask
 
 
 # --------------------------------------------------------------------------- speed vs accuracy
@@ -351,6 +320,62 @@ def stability_heatmap(df: pd.DataFrame, path, title="stability: frames survived"
     return {"methods": methods, "conditions": conditions, "frames": frames, "colour": colour, "bc_error": bc, "diverged": diverged}
 
 
+# --------------------------------------------------------------------------- rollouts over time
+
+
+def rollout_curves(scene: str, curves: dict, path) -> None:
+    """Per test sequence (columns): vertex error, Dirichlet error and kinetic energy over time, one line per method.
+
+    A method's curve ends where it diverged (marked with a cross).  This one
+    figure holds the paper's Figs. 8-12 for the scene: stability of the
+    supervised baselines, the ablations' errors, BC satisfaction and the
+    kinetic energy of the rollout against the ground truth.
+
+    Parameters
+    ----------
+    scene : str, named in the titles.
+    curves : {method: {sequence: curves of :func:`latentsim.report.metrics.rollout_metrics`}}.
+    path : output image.
+    """
+    sequences = list(dict.fromkeys(name for per in curves.values() for name in per))
+    n = max(len(sequences), 1)
+    fig, axes = plt.subplots(3, n, figsize=(4.8 * n, 9), squeeze=False)
+    for j, name in enumerate(sequences):
+        truth = None  # ground-truth KE: the longest (undiverged) copy among the methods
+        for k, (method, per) in enumerate(curves.items()):
+            if name not in per:
+                continue
+            c = per[name]
+            colour = f"C{k % 10}"
+            t = np.arange(len(c["mean_error"])) * c["dt"]
+            axes[0, j].semilogy(t, np.maximum(c["mean_error"], 1e-12), color=colour, label=method)
+            axes[1, j].semilogy(t, np.maximum(c["dirichlet_error"], 1e-12), color=colour, label=method)
+            axes[2, j].plot(t, c["ke_pred"], color=colour, ls="--", label=method)
+            if c["diverged_frame"] >= 0 and len(t):
+                axes[0, j].plot(t[-1], max(c["mean_error"][-1], 1e-12), "x", color=colour, ms=9)
+            if truth is None or len(c["ke_truth"]) > len(truth[1]):
+                truth = (c["dt"], c["ke_truth"])
+        if truth is not None:
+            axes[2, j].plot(np.arange(len(truth[1])) * truth[0], truth[1], color="k", lw=2.0, alpha=0.5, label="full space")
+        axes[0, j].set_title(f"{scene} / {name}")
+        axes[0, j].set_ylabel("mean vertex error / bbox diag")
+        axes[1, j].set_ylabel("Dirichlet error / bbox diag")
+        axes[2, j].set_ylabel("kinetic energy [J]")
+        axes[2, j].set_xlabel("time [s]")
+        for i in range(3):
+            axes[i, j].legend(fontsize=7)
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def empty_figure(path, text: str) -> None:
+    """A small image that says ``text`` (why there is nothing to draw), so a rule's output exists."""
+    fig, ax = plt.subplots(figsize=(4, 2))
+    ax.text(0.5, 0.5, text, ha="center", va="center")
+    ax.axis("off")
+    save_figure(fig, path)
+
+
 # --------------------------------------------------------------------------- energies
 
 
@@ -421,7 +446,7 @@ def energy_curves_from_files(truth_h5, rollouts: Mapping, sequence: str, path, t
     """Kinetic energy of one sequence: ground truth file against rollout files.
 
     The kinetic energy is recomputed from positions and lumped masses with
-    backward-difference velocities (:func:`latentsim.report.evaluate.kinetic_energy`),
+    backward-difference velocities (:func:`latentsim.report.metrics.kinetic_energy`),
     identically for every file.
 
     Parameters
@@ -436,8 +461,6 @@ def energy_curves_from_files(truth_h5, rollouts: Mapping, sequence: str, path, t
     dict name -> {"kinetic": (T,) float} [J], the curves drawn (NaN after a
     rollout's divergence), the ground truth under ``"ground truth"``.
     """
-    from latentsim.report.evaluate import kinetic_energy
-
     def load(p):
         with h5py.File(p, "r") as f:
             g = require(require(f, "sequences"), sequence)

@@ -1,11 +1,11 @@
-"""Looking at motions: rendered frames, clips and ParaView series of any trajectory file.
+"""Looking at motions: rendered frames and clips of any trajectory file.
 
 Every function reads the trajectory layout of ``docs/artefacts.md`` (ground
-truth ``trajectories.h5`` and rollouts ``rollout.h5`` alike: root
-``rest_positions``, ``dirichlet``, the model's connectivity, attribute
-``model``; ``/sequences/<name>/positions (T,n,3)``, attribute
-``diverged_frame`` on rollouts) or an already loaded :class:`Motion`, and
-writes one file atomically (:func:`latentsim.io.atomic_path`).
+truth ``trajectories.h5`` and rollouts ``rollout.h5`` alike, through
+:func:`latentsim.report.motion.load_motion`) or an already loaded
+:class:`~latentsim.report.motion.Motion`, and writes one file atomically
+(:func:`latentsim.io.atomic_path`).  The ParaView series of the same files
+are :func:`latentsim.report.paraview.write_xdmf_series`.
 
 - :func:`render_frames`: ground truth against each method, side by side, at
   chosen frames (matplotlib 3D: rods as polylines, shells and the boundary
@@ -13,147 +13,29 @@ writes one file atomically (:func:`latentsim.io.atomic_path`).
   shares the same axes; a method that has diverged by a frame gets an empty
   panel naming its divergence frame;
 - :func:`render_clip`: the same side by side as an animated GIF (Pillow), or
-  MP4 where ffmpeg exists;
-- :func:`write_xdmf_series`: XDMF + HDF5 time series for ParaView with the
-  ``displacement`` from rest, a ``dirichlet`` marker and, against a reference
-  file, the per-vertex ``error``.
+  MP4 where ffmpeg exists.
 """
 
 from __future__ import annotations
 
 import os
-import shutil
 import tempfile
-from dataclasses import dataclass
 from pathlib import Path
 
-import h5py
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
-import meshio
 import numpy as np
 from matplotlib import animation
 from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 
-from latentsim.io import ArtefactError, atomic_path, require
-from latentsim.mesh import surface_of
-from latentsim.utils import working_directory
+from latentsim.io import atomic_path
+from latentsim.report.motion import Motion, load_motion
 
-__all__ = ["Motion", "have_ffmpeg", "load_motion", "render_clip", "render_frames", "write_xdmf_series"]
+__all__ = ["Motion", "have_ffmpeg", "load_motion", "render_clip", "render_frames"]
 
-# connectivity each model needs (first match wins for tets: a stored surface saves recomputing it)
-_MODEL_CELLS = {"rods": ("edges",), "shell": ("triangles",), "tets": ("surface", "tets")}
 _LIGHT = np.array([0.3, 0.8, 0.5]) / np.linalg.norm([0.3, 0.8, 0.5])
-
-
-@dataclass
-class Motion:
-    """One sequence of a trajectory-layout file, possibly a subset of its frames.
-
-    Attributes
-    ----------
-    label : str, what panels call it (method name or "ground truth").
-    sequence : str
-    model : str, ``rods``, ``shell`` or ``tets``.
-    positions : (k,n,3) float, the loaded frames (NaN after divergence).
-    frames : (k,) int, frame index of each loaded position.
-    n_frames : int, frames in the file's sequence.
-    rest : (n,3) float, rest positions.
-    dirichlet : (m,) int, prescribed vertices.
-    segments : (E,2) int or None, rod edges (polylines).
-    triangles : (F,3) int or None, shell triangles or the tets' boundary faces.
-    dt : float
-    diverged_frame : int, first diverged frame, -1 when stable (or unknown).
-    vertical : int, axis drawn upwards (that of the root ``gravity``; y when absent).
-    """
-
-    label: str
-    sequence: str
-    model: str
-    positions: np.ndarray
-    frames: np.ndarray
-    n_frames: int
-    rest: np.ndarray
-    dirichlet: np.ndarray
-    segments: np.ndarray | None
-    triangles: np.ndarray | None
-    dt: float
-    diverged_frame: int = -1
-    vertical: int = 1
-
-    def at(self, frame: int):
-        """Positions (n,3) at ``frame``, or None when not loaded / past the end."""
-        k = np.flatnonzero(self.frames == frame)
-        return self.positions[k[0]] if len(k) else None
-
-    def status(self, frame: int) -> str:
-        """``ok``, ``diverged`` (at or after divergence, or non-finite) or ``missing``."""
-        if frame >= self.n_frames:
-            return "missing"
-        if 0 <= self.diverged_frame <= frame:
-            return "diverged"
-        x = self.at(frame)
-        if x is None:
-            return "missing"
-        return "ok" if np.isfinite(x).all() else "diverged"
-
-
-def load_motion(h5_path, sequence: str, frames=None, label=None) -> Motion:
-    """Read one sequence of a trajectory-layout file.
-
-    Parameters
-    ----------
-    h5_path : path of ``trajectories.h5``, ``rollout.h5`` or any file of that layout.
-    sequence : str, group name under ``/sequences``.
-    frames : iterable of int or None
-        Frames to read (those past the sequence's end are skipped); all when None.
-    label : str, defaults to the file's ``method`` attribute or its path.
-
-    Raises
-    ------
-    ArtefactError
-        Naming the file and the missing key (sequence, positions, connectivity).
-    """
-    h5_path = str(h5_path)
-    with h5py.File(h5_path, "r") as f:
-        seqs = require(f, "sequences", path=h5_path)
-        if sequence not in seqs:
-            raise ArtefactError(f"{h5_path}: no sequence '{sequence}'; has {sorted(seqs)}")
-        g = seqs[sequence]
-        ds = require(g, "positions", path=h5_path)
-        T = ds.shape[0]
-        if frames is None:
-            idx = np.arange(T)
-            pos = ds[()]
-        else:
-            idx = np.unique(np.asarray(list(frames), dtype=np.int64))
-            if (idx < 0).any():
-                raise ValueError(f"{h5_path}: negative frame in {idx.tolist()}")
-            idx = idx[idx < T]
-            pos = ds[idx] if len(idx) else np.zeros((0,) + ds.shape[1:])
-        model = str(f.attrs.get("model", ""))
-        if model not in _MODEL_CELLS:
-            raise ArtefactError(f"{h5_path}: root attribute 'model' is {model!r}; expected one of {sorted(_MODEL_CELLS)}")
-        segments = triangles = None
-        if model == "rods":
-            segments = require(f, "edges", path=h5_path)[()]
-        elif model == "shell":
-            triangles = require(f, "triangles", path=h5_path)[()]
-        else:
-            triangles = f["surface"][()] if "surface" in f else surface_of(require(f, "tets", path=h5_path)[()])
-        rest = f["rest_positions"][()] if "rest_positions" in f else ds[0]
-        dirichlet = f["dirichlet"][()] if "dirichlet" in f else np.zeros(0, dtype=np.int64)
-        div = int(g.attrs.get("diverged_frame", -1))
-        if label is None:
-            label = str(g.attrs.get("method", f.attrs.get("method", Path(h5_path).parent.name)))
-        dt = float(f.attrs.get("dt", 1.0))
-        g_vec = np.asarray(f.attrs.get("gravity", [0.0, -1.0, 0.0]), dtype=float).ravel()
-        vertical = int(np.argmax(np.abs(g_vec))) if g_vec.size == 3 and np.abs(g_vec).max() > 0 else 1
-    return Motion(
-        label, sequence, model, np.asarray(pos, float), idx, T, rest, dirichlet, segments, triangles, dt, div, vertical
-    )
 
 
 def _as_motion(obj, sequence, frames, label) -> Motion:
@@ -508,95 +390,3 @@ def render_clip(
         os.replace(inner, tmp)
     plt.close(fig)
     return {"frames": frames, "bytes": path.stat().st_size}
-
-
-def _cells(h5, model: str, h5_path):
-    key = {"rods": ("line", "edges"), "shell": ("triangle", "triangles"), "tets": ("tetra", "tets")}[model]
-    return [(key[0], np.asarray(require(h5, key[1], path=h5_path)[()]))]
-
-
-def write_xdmf_series(h5_path, sequence: str, out, reference=None, *, stop_at_divergence=True) -> dict:
-    """XDMF + HDF5 time series of one sequence of any trajectory-layout file, for ParaView.
-
-    The mesh is the rest shape (``rest_positions``) with the model's cells
-    (rod edges as lines, shell triangles, tetrahedra); each time step carries
-    the point fields
-
-    - ``displacement`` (n,3) [m]: positions minus rest (ParaView: *Warp By Vector*);
-    - ``dirichlet`` (n,) : 1 on prescribed vertices, 0 elsewhere;
-    - ``error`` (n,) [m], only with ``reference``: distance of each vertex to
-      the reference file's same sequence at the same frame (NaN past the
-      reference's last frame).
-
-    Parameters
-    ----------
-    h5_path : trajectory-layout file (``rollout.h5``, ``trajectories.h5``).
-    sequence : str, group under ``/sequences``.
-    out : path of the ``.xdmf`` to write; its heavy data go to the sibling
-        ``<stem>.h5``.  Both are written under temporary names and renamed
-        (the ``.h5`` first), so a complete ``.xdmf`` always has its data.
-    reference : path of the ground-truth file, or None.
-    stop_at_divergence : bool
-        Write only the frames before ``diverged_frame`` (the rest are NaN).
-
-    Returns
-    -------
-    dict with ``frames`` (number of time steps written), ``fields`` (names)
-    and ``h5`` (path of the data file).
-    """
-    out = Path(out)
-    if out.suffix.lower() != ".xdmf":
-        raise ValueError(f"write_xdmf_series: out must end in .xdmf, got {out}")
-    data_file = out.with_suffix(".h5")
-    for src in [h5_path] + ([reference] if reference is not None else []):
-        if data_file.resolve() == Path(src).resolve():
-            raise ValueError(f"write_xdmf_series: the series data file {data_file} would overwrite the input {src}")
-    h5_path = str(h5_path)
-    with h5py.File(h5_path, "r") as f:
-        model = str(f.attrs.get("model", ""))
-        if model not in _MODEL_CELLS:
-            raise ArtefactError(f"{h5_path}: root attribute 'model' is {model!r}; expected one of {sorted(_MODEL_CELLS)}")
-        cells = _cells(f, model, h5_path)
-        rest = require(f, "rest_positions", path=h5_path)[()]
-        D = f["dirichlet"][()] if "dirichlet" in f else np.zeros(0, dtype=np.int64)
-        dt = float(f.attrs.get("dt", 1.0))
-        seqs = require(f, "sequences", path=h5_path)
-        if sequence not in seqs:
-            raise ArtefactError(f"{h5_path}: no sequence '{sequence}'; has {sorted(seqs)}")
-        g = seqs[sequence]
-        pos = require(g, "positions", path=h5_path)[()]
-        div = int(g.attrs.get("diverged_frame", -1))
-    if pos.shape[1:] != rest.shape:
-        raise ArtefactError(f"{h5_path}: sequence '{sequence}' positions {pos.shape} do not match rest_positions {rest.shape}")
-    if stop_at_divergence and div >= 0:
-        pos = pos[:div]
-    ref = None
-    if reference is not None:
-        ref = load_motion(reference, sequence).positions
-        if ref.shape[1:] != rest.shape:
-            raise ValueError(
-                f"write_xdmf_series: reference {reference} sequence '{sequence}' has {ref.shape[1]} vertices, {h5_path} has {rest.shape[0]}"
-            )
-    marker = np.zeros(len(rest))
-    marker[D] = 1.0
-    fields = ["displacement", "dirichlet"] + (["error"] if ref is not None else [])
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmpdir = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.stem}.tmp-"))
-    try:
-        # meshio's TimeSeriesWriter writes <stem>.h5 into the current directory and
-        # names it inside the .xdmf, so both are written under their final names in a
-        # temporary folder and then moved beside each other
-        with working_directory(tmpdir), meshio.xdmf.TimeSeriesWriter(out.name) as w:
-            w.write_points_cells(rest, cells)
-            for t in range(len(pos)):
-                pd = {"displacement": pos[t] - rest, "dirichlet": marker}
-                if ref is not None:
-                    pd["error"] = (
-                        np.linalg.norm(pos[t] - ref[t], axis=1) if t < len(ref) else np.full(len(rest), np.nan)
-                    )
-                w.write_data(t * dt, point_data=pd)
-        os.replace(tmpdir / data_file.name, data_file)
-        os.replace(tmpdir / out.name, out)
-    finally:
-        shutil.rmtree(tmpdir, ignore_errors=True)
-    return {"frames": len(pos), "fields": fields, "h5": data_file}

@@ -18,7 +18,7 @@ from latentsim.latent.autoencoder import decode_latents, encode_positions, fit_a
 from latentsim.latent.coordinates import coordinates_for
 from latentsim.latent.data import load_sequences
 from latentsim.latent.serialization import save_module
-from latentsim.report.evaluate import bbox_diagonal
+from latentsim.report.metrics import bbox_diagonal
 
 log = logging.getLogger(__name__)
 

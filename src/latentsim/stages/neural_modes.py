@@ -226,7 +226,7 @@ def read_linear_modes(path) -> dict:
 
 def write_table(df, path):
     """A DataFrame as CSV, atomically (``evaluate.write_table``)."""
-    from latentsim.report.evaluate import write_table as write_csv
+    from latentsim.report.tables import write_table as write_csv
 
     write_csv(df, path)
 
@@ -405,7 +405,7 @@ def dynamics_stage(trajectories_h5, model_pt, params: dict, out: dict, progress:
     ``out``: ``csv``, ``markdown``, ``paraview`` (folder), and one path per method slug (trajectory
     layout, the scene's test sequence: positions, latents, step_ms, iterations, error).
     """
-    from latentsim.report.render import write_xdmf_series
+    from latentsim.report.paraview import write_xdmf_series
 
     model = nm.load_neural_modes(model_pt)
     st = params["study"]
@@ -449,7 +449,7 @@ def keyframes_stage(mesh_h5, model_pt, params: dict, out_h5, out_png, out_paravi
     """Stage ``nm_keyframes`` (Fig. 6): keyframe poses interpolated linearly in modal coordinates, decoded by
     Neural Modes and by the linear modes alone; a trajectory-layout file, a figure and ParaView series."""
     from latentsim.report import nm_figures
-    from latentsim.report.render import write_xdmf_series
+    from latentsim.report.paraview import write_xdmf_series
 
     model = nm.load_neural_modes(model_pt)
     arrays = read_mesh_arrays(mesh_h5)

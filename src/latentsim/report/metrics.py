@@ -1,0 +1,136 @@
+"""Metrics of a rollout against the full-space ground truth (Li et al. 2025, Sec. 6 and Figs. 8-12).
+
+Every length is relative to the rest shape's bounding-box diagonal ``diag``
+(:func:`bbox_diagonal`), so scenes of any size compare.  Per test sequence
+(:func:`rollout_metrics`), over the frames before divergence:
+
+- ``mean_error`` / ``max_error``: mean over frames of the mean vertex distance
+  to the ground truth, and the largest vertex distance of any frame
+  (:func:`vertex_errors`);
+- ``dirichlet_error``: mean distance of the Dirichlet vertices to their
+  prescribed positions;
+- ``kinetic_ratio``: mean kinetic energy of the rollout over that of the
+  ground truth (:func:`kinetic_energy`; 1 = no numerical damping);
+- ``end_error`` / ``end_motion`` / ``end_motion_truth``: the steady state
+  (last 10% of the frames, Li et al. Fig. 10): mean error there, and the RMS
+  vertex displacement per frame of the rollout and of the ground truth
+  (0 at rest); NaN for a rollout that diverged.
+
+:func:`pareto_front` marks the non-dominated methods of a speed-accuracy
+comparison.  Plain NumPy: no plotting library is imported here.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["bbox_diagonal", "kinetic_energy", "pareto_front", "rollout_metrics", "vertex_errors"]
+
+
+def bbox_diagonal(x: np.ndarray) -> float:
+    """Length of the diagonal of the axis-aligned bounding box of the points ``x`` (n,3)."""
+    return float(np.linalg.norm(x.max(axis=0) - x.min(axis=0)))
+
+
+def kinetic_energy(positions: np.ndarray, masses: np.ndarray, dt: float) -> np.ndarray:
+    """Kinetic energy 1/2 sum_i m_i |v_i|^2 per frame, with backward-difference velocities.
+
+    Parameters
+    ----------
+    positions : (T,n,3) float, a motion.
+    masses : (n,) float, lumped vertex masses.
+    dt : float, time step [s].
+
+    Returns
+    -------
+    (T,) float [J]; frame 0 (no previous frame) is 0.
+    """
+    v = np.diff(positions, axis=0) / dt
+    ke = 0.5 * np.einsum("n,tn->t", masses, (v * v).sum(-1))
+    return np.concatenate([[0.0], ke])
+
+
+def vertex_errors(pred: np.ndarray, truth: np.ndarray, diag: float):
+    """Per-frame mean and max vertex distance between two motions (T,n,3), over ``diag``; each (T,)."""
+    d = np.linalg.norm(pred - truth, axis=-1) / diag
+    return d.mean(axis=-1), d.max(axis=-1)
+
+
+def rollout_metrics(pred, truth, dirichlet_truth, dirichlet, masses, dt: float, diag: float, diverged_frame: int):
+    """The metrics of one rollout of a test sequence against the ground truth (see the module docstring).
+
+    Parameters
+    ----------
+    pred, truth : (T,n,3) float, rollout and ground-truth positions.
+    dirichlet_truth : (T,m,3) float, the prescribed positions of the Dirichlet vertices.
+    dirichlet : (m,) int, the Dirichlet vertices.
+    masses : (n,) float; dt : time step [s]; diag : the rest bounding-box diagonal.
+    diverged_frame : first diverged frame of the rollout, -1 when stable.
+
+    Returns
+    -------
+    metrics : dict ``frames``, ``diverged_frame``, ``mean_error``, ``max_error``, ``dirichlet_error``,
+        ``kinetic_ratio``, ``end_error``, ``end_motion``, ``end_motion_truth`` (in this order: a table's columns).
+    curves : dict of per-frame arrays over the frames before divergence, ``mean_error``,
+        ``dirichlet_error``, ``ke_truth``, ``ke_pred``, with ``dt``, ``frames`` and ``diverged_frame``.
+    """
+    T, div = len(truth), int(diverged_frame)
+    ok = slice(0, T if div < 0 else div)
+    mean_e, max_e = vertex_errors(pred[ok], truth[ok], diag)
+    bc_e = np.linalg.norm(pred[ok][:, dirichlet] - dirichlet_truth[ok], axis=-1).mean(-1) / diag
+    ke_t, ke_p = kinetic_energy(truth[ok], masses, dt), kinetic_energy(pred[ok], masses, dt)
+    # the end of the sequence (last 10% of frames; Li et al. Fig. 10's steady state): error and
+    # residual motion (RMS vertex displacement per frame / diag; 0 at rest)
+    tail = slice(max(1, T - max(T // 10, 2)), T)
+    end_ok = div < 0
+    end_error = float(mean_e[tail].mean()) if end_ok else np.nan
+    step = np.linalg.norm(np.diff(pred[tail.start - 1 : T], axis=0), axis=-1) if end_ok else np.full(1, np.nan)
+    step_t = np.linalg.norm(np.diff(truth[tail.start - 1 : T], axis=0), axis=-1)
+    metrics = dict(
+        frames=T,
+        diverged_frame=div,
+        mean_error=float(mean_e.mean()),
+        max_error=float(max_e.max()),
+        dirichlet_error=float(bc_e.mean()),
+        kinetic_ratio=float(np.nanmean(ke_p) / max(np.nanmean(ke_t), 1e-300)),
+        end_error=end_error,
+        end_motion=float(np.sqrt((step**2).mean()) / diag),
+        end_motion_truth=float(np.sqrt((step_t**2).mean()) / diag),
+    )
+    curves = dict(mean_error=mean_e, dirichlet_error=bc_e, ke_truth=ke_t, ke_pred=ke_p, dt=dt, frames=T, diverged_frame=div)
+    return metrics, curves
+
+
+def pareto_front(times, errors) -> np.ndarray:
+    """Mask of the non-dominated points (lower-left front: fast and accurate).
+
+    Point ``i`` is dominated when another point ``j`` is no slower and no less
+    accurate, and strictly better in one of the two.  Identical points do not
+    dominate each other (duplicates are all on the front).  Points whose time
+    or error is NaN or infinite (e.g. a diverged method) are never on the front
+    and dominate nothing.
+
+    Parameters
+    ----------
+    times : (p,) float
+        Cost per point, e.g. ms per frame.
+    errors : (p,) float
+        Error per point.
+
+    Returns
+    -------
+    on_front : (p,) bool
+    """
+    t = np.asarray(times, dtype=float).ravel()
+    e = np.asarray(errors, dtype=float).ravel()
+    if t.shape != e.shape:
+        raise ValueError(f"pareto_front: times {t.shape} and errors {e.shape} differ in length")
+    ok = np.isfinite(t) & np.isfinite(e)
+    tv, ev = t[ok], e[ok]
+    # dominated[i] = any_j (t_j <= t_i & e_j <= e_i & (t_j < t_i | e_j < e_i))
+    no_worse = (tv[None, :] <= tv[:, None]) & (ev[None, :] <= ev[:, None])
+    better = (tv[None, :] < tv[:, None]) | (ev[None, :] < ev[:, None])
+    dominated = (no_worse & better).any(axis=1)
+    mask = np.zeros(t.shape, dtype=bool)
+    mask[np.flatnonzero(ok)] = ~dominated
+    return mask

@@ -1,0 +1,227 @@
+"""Evaluation stages: every method's rollouts against the full-space ground truth, and the summary.
+
+- :func:`evaluate_scene` / :func:`write_scene_evaluation` (rule ``evaluate``): per scene, one row
+  per method and test sequence with the metrics of :mod:`latentsim.report.metrics` (errors and
+  Dirichlet error relative to the rest bounding-box diagonal, kinetic energy ratio, the steady
+  state's error and motion, first diverged frame) and the timings: ``full_ms`` (the full-space
+  Newton frame, timed in the rollout's own job where it did) against ``latent_ms`` (one latent step:
+  integration + decoding), ``speedup``; beside it the reconstruction and stress tables, the scene's
+  speed-accuracy chart and its curves over time;
+- :func:`summarise` (rule ``summary``): the scenes' tables together, Li et al. Tables 1-2, the
+  stability, reconstruction and model-size tables (:mod:`latentsim.report.tables`), a Markdown copy
+  opening with the glance tables, the speed-accuracy chart and the stress map;
+- :func:`render_scene` (rule ``render``): frames, a clip and ParaView series of a scene's first test
+  sequence (:mod:`latentsim.report.render`, :mod:`latentsim.report.paraview`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pandas as pd
+
+from latentsim.io import atomic_path, require
+from latentsim.report.metrics import bbox_diagonal, rollout_metrics
+from latentsim.report.paraview import write_xdmf_series
+from latentsim.report.plots import empty_figure, rollout_curves, speed_accuracy_chart, stability_heatmap
+from latentsim.report.render import render_clip, render_frames
+from latentsim.report.tables import (
+    glance_grid,
+    glance_table,
+    markdown,
+    reconstruction_table,
+    sizes_table,
+    speed_accuracy_rows,
+    stability_table,
+    stress_table,
+    table1,
+    table2,
+    write_table,
+)
+
+__all__ = ["evaluate_scene", "render_scene", "summarise", "write_scene_evaluation"]
+
+# per-step timings a rollout may record beside ``step_ms`` (NaN where it did not)
+_STEP_PARTS = ("integrate_ms", "decode_ms", "numpy_step_ms", "compiled_step_ms", "jvp_torch_ms", "jvp_forward_ms")
+_TRAIN_SECONDS = ("autoencoder_train_seconds", "integrator_train_seconds")
+
+
+def evaluate_scene(scene: str, trajectories, rollouts):
+    """Metrics of every method's rollouts against the full simulation.
+
+    Parameters
+    ----------
+    scene : scene name (a column of the table).
+    trajectories : the simulator's ``trajectories.h5`` (ground truth).
+    rollouts : one path or a list of rollout files (trajectory layout, attrs
+        ``method``); each holds some of the ground truth's sequences.
+
+    Returns
+    -------
+    table : one row per (method, sequence): the metrics of
+        :func:`latentsim.report.metrics.rollout_metrics` (over the frames before divergence),
+        full_ms (the simulator's median ms/frame, or the rollout job's own full-space timing),
+        latent_ms (one latent step) and its parts, runtime, speedup, dof, latent_dim and the
+        training seconds.
+    curves : {method: {sequence: per-frame arrays}} for :func:`latentsim.report.plots.rollout_curves`.
+    """
+    if isinstance(rollouts, (str, bytes)) or hasattr(rollouts, "__fspath__"):
+        rollouts = [rollouts]
+    rows, curves = [], {}
+    with h5py.File(trajectories, "r") as ft:
+        rest = require(ft, "rest_positions")[()]
+        masses = require(ft, "masses")[()]
+        D = require(ft, "dirichlet")[()]
+        dt = float(ft.attrs["dt"])
+        diag = bbox_diagonal(rest)
+        for path in rollouts:
+            with h5py.File(path, "r") as fr:
+                method = str(fr.attrs.get("method", "self_supervised"))
+                train_s = {k: float(fr.attrs.get(k, np.nan)) for k in _TRAIN_SECONDS}
+                for name, g in require(fr, "sequences").items():
+                    gt = require(ft["sequences"], name)
+                    truth = gt["positions"][()]
+                    pred = g["positions"][()]
+                    if pred.shape != truth.shape:
+                        raise ValueError(f"{path}: sequence {name!r} has positions {pred.shape}, ground truth {truth.shape}")
+                    metrics, curve = rollout_metrics(pred, truth, gt["dirichlet_positions"][()], D, masses, dt, diag,
+                                                     int(g.attrs["diverged_frame"]))  # fmt: skip
+                    curves.setdefault(method, {})[name] = curve
+                    # same-run timing of full-space frames when the rollout stage measured it
+                    full_ms = float(fr.attrs.get("full_ms", np.median(gt["frame_ms"][1:])))
+                    latent_ms = float(g.attrs["step_ms"])
+                    parts = {k: float(g.attrs.get(k, np.nan)) for k in _STEP_PARTS}
+                    rows.append(dict(scene=scene, method=method, sequence=name, **metrics, full_ms=full_ms, latent_ms=latent_ms,
+                                     runtime=str(g.attrs.get("runtime", "")), **parts, speedup=full_ms / latent_ms,
+                                     dof=int(rest.size), latent_dim=int(g["latents"].shape[-1]), **train_s))  # fmt: skip
+    return pd.DataFrame(rows), curves
+
+
+def write_scene_evaluation(scene: str, trajectories, rollouts, latents, *, metrics, reconstruction, stress, chart, figure) -> pd.DataFrame:
+    """Rule ``evaluate``: :func:`evaluate_scene`'s table to ``metrics``, the autoencoder's reconstruction
+    and the stress conditions' tables, the scene's speed-accuracy ``chart`` and its curves over time
+    (``figure``).  Returns the metrics table."""
+    rollouts = list(rollouts)
+    table, curves = evaluate_scene(scene, trajectories, rollouts)
+    write_table(table, metrics)
+    write_table(reconstruction_table(scene, latents), reconstruction)
+    write_table(stress_table(scene, rollouts), stress)
+    speed_accuracy_chart(speed_accuracy_rows(table), chart, scene=scene)
+    rollout_curves(scene, curves, figure)
+    return table
+
+
+def _reconstruction_summary(paths) -> pd.DataFrame:
+    """The scenes' reconstruction tables as one row per scene and split: mean of the sequence means, max of the maxima."""
+    rec = pd.concat([pd.read_csv(t) for t in paths], ignore_index=True) if paths else pd.DataFrame()
+    if not rec.empty:
+        rec = rec.groupby(["scene", "split"], sort=False).agg(mean_error=("mean_error", "mean"), max_error=("max_error", "max")).reset_index()
+    return rec
+
+
+def _sized_layers(sizes: dict | None):
+    """From :func:`summarise`'s ``sizes``: the layer strings of :func:`latentsim.report.tables.table2`
+    ({scene: ...} and {(scene, variant): ...}) and the variants that are models of their own size."""
+    layers = {k: (v["decoder_layers"], v["integrator_layers"]) for k, v in (sizes or {}).items()}
+    for scene, v in (sizes or {}).items():
+        layers.update({(scene, m): (w["decoder_layers"], w["integrator_layers"]) for m, w in v.get("variants", {}).items()})
+    sized = sorted({m for v in (sizes or {}).values() for m in v.get("variants", {})})
+    return layers, sized
+
+
+def _summary_markdown(glance, t1, t2, st, sz, rec, df) -> str:
+    """The summary's Markdown: the glance tables first, then Tables 1-2, stability, sizes, reconstruction, every row."""
+    text = ["## At a glance: mean error / bbox diagonal (ms per frame) of the compared methods; * on their Pareto front", "",
+            markdown(glance_grid(glance)), "",
+            "## Every method per scene: median ms per frame, speed-up over the full space, errors, kinetic energy ratio, "
+            "test sequences and stress conditions survived, Pareto front", "", markdown(glance), "",
+            "## Li et al. Table 1: full space vs latent integrator (ours, then the paper's)", "", markdown(t1), "",
+            "## Li et al. Table 2: single-vertex Jvp (torch.func.jvp, forward mode), our latent step, a Fulton-style reduced step", "",
+            markdown(t2), "",
+            "## Stability: frames survived per method (Li et al. Fig. 8-11)", "", markdown(st), "",
+            "## Model size per scene: ours, the paper's, and the sizing sweep (smallest model within the tolerance)", "",
+            markdown(sz), "",
+            "## Autoencoder reconstruction error / bbox diagonal (train and test frames)", "", markdown(rec), "",
+            "## Every method and test sequence", "", markdown(df)]  # fmt: skip
+    return "\n".join(text) + "\n"
+
+
+def summarise(tables: list, csv_path, md_path, fig_path, table1_path=None, stability_path=None, reconstruction=(), stress=(), stress_paths=None,
+              table2_path=None, sizes=None, sweep_choices=None, sizes_path=None, glance_path=None):  # fmt: skip
+    """Concatenate the scene tables; Tables 1-2, the stability, reconstruction and model-size tables;
+    Markdown copy, opening with the glance tables (:func:`~latentsim.report.tables.glance_grid`,
+    :func:`~latentsim.report.tables.glance_table`; the latter also to ``glance_path``); speed-accuracy chart.
+    ``sizes`` and ``sweep_choices``: see :func:`~latentsim.report.tables.sizes_table`; a scene's
+    ``sizes[scene]["variants"]`` ({method: latent_dim, decoder_layers, integrator_layers}) names the
+    variants that are models of their own size, which get rows of their own in Tables 1-2."""
+    df = pd.concat([pd.read_csv(t) for t in tables], ignore_index=True)
+    rec = _reconstruction_summary(reconstruction)
+    write_table(df, csv_path)
+    layers, sized = _sized_layers(sizes)
+    t1, t2, st = table1(df, sized), table2(df, layers, sized), stability_table(df)
+    sz = sizes_table(sizes, sweep_choices) if sizes else pd.DataFrame()
+    for table, path in ((sz, sizes_path), (t1, table1_path), (t2, table2_path), (st, stability_path)):
+        if path is not None:
+            write_table(table, path)
+    frames = [pd.read_csv(t) for t in stress]
+    st_all = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+    pts = speed_accuracy_chart(speed_accuracy_rows(df), fig_path, scene=None, title="speed vs accuracy, every scene (full space at error 0)")
+    glance = glance_table(df, pts, st_all)
+    if glance_path is not None:
+        write_table(glance, glance_path)
+    with atomic_path(md_path) as tmp:
+        tmp.write_text(_summary_markdown(glance, t1, t2, st, sz, rec, df))
+    if stress_paths is not None:
+        csv, png = stress_paths
+        write_table(st_all, csv)
+        if not st_all.empty:
+            st_all = st_all.assign(method=st_all["scene"] + " / " + st_all["method"])
+            stability_heatmap(st_all, png, title="stress conditions: frames survived (fraction coloured)")
+        else:
+            empty_figure(png, "no stress conditions were run")
+    return df
+
+
+def render_scene(scene: str, trajectories, rollouts, frames_png, clip_gif, paraview_dir, clip_frames: int = 60) -> dict:
+    """Pictures of one scene's first test sequence: every method beside the ground truth.
+
+    - ``frames_png``: four frames (start, a third, two thirds, end), one column per method;
+    - ``clip_gif``: the ground truth, the self-supervised integrator and the method that
+      diverged first (if any, the most telling failure) as an animation;
+    - ``paraview_dir``: an XDMF series per method with displacement and per-vertex error.
+
+    Returns {"sequence", "clip_methods"}.
+    """
+    methods, diverged = {}, {}
+    for path in rollouts:
+        with h5py.File(path, "r") as f:
+            m = str(f.attrs.get("method", Path(path).parent.name))
+            seqs = list(require(f, "sequences"))
+            if not seqs:
+                continue
+            methods[m] = str(path)
+            diverged[m] = int(f["sequences"][seqs[0]].attrs["diverged_frame"])
+    if not methods:
+        raise ValueError(f"scene {scene}: no rollout holds a test sequence")
+    with h5py.File(rollouts[0], "r") as f:
+        sequence = next(iter(require(f, "sequences")))
+    with h5py.File(trajectories, "r") as f:
+        T = require(f["sequences"], sequence)["positions"].shape[0]
+    picks = [0, T // 3, (2 * T) // 3, T - 1]
+    render_frames(trajectories, methods, sequence, picks, frames_png, title=f"{scene} / {sequence}: ground truth and every method")
+    clip = {m: methods[m] for m in ("self_supervised",) if m in methods}
+    failed = sorted((d, m) for m, d in diverged.items() if d >= 0)
+    if failed:
+        clip[failed[0][1]] = methods[failed[0][1]]
+    if not clip:
+        first = next(iter(methods))
+        clip[first] = methods[first]
+    stride = max(1, T // clip_frames)
+    render_clip(trajectories, clip, sequence, clip_gif, stride=stride, max_frames=clip_frames, title=f"{scene} / {sequence}")
+    out = Path(paraview_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    for m, p in methods.items():
+        write_xdmf_series(p, sequence, out / f"{m}_{sequence}.xdmf", reference=trajectories)
+    return {"sequence": sequence, "clip_methods": list(clip)}
