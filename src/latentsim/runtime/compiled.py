@@ -29,7 +29,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from latentsim.runtime import NumpyStepper, _read_npz
+from latentsim.runtime.files import read_runtime
+from latentsim.runtime.numpy_stepper import NumpyStepper
 
 try:  # numba is pinned in envs/requirements.txt; without it this runtime is simply not offered
     import numba
@@ -282,7 +283,7 @@ def _index_runs(dst: np.ndarray, src: np.ndarray) -> np.ndarray:
 class CompiledStepper:
     """The folded latent step as one numba kernel call per frame.
 
-    Same interface and results as :class:`latentsim.runtime.NumpyStepper` (to
+    A :class:`latentsim.runtime.Stepper`, with the same results as :class:`latentsim.runtime.NumpyStepper` (to
     rounding: the sums run in another order): :meth:`integrate`, :meth:`decode`,
     :meth:`step`; the returned arrays are internal buffers unless ``out=`` is
     given.  Inputs should be C-contiguous arrays of the network dtype (``z``,
@@ -299,7 +300,7 @@ class CompiledStepper:
         self.r, self.k, self.n, self.mode, self.layout = ref.r, ref.k, ref.n, ref.mode, ref.layout
         self.n_integrator_layers = len(ref._int_A)
         scatter = ref.hard and ref.layout == "scatter"
-        out_A = ref._full_A if ref.hard and not scatter else ref._out_A
+        out_A = ref.output.A  # over all n vertices, or over the free ones (scatter)
         layers = [(A, F_SILU) for A in ref._int_A[:-1]] + [(ref._int_A[-1], 0)] if ref._int_A else []
         layers += [(A, F_SILU | (F_SKIP if s else 0)) for A, s in zip(ref._dec_A, ref.skips)]
         if ref.mid:
@@ -356,6 +357,8 @@ class CompiledStepper:
         self._xD0 = np.zeros((m, 3))
         self._x0 = np.zeros((1, 3))
 
+    inputs = NumpyStepper.inputs  # the same arrays: network-dtype latents and parameters, float64 positions
+
     def integrate(self, z_prev, z_prev2, p, p_prev, p_prev2, out=None) -> np.ndarray:
         """z_t (r,) from z_{t-1}, z_{t-2} (r,) and p_t, p_{t-1}, p_{t-2} (k,)."""
         if not self.n_integrator_layers:
@@ -391,7 +394,7 @@ class CompiledStepper:
 
 def load_runtime(path, dtype=np.float32) -> CompiledStepper:
     """The compiled stepper of an exported ``.npz`` runtime (:func:`latentsim.runtime.export_runtime`)."""
-    return CompiledStepper(_read_npz(path), dtype=dtype)
+    return CompiledStepper(read_runtime(path), dtype=dtype)
 
 
 def deployable_steppers(folded: dict, dtype=np.float32) -> dict:
