@@ -130,22 +130,22 @@ class OutputLayout:
         if mode == "roots" and len(root_slot) and (root_slot.min() < 0 or root_slot.max() >= m):
             raise ValueError("root_slot out of range of the Dirichlet list")
         self.free_flat = None  # scatter: the free vertices' coordinates
-        self.slot_flat = None  # roots: each decoded value's origin in the flat xD
+        self.slot = None  # roots: each decoded vertex's root, its slot in xD
         if not hard:
             self.A = out_A
         elif self.name == "full":
             self.A = np.zeros((out_A.shape[0], 3 * n), dtype=dtype)
             self.A[:, _flat(free)] = out_A
             if mode == "roots":  # x_v = u_v + x*_{root(v)}, with a root its own root (u_v = 0)
-                slot = np.empty(n, dtype=np.int64)
-                slot[free] = root_slot
-                slot[dirichlet] = np.arange(m)
-                self.slot_flat = _flat(slot)
+                self.slot = np.empty(n, dtype=np.int64)
+                self.slot[free] = root_slot
+                self.slot[dirichlet] = np.arange(m)
         else:
             self.A = out_A
             self.free_flat = _flat(free)
             if mode == "roots":
-                self.slot_flat = _flat(root_slot)
+                self.slot = root_slot
+        self.slot_flat = None if self.slot is None else _flat(self.slot)  # each decoded value's origin in the flat xD
         self.u = np.empty(self.A.shape[1], dtype=dtype)
         self.y = None if self.free_flat is None else np.empty(self.A.shape[1])  # float64 before the scatter
         self.orig = None if self.slot_flat is None else np.empty(self.A.shape[1])
