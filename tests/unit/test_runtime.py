@@ -16,8 +16,6 @@ import pytest
 import torch
 
 from latentsim import runtime as rt
-from latentsim.runtime import compiled as rc
-from latentsim.runtime import numpy_stepper
 from latentsim.latent import (
     Autoencoder,
     LatentIntegrator,
@@ -25,6 +23,8 @@ from latentsim.latent import (
     decode_latents,
     rollout,
 )
+from latentsim.runtime import compiled as rc
+from latentsim.runtime import numpy_stepper
 
 # torch.func.jvp (the Jvp oracle) scripts torch's own decompositions (torch._decomp.decompositions_for_jvp) with
 # torch.jit at its first use, which warns; the project itself uses no torch.jit
