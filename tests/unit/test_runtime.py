@@ -309,6 +309,7 @@ def test_every_stepper_is_timed_alike():
     frame = [a.numpy() for a in _inputs(coords)]
     x_ref = steppers["numpy"].step(*frame)[1].copy()
     for name, st in steppers.items():
+        assert isinstance(st, rt.Stepper), name  # the protocol's attributes and methods
         t = rt.time_step(st, *frame, repeats=5, warmup=1)
         assert set(t) == {"integrate_ms", "decode_ms", "step_ms"}, name
         assert all(v > 0 and np.isfinite(v) for v in t.values()), name

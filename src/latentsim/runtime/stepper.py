@@ -15,13 +15,14 @@ itself (:meth:`Stepper.inputs`), with no type switch in the caller.
 
 from __future__ import annotations
 
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
 __all__ = ["Stepper", "rollout_runtime"]
 
 
+@runtime_checkable
 class Stepper(Protocol):
     """One latent frame: integration, decoding, or both.
 
