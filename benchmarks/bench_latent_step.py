@@ -7,10 +7,10 @@ trained model needed; ``--networks trained`` takes the pipeline's ``results/`` m
 
 - Jvp of one decoded vertex w.r.t. the latent: as the paper did (``torch.func.jvp`` of the
   eager decoder, restricted to the vertex), the same on the folded layers (BatchNorm folded,
-  no TorchScript), and by hand-written forward mode through the folded NumPy layers (only the
+  eager), and by hand-written forward mode through the folded NumPy layers (only the
   vertex's 3 output rows of the last layer);
 - one whole latent step (integration + decoding to every vertex): the NumPy runtime
-  (float32, preallocated), the TorchScript runtime (float32), and eager PyTorch;
+  (float32, preallocated), the folded step exported with ``torch.export`` (float32), and eager PyTorch;
 - one reduced implicit-Euler step in the autoencoder's latent space (Fulton et al. 2019,
   every element, every Gauss-Newton iteration to the scene's Newton tolerance), from rest
   under the scene's first boundary-condition program.
@@ -185,9 +185,8 @@ def bench_scene(name, sc, cfg, args, reading):
     xD = np.ascontiguousarray(rest[D])
     np_step = rt.NumpyStepper(folded, np.float32)
     t_np = rt.time_step(np_step, z1, z2, p, p, p, xD, repeats=args.repeats)
-    targs = [torch.from_numpy(a) for a in (z1, z2, p, p, p)] + [torch.from_numpy(xD)]
-    t_ts = rt.time_step(rt.TorchStepper(rt.torchscript_module(folded)), *targs, repeats=args.repeats)
-    t_eager = rt.time_step(rt.EagerStepper(ae, integ, coords), *targs, repeats=args.repeats)
+    t_export = rt.time_step(rt.ExportedStepper(folded), z1, z2, p, p, p, xD, repeats=args.repeats)
+    t_eager = rt.time_step(rt.EagerStepper(ae, integ, coords), z1, z2, p, p, p, xD, repeats=args.repeats)
 
     # single-vertex Jvp: the vertex furthest from the Dirichlet set's centroid (a free one)
     enc = coords.encoded_vertices.numpy()
@@ -195,10 +194,10 @@ def bench_scene(name, sc, cfg, args, reading):
     row = int(np.flatnonzero(enc == vertex)[0])
     zt, vt = torch.from_numpy(z1), torch.from_numpy(rng.standard_normal(r).astype(np.float32))
     jvp_torch = rt.time_jvp(lambda: rt.jvp_vertex_torch(ae, zt, vt, row), repeats=args.jvp_repeats)
-    folded_eager = rt._ScriptedStep(folded).eval()  # the folded layers as a plain (unscripted) module
+    folded_eager = rt.FoldedStep(folded).eval()  # the folded layers as a plain (eager) module
     xDt = torch.from_numpy(xD)
     jvp_folded = rt.time_jvp(
-        lambda: torch.func.jvp(lambda zz: folded_eager.decode(zz, xDt)[vertex], (zt,), (vt,)), repeats=args.jvp_repeats
+        lambda: torch.func.jvp(lambda zz: folded_eager.decoder(zz, xDt)[vertex], (zt,), (vt,)), repeats=args.jvp_repeats
     )
     jvp_fwd = rt.time_jvp(lambda: np_step.jvp_vertex(z1, vt.numpy(), vertex), repeats=args.repeats)
     du_ref = rt.jvp_vertex_torch(ae, zt, vt, row)[1]
@@ -245,7 +244,7 @@ def bench_scene(name, sc, cfg, args, reading):
         "NumPy step ms": t_np["step_ms"],
         "NumPy integrate ms": t_np["integrate_ms"],
         "NumPy decode ms": t_np["decode_ms"],
-        "TorchScript step ms": t_ts["step_ms"],
+        "torch.export step ms": t_export["step_ms"],
         "eager step ms": t_eager["step_ms"],
         "reduced derivatives": derivatives,
         "reduced step ms": red_ms,

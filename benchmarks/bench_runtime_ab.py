@@ -1,8 +1,9 @@
 """A latent runtime against an earlier revision's, on the pipeline's trained runtimes.
 
-Loads ``src/latentsim/runtime.py`` (``--runtime numpy``, the default) or ``runtime_compiled.py``
-(``--runtime compiled``) as it was at ``--against`` (``git show``) beside the working tree's, and
-times one whole latent step (integration + decoding to every vertex) of each scene's exported
+Loads the runtime package ``src/latentsim/runtime/`` as it was at ``--against`` (``git show``; before
+the layout by domain, ``src/latentsim/runtime.py`` and ``runtime_compiled.py``) beside the working
+tree's, its NumPy stepper (``--runtime numpy``, the default) or its compiled one (``--runtime compiled``),
+and times one whole latent step (integration + decoding to every vertex) of each scene's exported
 runtime (``<results>/rollout/<scene>/<method>/runtime.npz``, or the files given with ``--npz``)
 with both.  The two alternate in rounds, so that the shared machine's noise hits both alike; the
 figures are medians over the rounds of each round's median.  One thread, float32 networks, as the
@@ -25,7 +26,9 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_var] = "1"
 
 import argparse  # noqa: E402
+import importlib  # noqa: E402
 import importlib.util  # noqa: E402
+import re  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
@@ -35,37 +38,57 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from latentsim import runtime as current  # noqa: E402
+from latentsim.runtime import compiled as current_compiled  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-RUNTIMES = {"numpy": "src/latentsim/runtime.py", "compiled": "src/latentsim/runtime_compiled.py"}
+RUNTIMES = ("compiled", "numpy")
+PACKAGE = "src/latentsim/runtime"  # the runtime package; before the layout by domain, two flat modules:
+FLAT = {"__init__.py": "src/latentsim/runtime.py", "compiled.py": "src/latentsim/runtime_compiled.py"}
+REV = "latentsim._runtime_rev"  # the revision's package, beside the working tree's
 
 
 def current_module(kind: str = "numpy"):
     """The working tree's runtime module of that kind."""
     if kind == "compiled":
-        from latentsim.runtime import compiled as runtime_compiled
-
-        if not runtime_compiled.available():
+        if not current_compiled.available():
             raise SystemExit("--runtime compiled needs numba (pinned in envs/requirements.txt)")
-        return runtime_compiled
+        return current_compiled
     return current
+
+
+def _git(root: Path, *args) -> str:
+    try:
+        return subprocess.run(["git", *args], cwd=root, check=True, capture_output=True, text=True).stdout
+    except subprocess.CalledProcessError as e:
+        raise SystemExit(f"git {' '.join(args)} failed: {e.stderr.strip()}") from e
+
+
+def _revision_sources(rev: str, root: Path) -> dict:
+    """{file name in the package: source} of the runtime at ``rev``, its imports of itself redirected to REV."""
+    listed = _git(root, "ls-tree", "--name-only", rev, f"{PACKAGE}/").split()
+    paths = {Path(p).name: p for p in listed if p.endswith(".py")} or FLAT
+    out = {}
+    for name, path in paths.items():
+        text = _git(root, "show", f"{rev}:{path}")
+        text = re.sub(r"\blatentsim\.runtime_compiled\b", f"{REV}.compiled", text)
+        out[name] = re.sub(r"\blatentsim\.runtime\b", REV, text)
+    return out
 
 
 def load_revision(rev: str, root: Path = ROOT, kind: str = "numpy"):
     """The runtime module of that kind (``latentsim.runtime`` or ``latentsim.runtime.compiled``) as it was at git
-    revision ``rev``, as a separate module."""
-    source = RUNTIMES[kind]
-    try:
-        text = subprocess.run(["git", "show", f"{rev}:{source}"], cwd=root, check=True, capture_output=True, text=True).stdout
-    except subprocess.CalledProcessError as e:
-        raise SystemExit(f"git show {rev}:{source} failed: {e.stderr.strip()}") from e
-    path = Path(tempfile.mkdtemp()) / "runtime_rev.py"
-    path.write_text(text)
-    spec = importlib.util.spec_from_file_location("latentsim._runtime_rev", path)
+    revision ``rev``, as a separate package ``latentsim._runtime_rev`` (written to a temporary folder)."""
+    folder = Path(tempfile.mkdtemp()) / "_runtime_rev"
+    folder.mkdir()
+    for name, text in _revision_sources(rev, root).items():
+        (folder / name).write_text(text)
+    for name in [m for m in sys.modules if m == REV or m.startswith(REV + ".")]:  # an earlier revision's
+        del sys.modules[name]
+    spec = importlib.util.spec_from_file_location(REV, folder / "__init__.py", submodule_search_locations=[str(folder)])
     module = importlib.util.module_from_spec(spec)
-    module.__package__ = "latentsim"  # its function-level relative imports resolve in the package
+    sys.modules[REV] = module
     spec.loader.exec_module(module)
-    return module
+    return importlib.import_module(f"{REV}.compiled") if kind == "compiled" else module
 
 
 def _median_us(fn, repeats: int) -> float:
@@ -93,13 +116,13 @@ def compare(npz, old, new=current, rounds: int = 5, repeats: int = 1000, seed: i
 
 def main(argv=None) -> pd.DataFrame:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--against", required=True, help="git revision whose runtime.py is the baseline")
+    ap.add_argument("--against", required=True, help="git revision whose runtime is the baseline")
     ap.add_argument("--results", default="results", help="the pipeline's results folder")
     ap.add_argument("--method", default="self_supervised")
     ap.add_argument("--scenes", nargs="*", help="default: every scene with a runtime file")
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--repeats", type=int, default=1000)
-    ap.add_argument("--runtime", choices=sorted(RUNTIMES), default="numpy", help="which runtime module to compare")
+    ap.add_argument("--runtime", choices=RUNTIMES, default="numpy", help="which runtime module to compare")
     ap.add_argument("--npz", nargs="+", type=Path, help="runtime files to time instead of the pipeline's (named by their stem)")
     args = ap.parse_args(argv)
     if args.npz:

@@ -1,6 +1,6 @@
 """Tests of the deployable latent runtime (latentsim.runtime).
 
-The folded NumPy and TorchScript runtimes must reproduce the PyTorch modules
+The folded NumPy, compiled and torch.export runtimes must reproduce the PyTorch modules
 (eval-mode BatchNorm with non-trivial statistics, trained for a few steps) in
 both coordinate modes, survive a file round trip, step without allocating,
 and the hand-written forward-mode Jvp must equal ``torch.func.jvp``.
@@ -16,7 +16,6 @@ import pytest
 import torch
 
 from latentsim import runtime as rt
-from latentsim.runtime import compiled as rc
 from latentsim.latent import (
     Autoencoder,
     LatentIntegrator,
@@ -24,9 +23,12 @@ from latentsim.latent import (
     decode_latents,
     rollout,
 )
+from latentsim.runtime import compiled as rc
+from latentsim.runtime import numpy_stepper
 
-# torch 2.x marks every torch.jit call deprecated; the TorchScript format is what is tested here
-pytestmark = pytest.mark.filterwarnings("ignore:`torch.jit:DeprecationWarning")
+# torch.func.jvp (the Jvp oracle) scripts torch's own decompositions (torch._decomp.decompositions_for_jvp) with
+# torch.jit at its first use, which warns; the project itself uses no torch.jit
+pytestmark = pytest.mark.filterwarnings("ignore:`torch.jit.script` is deprecated:DeprecationWarning")
 
 K = 6  # boundary-condition parameters per frame
 R = 3  # latent dimension
@@ -98,7 +100,7 @@ LAYOUTS = [("roots", "full"), ("roots", "scatter"), ("mean", "full"), ("hard_mea
 
 def _force_layout(monkeypatch, layout: str) -> None:
     """The hard modes decode over all vertices ("full") or scatter the free ones ("scatter")."""
-    monkeypatch.setattr(rt, "FULL_LAYOUT_MAX_GROWTH", np.inf if layout == "full" else 0.0)
+    monkeypatch.setattr(numpy_stepper, "FULL_LAYOUT_MAX_GROWTH", np.inf if layout == "full" else 0.0)
 
 
 @pytest.mark.parametrize(("mode", "layout"), LAYOUTS)
@@ -116,8 +118,7 @@ def test_runtimes_match_modules_float64(mode, layout, monkeypatch):
         np_step.decode(z, args[-1].numpy(), out=np.empty((coords.n, 6))[:, :3])
     assert np.allclose(z, z_ref, rtol=0, atol=1e-12)
     assert np.allclose(x, x_ref, rtol=0, atol=1e-12)
-    ts = rt.TorchStepper(rt.torchscript_module(folded, torch.float64))
-    zt, xt = ts.step(*args)
+    zt, xt = rt.ExportedStepper(folded, torch.float64).step(*args)
     assert np.allclose(zt.numpy(), z_ref, rtol=0, atol=1e-12)
     assert np.allclose(xt.numpy(), x_ref, rtol=0, atol=1e-12)
     if mode != "mean":  # prescribed vertices re-applied exactly
@@ -144,7 +145,7 @@ def test_narrow_and_wide_pca_layers(pca_dim):
     args = _inputs(coords, seed=11, dtype=torch.float64)
     z_ref, x_ref = _reference(copy.deepcopy(ae).double(), copy.deepcopy(integ).double(), coords, args)
     z, x = rt.NumpyStepper(folded, np.float64).step(*(a.numpy() for a in args))
-    zt, xt = rt.TorchStepper(rt.torchscript_module(folded, torch.float64)).step(*args)
+    zt, xt = rt.ExportedStepper(folded, torch.float64).step(*args)
     for a, b in ((z, z_ref), (x, x_ref), (zt.numpy(), z_ref), (xt.numpy(), x_ref)):
         assert np.allclose(a, b, rtol=0, atol=1e-12)
     st = rt.NumpyStepper(folded, np.float64)
@@ -164,7 +165,7 @@ def test_runtimes_match_modules_float32(mode):
     scale = np.abs(x_ref).max()
     assert np.allclose(z, z_ref, rtol=1e-5, atol=1e-5)
     assert np.abs(x - x_ref).max() < 1e-5 * scale
-    zt, xt = rt.TorchStepper(rt.torchscript_module(folded, torch.float32)).step(*args)
+    zt, xt = rt.ExportedStepper(folded, torch.float32).step(*args)
     assert np.allclose(zt.numpy(), z_ref, rtol=1e-5, atol=1e-5)
     assert np.abs(xt.numpy() - x_ref).max() < 1e-5 * scale
 
@@ -179,21 +180,22 @@ def test_export_load_round_trip_and_rollout(mode, tmp_path):
     z0, z1 = torch.randn(R, generator=g), torch.randn(R, generator=g)
     ref = rollout(integ, ae, coords, z0, z1, bc, xD)
     assert ref["diverged_frame"] == -1
-    for name in ("runtime.npz", "runtime.pt"):
+    scale = float(ref["positions"].abs().max())
+    for name in ("runtime.npz", "runtime.pt2"):
         rt.export_runtime(ae, integ, coords, tmp_path / name)
-        stepper = rt.load_runtime(tmp_path / name)
         if name.endswith(".npz"):
-            out = rt.rollout_runtime(stepper, z0.numpy(), z1.numpy(), bc.numpy(), xD.numpy())
+            out = rt.rollout_runtime(rt.load_runtime(tmp_path / name), z0.numpy(), z1.numpy(), bc.numpy(), xD.numpy())
             Z, X = out["latents"], out["positions"]
-        else:  # the TorchScript file runs with torch.jit.load alone
-            mod = torch.jit.load(str(tmp_path / name))
-            Zl, Xl = [z0, z1], [mod.decode(z0, xD[0]), mod.decode(z1, xD[1])]
+        else:  # the exported step runs with torch.export.load alone
+            with pytest.raises(ValueError, match="torch.export.load"):
+                rt.load_runtime(tmp_path / name)
+            step = torch.export.load(str(tmp_path / name)).module()
+            Zl, Xl = [z0, z1], []
             for t in range(2, T):
-                z, x = mod(Zl[-1], Zl[-2], bc[t], bc[t - 1], bc[t - 2], xD[t])
+                z, x = step(Zl[-1], Zl[-2], bc[t], bc[t - 1], bc[t - 2], xD[t])
                 Zl.append(z)
                 Xl.append(x)
-            Z, X = torch.stack(Zl).numpy(), torch.stack(Xl).numpy()
-        scale = float(ref["positions"].abs().max())
+            Z, X = torch.stack(Zl).numpy(), np.concatenate([ref["positions"][:2].numpy(), torch.stack(Xl).numpy()])
         # float32 networks, 10 autoregressive steps: round-off only
         assert np.abs(Z - ref["latents"].numpy()).max() < 1e-4
         assert np.abs(X - ref["positions"].numpy()).max() < 1e-4 * scale
@@ -252,7 +254,7 @@ def test_a_branch_that_outputs_zero_folds_to_the_pca_layer(mode):
     z_ref, x_ref = _reference(copy.deepcopy(ae).double(), copy.deepcopy(integ).double(), coords, args)
     st = rt.NumpyStepper(folded, np.float64)
     z, x = st.step(*(a.numpy() for a in args))
-    zt, xt = rt.TorchStepper(rt.torchscript_module(folded, torch.float64)).step(*args)
+    zt, xt = rt.ExportedStepper(folded, torch.float64).step(*args)
     for a, b in ((z, z_ref), (x, x_ref), (zt.numpy(), z_ref), (xt.numpy(), x_ref)):
         assert np.allclose(a, b, rtol=0, atol=1e-12)
     vertex = int(coords.free[-1])
@@ -296,12 +298,23 @@ def test_forward_mode_jvp_equals_torch_func_jvp(mode):
     assert np.allclose(x, decode_latents(ae64, coords, z[None], xD[None])[0].detach().numpy(), atol=1e-12)
 
 
-def test_time_step_reports_each_part():
+def test_every_stepper_is_timed_alike():
+    """The NumPy, compiled, exported and eager steppers take the same NumPy frame (each converts it with its own
+    ``inputs``): time_step reports each part, and their steps agree."""
     ae, integ, coords = _trained_modules("mean", seed=9)
-    st = rt.NumpyStepper(rt.fold_networks(ae, integ, coords))
-    t = rt.time_step(st, *(a.numpy() for a in _inputs(coords)), repeats=5, warmup=1)
-    assert set(t) == {"integrate_ms", "decode_ms", "step_ms"}
-    assert all(v > 0 and np.isfinite(v) for v in t.values())
+    folded = rt.fold_networks(ae, integ, coords)
+    steppers = {"numpy": rt.NumpyStepper(folded), "exported": rt.ExportedStepper(folded), "eager": rt.EagerStepper(ae, integ, coords)}
+    if rc.available():
+        steppers["compiled"] = rc.CompiledStepper(folded)
+    frame = [a.numpy() for a in _inputs(coords)]
+    x_ref = steppers["numpy"].step(*frame)[1].copy()
+    for name, st in steppers.items():
+        assert isinstance(st, rt.Stepper), name  # the protocol's attributes and methods
+        t = rt.time_step(st, *frame, repeats=5, warmup=1)
+        assert set(t) == {"integrate_ms", "decode_ms", "step_ms"}, name
+        assert all(v > 0 and np.isfinite(v) for v in t.values()), name
+        x = np.asarray(st.step(*st.inputs(*frame))[1])
+        assert x.dtype == np.float64 and np.abs(x - x_ref).max() < 1e-5 * np.abs(x_ref).max(), name
 
 
 # ---------------------------------------------------------------------------

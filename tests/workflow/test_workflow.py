@@ -31,7 +31,7 @@ STAGES = ["prepare_mesh", "simulate", "train_autoencoder", "train_integrator", "
 # every dataset or attribute whose name ends in _ms or _seconds, or is "seconds" (is_timing)
 TIMING_DATASETS = {"frame_ms", "step_ms"}
 TIMING_ATTRS = {"train_seconds", "rollout_seconds", "step_ms", "integrate_ms", "decode_ms", "autoencoder_train_seconds", "integrator_train_seconds",
-                "full_ms", "runtime", "jvp_torch_ms", "jvp_forward_ms"} | {f"{r}_{k}_ms" for r in ("numpy", "compiled", "torchscript", "eager") for k in ("step", "integrate", "decode")}  # fmt: skip
+                "full_ms", "runtime", "jvp_torch_ms", "jvp_forward_ms"} | {f"{r}_{k}_ms" for r in ("numpy", "compiled", "torch_export", "eager") for k in ("step", "integrate", "decode")}  # fmt: skip
 # the Neural Modes stages of the default config: (rule, scene) of every job, beside those of every scene (STAGES)
 NM_JOBS_DEFAULT = (
     [(r, s) for r in ("nm_linear_modes", "nm_train") for s in ("nm_armadillo", "nm_bunny", "nm_giraffe", "nm_sheet")]
@@ -574,7 +574,7 @@ def test_compiled_runtime_replays_the_rollout_and_is_timed(tiny_run, scene):
     out = work / f"results/rollout/{scene}/self_supervised"
     with h5py.File(out / "rollout.h5") as g:
         name, seq = next(iter(g["sequences"].items()))
-        assert seq.attrs["runtime"] in ("numpy", "compiled", "torchscript", "eager")
+        assert seq.attrs["runtime"] in ("numpy", "compiled", "torch_export", "eager")
         assert 0 < seq.attrs["compiled_step_ms"] < seq.attrs["eager_step_ms"]
         Z, bc, xD, X = (seq[k][()] for k in ("latents", "bc", "dirichlet_positions", "positions"))
     T = min(20, len(Z))

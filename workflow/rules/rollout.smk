@@ -7,7 +7,7 @@ rule rollout:
     output:
         rollout="results/rollout/{scene}/{method}/rollout.h5",
         runtime="results/rollout/{scene}/{method}/runtime.npz",
-        torchscript="results/rollout/{scene}/{method}/runtime.pt",
+        torch_export="results/rollout/{scene}/{method}/runtime.pt",
     log:
         "logs/rollout/{scene}/{method}.log",
     benchmark:

@@ -12,7 +12,6 @@ import torch
 
 from latentsim import runtime
 from latentsim.io import require
-from latentsim.runtime import compiled as runtime_compiled
 from latentsim.scene import potential_from_artefact
 from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings
 
@@ -24,14 +23,8 @@ def time_steppers(steppers: dict, z1, z0, p, xD, repeats: int) -> dict:
     stepper (whose name is ``runtime``), the deployable path.
     """
     out: dict = {}
-    p = np.asarray(p, dtype=np.float32)
     for name, st in steppers.items():
-        if isinstance(st, (runtime.NumpyStepper, runtime_compiled.CompiledStepper)):
-            args = (np.asarray(z1, np.float32), np.asarray(z0, np.float32), p, p, p, np.ascontiguousarray(xD, np.float64))
-        else:
-            pt = torch.as_tensor(p)
-            args = (torch.as_tensor(z1, dtype=torch.float32), torch.as_tensor(z0, dtype=torch.float32), pt, pt, pt, torch.as_tensor(xD, dtype=torch.float64))
-        r = runtime.time_step(st, *args, repeats=repeats)
+        r = runtime.time_step(st, z1, z0, p, p, p, xD, repeats=repeats)  # each stepper converts the frame itself
         for k, v in r.items():
             out[f"{name}_{k}"] = v
     best = min(steppers, key=lambda n: out[f"{n}_step_ms"])

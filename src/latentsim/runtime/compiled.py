@@ -29,7 +29,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from latentsim.runtime import NumpyStepper, _read_npz
+from latentsim.runtime.files import read_runtime
+from latentsim.runtime.numpy_stepper import NumpyStepper
 
 try:  # numba is pinned in envs/requirements.txt; without it this runtime is simply not offered
     import numba
@@ -279,10 +280,47 @@ def _index_runs(dst: np.ndarray, src: np.ndarray) -> np.ndarray:
     return np.asarray(rows, np.int64).reshape(-1, 3)
 
 
+def _layers(ref: NumpyStepper) -> list:
+    """[(augmented matrix, flags)] of every layer in the kernel's order: integrator, decoder hidden, mid, output."""
+    layers = [(A, F_SILU) for A in ref._int_A[:-1]] + [(ref._int_A[-1], 0)] if ref._int_A else []
+    layers += [(A, F_SILU | (F_SKIP if s else 0)) for A, s in zip(ref._dec_A, ref.skips)]
+    if ref.mid:
+        layers.append((ref._mid_A, 0))
+    layers.append((ref.output.A, 0))  # over all n vertices, or over the free ones (scatter)
+    return layers
+
+
+def _pack(layers: list, dtype) -> tuple[np.ndarray, np.ndarray]:
+    """(F, table): the layers' matrices one after another in one flat array, and a row (offset, in, out, flags) each."""
+    offsets = np.cumsum([0] + [A.size for A, _ in layers])
+    F = np.empty(offsets[-1], dtype=dtype)
+    for (A, _), off in zip(layers, offsets):
+        F[off : off + A.size] = A.reshape(-1)
+    table = np.array([[off, A.shape[0] - 1, A.shape[1], fl] for (A, fl), off in zip(layers, offsets)], np.int64)
+    return F, table
+
+
+def _output_index(ref: NumpyStepper) -> dict:
+    """The output's index lists, by their header entry: chunks and segments (runs of one origin), the free vertices
+    and their roots (scatter), and the runs of prescribed vertices copied back."""
+    D, scatter, slot = ref.output.A.shape[1], ref.layout == "scatter", ref.output.slot
+    m = len(ref.dirichlet)
+    # segments of the output layer: (first value, end, root slot or -1 for the Dirichlet mean); scattered roots
+    # are looked up per vertex in the scatter loop
+    seg_slot = slot if slot is not None and not scatter else np.full(D // 3, -1, np.int64)
+    chunks, seg = _chunks(D, [(3 * s, 3 * e, seg_slot[s]) for s, e in _runs(seg_slot, len(seg_slot))])
+    empty = np.zeros(0, np.int64)
+    free = ref.free if scatter else empty
+    vslot = slot if slot is not None and scatter else empty
+    # the prescribed vertices are copied back unless the output layer already gives them (roots, full)
+    druns = _index_runs(ref.dirichlet, np.arange(m)) if ref.output.copy_back else np.zeros((0, 3), np.int64)
+    return {_CHK: chunks, _SEG: seg, _FREE: free, _SLOT: vslot, _DRUN: druns}
+
+
 class CompiledStepper:
     """The folded latent step as one numba kernel call per frame.
 
-    Same interface and results as :class:`latentsim.runtime.NumpyStepper` (to
+    A :class:`latentsim.runtime.Stepper`, with the same results as :class:`latentsim.runtime.NumpyStepper` (to
     rounding: the sums run in another order): :meth:`integrate`, :meth:`decode`,
     :meth:`step`; the returned arrays are internal buffers unless ``out=`` is
     given.  Inputs should be C-contiguous arrays of the network dtype (``z``,
@@ -298,56 +336,29 @@ class CompiledStepper:
         self.header, self.dtype = ref.header, ref.dtype
         self.r, self.k, self.n, self.mode, self.layout = ref.r, ref.k, ref.n, ref.mode, ref.layout
         self.n_integrator_layers = len(ref._int_A)
-        scatter = ref.hard and ref.layout == "scatter"
-        out_A = ref._full_A if ref.hard and not scatter else ref._out_A
-        layers = [(A, F_SILU) for A in ref._int_A[:-1]] + [(ref._int_A[-1], 0)] if ref._int_A else []
-        layers += [(A, F_SILU | (F_SKIP if s else 0)) for A, s in zip(ref._dec_A, ref.skips)]
-        if ref.mid:
-            layers.append((ref._mid_A, 0))
-        layers.append((out_A, 0))
+        self.dirichlet = np.asarray(ref.dirichlet, np.int64)
+        layers = _layers(ref)
         w = max([2 * self.r + 3 * self.k] + [max(A.shape[0] - 1, A.shape[1]) for A, _ in layers[:-1]])
-        D = out_A.shape[1]
-        dirichlet = self.dirichlet = np.asarray(ref.dirichlet, np.int64)
-        m = len(dirichlet)
-        # segments of the output layer: (first value, end, root slot or -1 for the Dirichlet mean)
-        roots = ref.mode == "roots"
-        if roots and not scatter:  # over all vertices: a root is its own root
-            slot = np.empty(self.n, np.int64)
-            slot[ref.free] = ref.root_slot
-            slot[dirichlet] = np.arange(m)
-        else:  # the mean (or per-vertex roots in the scatter loop)
-            slot = np.full(D // 3, -1, np.int64)
-        chunks, seg = _chunks(D, [(3 * s, 3 * e, slot[s]) for s, e in _runs(slot, len(slot))])
-        free = ref.free if scatter else np.zeros(0, np.int64)
-        vslot = ref.root_slot if roots and scatter else np.zeros(0, np.int64)
-        # the prescribed vertices are copied back unless the output layer already gives them (roots, full)
-        copy_back = ref.hard and not (roots and not scatter)
-        druns = _index_runs(dirichlet, np.arange(m)) if copy_back else np.zeros((0, 3), np.int64)
-        offsets, pos = [], 0
-        for A, _ in layers:
-            offsets.append(pos)
-            pos += A.size
-        self._F = np.empty(pos, dtype=self.dtype)
-        for (A, _), off in zip(layers, offsets):
-            self._F[off : off + A.size] = A.reshape(-1)
-        table = np.array([[off, A.shape[0] - 1, A.shape[1], fl] for (A, fl), off in zip(layers, offsets)], np.int64)
+        self._F, table = _pack(layers, self.dtype)
+        out = _output_index(ref)
+        scatter, roots, m = ref.layout == "scatter", ref.mode == "roots", len(self.dirichlet)
         hdr = np.zeros(_HLEN, np.int64)
         hdr[[_R, _K, _NINT, _NDEC, _MID, _RESID, _SCATTER, _W, _D]] = [self.r, self.k, self.n_integrator_layers, len(ref._dec_A),
-                                                                       int(ref.mid), int(ref.residual), int(scatter), w, D]  # fmt: skip
+                                                                       int(ref.mid), int(ref.residual), int(scatter), w, layers[-1][0].shape[1]]  # fmt: skip
         hdr[_M] = m if not roots else 0  # the mean origin: not used with roots
         # hard_mean, scattered: the mean summed while copying the prescribed vertices back, before the free
         # ones are written (in the full layout the output layer also writes the prescribed ones: copied after)
-        hdr[_FUSED] = int(copy_back and scatter and not roots and m > 0)
+        hdr[_FUSED] = int(ref.output.copy_back and scatter and not roots and m > 0)
         hdr[_FAST32] = int(self.dtype == np.float32)  # float32 networks: SiLU without a libm call (_silu32)
         parts, at = [hdr, table.reshape(-1)], _HLEN + table.size
         hdr[_TABLE] = _HLEN
-        for key, arr in ((_CHK, chunks), (_SEG, seg), (_FREE, free), (_SLOT, vslot), (_DRUN, druns)):
+        for key, arr in out.items():
             hdr[key] = at if arr.size or key != _SLOT else -1
             parts.append(arr.reshape(-1))
             at += arr.size
-        hdr[_NCHK], hdr[_NSEG], hdr[_NDRUN] = len(chunks), len(seg), len(druns)
+        hdr[_NCHK], hdr[_NSEG], hdr[_NDRUN] = len(out[_CHK]), len(out[_SEG]), len(out[_DRUN])
         self._I = np.concatenate(parts).astype(np.int64)
-        self.chunks, self.segments, self.dirichlet_runs = len(chunks), len(seg), len(druns)
+        self.chunks, self.segments, self.dirichlet_runs = len(out[_CHK]), len(out[_SEG]), len(out[_DRUN])
         self.fused_mean = bool(hdr[_FUSED])  # the mean summed in the copy-back pass (hard_mean, scattered)
         self._S = np.zeros(3 * w + self.r + _CHUNK, dtype=self.dtype)
         self._z = np.zeros(self.r, dtype=self.dtype)
@@ -355,6 +366,8 @@ class CompiledStepper:
         self._zero_k = np.zeros(self.k, dtype=self.dtype)
         self._xD0 = np.zeros((m, 3))
         self._x0 = np.zeros((1, 3))
+
+    inputs = NumpyStepper.inputs  # the same arrays: network-dtype latents and parameters, float64 positions
 
     def integrate(self, z_prev, z_prev2, p, p_prev, p_prev2, out=None) -> np.ndarray:
         """z_t (r,) from z_{t-1}, z_{t-2} (r,) and p_t, p_{t-1}, p_{t-2} (k,)."""
@@ -391,7 +404,7 @@ class CompiledStepper:
 
 def load_runtime(path, dtype=np.float32) -> CompiledStepper:
     """The compiled stepper of an exported ``.npz`` runtime (:func:`latentsim.runtime.export_runtime`)."""
-    return CompiledStepper(_read_npz(path), dtype=dtype)
+    return CompiledStepper(read_runtime(path), dtype=dtype)
 
 
 def deployable_steppers(folded: dict, dtype=np.float32) -> dict:

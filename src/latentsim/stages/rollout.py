@@ -84,14 +84,14 @@ def _read_scene(trajectories, coordinates: str | None, cfg: dict) -> dict:
 
 def _steppers(ae, integ, coords, runtime_paths) -> dict:
     """The steppers to time: eager PyTorch, and with ``runtime_paths`` the runtime exported there
-    and read back (NumPy, compiled where numba imports, TorchScript)."""
+    and read back (NumPy, compiled where numba imports) and its ``torch.export`` program."""
     steppers = {"eager": runtime.EagerStepper(ae, integ, coords)}
     if runtime_paths is not None:
         npz, pt = runtime_paths
         runtime.export_runtime(ae, integ, coords, npz)
         runtime.export_runtime(ae, integ, coords, pt)
-        steppers.update(runtime_compiled.deployable_steppers(runtime._read_npz(npz)))  # numpy, compiled: from the file
-        steppers["torchscript"] = runtime.load_runtime(pt)
+        steppers.update(runtime_compiled.deployable_steppers(runtime.read_runtime(npz)))  # numpy, compiled: from the file
+        steppers["torch_export"] = runtime.ExportedStepper(runtime.read_runtime(npz))  # the torch.export programs of the step
     return steppers
 
 
