@@ -71,6 +71,8 @@ class EnergyTerm:
         if spec is None:
             return autograd_gradient_hessian(self, xe, project=project)
         E, k, _ = xe.shape
+        if E != len(self.stencils):
+            raise ValueError(f"{self.name}: xe holds {E} stencils, the term has {len(self.stencils)} (their rest data)")
         own = TermKernel(self.name, np.arange(E * k).reshape(E, k), spec)  # stencil e = its own k vertices
         g, H = own.local(xe.detach().cpu().numpy().reshape(E * k, 3), project)
         return torch.from_numpy(g).to(xe), torch.from_numpy(H).to(xe)

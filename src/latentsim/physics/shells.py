@@ -49,7 +49,7 @@ instead to c D/2 kappa^2 * area with the constant c = 6:
   2 sqrt(3): again 6 x D/2 kappa^2 (the tests measure 6 for 0 and 45 degree
   axes, and for the grid bent along its diagonal).
 
-``tests/test_energy_shells.py`` checks these values.  The default keeps the
+``tests/physics/test_energy_shells.py`` checks these values.  The default keeps the
 energy as specified (kb = D, i.e. 6x the plate's bending stiffness on these
 meshes); ``ShellHinge(..., stiffness_scale=1/6)`` calibrates it to the plate,
 within a few % on fine meshes.

@@ -148,6 +148,82 @@ def hinge_energy(x, st, order, k, rest_angle):
 
 
 
+@njit(**INLINE)
+def _hinge_gradient(e, x, st, kk, rest_angle, ev, da, db, N1, N2, gr, g):
+    """Energy of hinge e, grad theta gr (4, 3) and the gradient g (12,) = 2 k d grad theta.
+
+    Leaves e, d_a, d_b, N1, N2 in ev, da, db, N1, N2; returns (energy, d, L2, L, q1, q2, t_a, t_b)
+    for ``_hinge_theta_hessian``."""
+    theta = _hinge_theta(e, x, st, ev, da, db, N1, N2)
+    d = _wrap(theta - rest_angle[e])
+    L2 = ev[0] ** 2 + ev[1] ** 2 + ev[2] ** 2
+    L = math.sqrt(L2)
+    q1 = N1[0] ** 2 + N1[1] ** 2 + N1[2] ** 2
+    q2 = N2[0] ** 2 + N2[1] ** 2 + N2[2] ** 2
+    ta = (da[0] * ev[0] + da[1] * ev[1] + da[2] * ev[2]) / L2
+    tb = (db[0] * ev[0] + db[1] * ev[1] + db[2] * ev[2]) / L2
+    for i in range(3):
+        gr[2, i] = -L / q1 * N1[i]
+        gr[3, i] = -L / q2 * N2[i]
+        gr[1, i] = -ta * gr[2, i] - tb * gr[3, i]
+        gr[0, i] = -(gr[1, i] + gr[2, i] + gr[3, i])
+    k2 = 2.0 * kk[e]
+    for r in range(4):
+        for i in range(3):
+            g[3 * r + i] = k2 * d * gr[r, i]
+    return kk[e] * d * d, d, L2, L, q1, q2, ta, tb
+
+
+@njit(**INLINE)
+def _hinge_theta_hessian(ev, da, db, N1, N2, gr, L2, L, q1, q2, ta, tb, M1, M2, Sk, T1, T2, Ja, Jb, Ta, Tb, J):
+    """J[r, c] = d grad_r theta / d x_c (4, 4, 3, 3), the Hessian of theta (unsymmetrised), from
+    ``_hinge_gradient``'s quantities; the rest is scratch (Ja, Jb, Ta, Tb: the Jacobians of g_a,
+    g_b, t_a, t_b)."""
+    # M_s = (I - 2 n n^T) / |N|^2, n = N / |N|
+    for i in range(3):
+        for j in range(3):
+            dl = 1.0 if i == j else 0.0
+            M1[i, j] = (dl - 2.0 * N1[i] * N1[j] / q1) / q1
+            M2[i, j] = (dl - 2.0 * N2[i] * N2[j] / q2) / q2
+    # ga_da = -L M1 [e]x ; ga_e = -(N1/q1) eh^T + L M1 [da]x
+    skew(ev, Sk)
+    matmul3(M1, Sk, T1, -L)  # ga_da
+    matmul3(M2, Sk, T2, L)  # gb_db
+    for i in range(3):
+        for j in range(3):
+            Ja[2, i, j] = T1[i, j]
+            Jb[3, i, j] = T2[i, j]
+            Ja[3, i, j] = 0.0
+            Jb[2, i, j] = 0.0
+    skew(da, Sk)
+    matmul3(M1, Sk, T1, L)
+    skew(db, Sk)
+    matmul3(M2, Sk, T2, -L)
+    for i in range(3):
+        for j in range(3):
+            Ja[1, i, j] = -(N1[i] / q1) * ev[j] / L + T1[i, j]  # ga_e
+            Jb[1, i, j] = -(N2[i] / q2) * ev[j] / L + T2[i, j]  # gb_e
+            Ja[0, i, j] = -(Ja[1, i, j] + Ja[2, i, j])
+            Jb[0, i, j] = -(Jb[1, i, j] + Jb[3, i, j])
+    for j in range(3):
+        Ta[2, j] = ev[j] / L2  # ta_da
+        Ta[1, j] = da[j] / L2 - 2.0 * ta / L2 * ev[j]  # ta_e
+        Ta[0, j] = -(Ta[1, j] + Ta[2, j])
+        Ta[3, j] = 0.0
+        Tb[3, j] = ev[j] / L2
+        Tb[1, j] = db[j] / L2 - 2.0 * tb / L2 * ev[j]
+        Tb[0, j] = -(Tb[1, j] + Tb[3, j])
+        Tb[2, j] = 0.0
+    for c in range(4):
+        for i in range(3):
+            for j in range(3):
+                j1 = -ta * Ja[c, i, j] - gr[2, i] * Ta[c, j] - tb * Jb[c, i, j] - gr[3, i] * Tb[c, j]
+                J[1, c, i, j] = j1
+                J[2, c, i, j] = Ja[c, i, j]
+                J[3, c, i, j] = Jb[c, i, j]
+                J[0, c, i, j] = -(j1 + Ja[c, i, j] + Jb[c, i, j])
+
+
 @njit(**JIT)
 def hinge_run(x, st, order, kk, rest_angle, project, B, grad, data, slots, g_out, H_out, mode):
     total = 0.0
@@ -165,70 +241,13 @@ def hinge_run(x, st, order, kk, rest_angle, project, B, grad, data, slots, g_out
     wv = np.empty(9)
     for ii in range(order.shape[0]):
         e = order[ii]
-        theta = _hinge_theta(e, x, st, ev, da, db, N1, N2)
-        d = _wrap(theta - rest_angle[e])
-        L2 = ev[0] ** 2 + ev[1] ** 2 + ev[2] ** 2
-        L = math.sqrt(L2)
-        q1 = N1[0] ** 2 + N1[1] ** 2 + N1[2] ** 2
-        q2 = N2[0] ** 2 + N2[1] ** 2 + N2[2] ** 2
-        ta = (da[0] * ev[0] + da[1] * ev[1] + da[2] * ev[2]) / L2
-        tb = (db[0] * ev[0] + db[1] * ev[1] + db[2] * ev[2]) / L2
-        for i in range(3):
-            gr[2, i] = -L / q1 * N1[i]
-            gr[3, i] = -L / q2 * N2[i]
-            gr[1, i] = -ta * gr[2, i] - tb * gr[3, i]
-            gr[0, i] = -(gr[1, i] + gr[2, i] + gr[3, i])
-        k2 = 2.0 * kk[e]
-        for r in range(4):
-            for i in range(3):
-                g[3 * r + i] = k2 * d * gr[r, i]
-        total += kk[e] * d * d
+        en, d, L2, L, q1, q2, ta, tb = _hinge_gradient(e, x, st, kk, rest_angle, ev, da, db, N1, N2, gr, g)
+        total += en
         if mode == GRADIENT:
             scatter_gradient(e, st, g, grad, 4)
             continue
-        # M_s = (I - 2 n n^T) / |N|^2, n = N / |N|
-        for i in range(3):
-            for j in range(3):
-                dl = 1.0 if i == j else 0.0
-                M1[i, j] = (dl - 2.0 * N1[i] * N1[j] / q1) / q1
-                M2[i, j] = (dl - 2.0 * N2[i] * N2[j] / q2) / q2
-        # ga_da = -L M1 [e]x ; ga_e = -(N1/q1) eh^T + L M1 [da]x
-        skew(ev, Sk)
-        matmul3(M1, Sk, T1, -L)  # ga_da
-        matmul3(M2, Sk, T2, L)  # gb_db
-        for i in range(3):
-            for j in range(3):
-                Ja[2, i, j] = T1[i, j]
-                Jb[3, i, j] = T2[i, j]
-                Ja[3, i, j] = 0.0
-                Jb[2, i, j] = 0.0
-        skew(da, Sk)
-        matmul3(M1, Sk, T1, L)
-        skew(db, Sk)
-        matmul3(M2, Sk, T2, -L)
-        for i in range(3):
-            for j in range(3):
-                Ja[1, i, j] = -(N1[i] / q1) * ev[j] / L + T1[i, j]  # ga_e
-                Jb[1, i, j] = -(N2[i] / q2) * ev[j] / L + T2[i, j]  # gb_e
-                Ja[0, i, j] = -(Ja[1, i, j] + Ja[2, i, j])
-                Jb[0, i, j] = -(Jb[1, i, j] + Jb[3, i, j])
-        for j in range(3):
-            Ta[2, j] = ev[j] / L2  # ta_da
-            Ta[1, j] = da[j] / L2 - 2.0 * ta / L2 * ev[j]  # ta_e
-            Ta[0, j] = -(Ta[1, j] + Ta[2, j])
-            Ta[3, j] = 0.0
-            Tb[3, j] = ev[j] / L2
-            Tb[1, j] = db[j] / L2 - 2.0 * tb / L2 * ev[j]
-            Tb[0, j] = -(Tb[1, j] + Tb[3, j])
-            Tb[2, j] = 0.0
-        for c in range(4):
-            for i in range(3):
-                for j in range(3):
-                    j1 = -ta * Ja[c, i, j] - gr[2, i] * Ta[c, j] - tb * Jb[c, i, j] - gr[3, i] * Tb[c, j]
-                    J[1, c, i, j] = j1
-                    J[2, c, i, j] = Ja[c, i, j]
-                    J[3, c, i, j] = Jb[c, i, j]
-                    J[0, c, i, j] = -(j1 + Ja[c, i, j] + Jb[c, i, j])
+        _hinge_theta_hessian(ev, da, db, N1, N2, gr, L2, L, q1, q2, ta, tb, M1, M2, Sk, T1, T2, Ja, Jb, Ta, Tb, J)
+        k2 = 2.0 * kk[e]
         # H = 2k (grad grad^T + d sym(Hess theta))
         for r in range(4):
             for i in range(3):

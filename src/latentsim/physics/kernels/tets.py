@@ -60,12 +60,8 @@ def tet_energy(x, st, order, D, vol, mu, lam):
 
 
 @njit(**INLINE)
-def _tet_gh(e, x, st, D, vol, mu, lam, project, hess, g, H, F, S, P, q, FF, U, V, Lf, A, b, sig, w3, N):
-    """Energy (returned), gradient g (12,) and, if ``hess``, Hessian H (12, 12) of tet e.
-
-    The rest is scratch.  The exact Hessian is written to the upper triangle
-    only (all that ``scatter`` reads).
-    """
+def _tet_energy_gradient(e, x, st, D, vol, mu, lam, g, F, S, P):
+    """Energy (returned) and gradient g (12,) = W D P^T of tet e; leaves F and S = 2 mu E + lam tr(E) I."""
     _tet_F(e, x, st, D, F)
     W, m_, l_ = vol[e], mu[e], lam[e]
     # S = 2 mu E + lam tr(E) I, with E = (F^T F - I)/2
@@ -88,31 +84,42 @@ def _tet_gh(e, x, st, D, vol, mu, lam, project, hess, g, H, F, S, P, q, FF, U, V
     for a in range(4):
         for i in range(3):
             g[3 * a + i] = W * (P[i, 0] * D[e, a, 0] + P[i, 1] * D[e, a, 1] + P[i, 2] * D[e, a, 2])
-    if not hess:
-        return energy
-    if not project:
-        # q_a = F D_a, FF = mu F F^T
-        for a in range(4):
-            for i in range(3):
-                q[a, i] = F[i, 0] * D[e, a, 0] + F[i, 1] * D[e, a, 1] + F[i, 2] * D[e, a, 2]
+    return energy
+
+
+@njit(**INLINE)
+def _tet_exact_hessian(e, D, vol, mu, lam, F, S, q, FF, H):
+    """The exact Hessian of tet e from F and S, written to the upper triangle of H (12, 12) only
+    (all that ``scatter`` reads); q, FF scratch."""
+    W, m_, l_ = vol[e], mu[e], lam[e]
+    # q_a = F D_a, FF = mu F F^T
+    for a in range(4):
         for i in range(3):
-            for j in range(3):
-                FF[i, j] = m_ * (F[i, 0] * F[j, 0] + F[i, 1] * F[j, 1] + F[i, 2] * F[j, 2])
-        for a in range(4):
-            for b_ in range(a, 4):
-                dSd = 0.0
-                dd = 0.0
-                for k in range(3):
-                    dd += D[e, a, k] * D[e, b_, k]
-                    dSd += D[e, a, k] * (S[k, 0] * D[e, b_, 0] + S[k, 1] * D[e, b_, 1] + S[k, 2] * D[e, b_, 2])
-                for i in range(3):  # (a == b: the lower half of the block is written, not read)
-                    for j in range(3):
-                        h = m_ * q[b_, i] * q[a, j] + FF[i, j] * dd + l_ * q[a, i] * q[b_, j]
-                        if i == j:
-                            h += dSd
-                        H[3 * a + i, 3 * b_ + j] = W * h
-        return energy
-    # projected: the 9 analytic eigenpairs of dP/dF in the principal-stretch frame
+            q[a, i] = F[i, 0] * D[e, a, 0] + F[i, 1] * D[e, a, 1] + F[i, 2] * D[e, a, 2]
+    for i in range(3):
+        for j in range(3):
+            FF[i, j] = m_ * (F[i, 0] * F[j, 0] + F[i, 1] * F[j, 1] + F[i, 2] * F[j, 2])
+    for a in range(4):
+        for b_ in range(a, 4):
+            dSd = 0.0
+            dd = 0.0
+            for k in range(3):
+                dd += D[e, a, k] * D[e, b_, k]
+                dSd += D[e, a, k] * (S[k, 0] * D[e, b_, 0] + S[k, 1] * D[e, b_, 1] + S[k, 2] * D[e, b_, 2])
+            for i in range(3):  # (a == b: the lower half of the block is written, not read)
+                for j in range(3):
+                    h = m_ * q[b_, i] * q[a, j] + FF[i, j] * dd + l_ * q[a, i] * q[b_, j]
+                    if i == j:
+                        h += dSd
+                    H[3 * a + i, 3 * b_ + j] = W * h
+
+
+@njit(**INLINE)
+def _tet_projected_hessian(e, D, vol, mu, lam, F, H, S, P, DV, U, V, Lf, A, b, sig, w3, N):
+    """The projected Hessian H (12, 12) of tet e from F: the 9 analytic eigenpairs of dP/dF in the
+    principal-stretch frame, clamped, H = N^T N for the weighted mode vectors N (9, 12); the rest
+    is scratch (S and P are overwritten)."""
+    W, m_, l_ = vol[e], mu[e], lam[e]
     svd3(F, S, P, w3, U, sig, V, b)
     s0, s1, s2 = sig[0] * sig[0], sig[1] * sig[1], sig[2] * sig[2]
     T = 0.5 * (s0 + s1 + s2 - 3.0)
@@ -126,8 +133,7 @@ def _tet_gh(e, x, st, D, vol, mu, lam, project, hess, g, H, F, S, P, q, FF, U, V
         f = math.sqrt(max(w3[k], 0.0)) * sw
         for p in range(3):
             Lf[p, k] *= f
-    DV = q  # DV[a, p] = D_a . v_p
-    for a in range(4):
+    for a in range(4):  # DV[a, p] = D_a . v_p
         for p in range(3):
             DV[a, p] = D[e, a, 0] * V[0, p] + D[e, a, 1] * V[1, p] + D[e, a, 2] * V[2, p]
     for k in range(3):  # scaling modes sum_p L[p, k] g_pp, g_pq = (D v_q) (x) u_p
@@ -155,7 +161,6 @@ def _tet_gh(e, x, st, D, vol, mu, lam, project, hess, g, H, F, S, P, q, FF, U, V
                 acc += N[k, i] * N[k, j]
             H[i, j] = acc
             H[j, i] = acc
-    return energy
 
 
 @njit(**JIT)
@@ -170,11 +175,15 @@ def tet_run(x, st, order, D, vol, mu, lam, project, grad, data, slots, g_out, H_
     total = 0.0
     for ii in range(order.shape[0]):
         e = order[ii]
-        total += _tet_gh(e, x, st, D, vol, mu, lam, project, mode != GRADIENT, g, H, F, S, P, q, FF, U, V, Lf, A, b,
-                         sig, w3, N)  # fmt: skip
+        total += _tet_energy_gradient(e, x, st, D, vol, mu, lam, g, F, S, P)
         if mode == GRADIENT:
             scatter_gradient(e, st, g, grad, 4)
-        elif mode == SCATTER:
+            continue
+        if project:
+            _tet_projected_hessian(e, D, vol, mu, lam, F, H, S, P, q, U, V, Lf, A, b, sig, w3, N)
+        else:
+            _tet_exact_hessian(e, D, vol, mu, lam, F, S, q, FF, H)
+        if mode == SCATTER:
             scatter(e, st, g, H, grad, data, slots, 4)
         else:
             g_out[e] = g
