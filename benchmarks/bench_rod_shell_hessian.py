@@ -1,14 +1,14 @@
-"""Per-stencil gradient + projected Hessian timings of the rod and shell terms.
+"""Per-stencil gradient + Hessian timings of the rod and shell terms: compiled kernels against autograd.
 
 Scenes: a hair scene of 100 rods x 36 vertices (3,600 vertices, 10,800 DoFs,
 3,500 stretch edges, 3,400 bending stencils), a 12 x 16 cloth (192 vertices)
 and an 11 x 11 sheet (121 vertices), in random deformed states.  For every
-term it times ``local_gradient_hessian`` (closed form, the class default) and
-the autograd oracle ``base.autograd_gradient_hessian`` (torch.func Hessian +
-batched ``eigh`` clamp of the full stencil Hessian), with 1 and 2 torch
-threads, and the compiled kernels of ``energy.kernels`` (numba, one thread;
-per-stencil outputs like the others, projected and exact).  Reports the minimum and the median over repeats (the machine is
-shared; the minimum is the better estimate of the cost).
+term it times the compiled kernels of ``physics.kernels`` (numba, one thread;
+``TermKernel.local``, the per-stencil g and H of ``local_gradient_hessian``,
+projected and exact) and the autograd oracle ``base.autograd_gradient_hessian``
+(torch.func Hessian + batched ``eigh`` clamp of the full stencil Hessian) with
+1 and 2 torch threads.  Reports the minimum and the median over repeats (the
+machine is shared; the minimum is the better estimate of the cost).
 
 Run:  PYTHONPATH=src python3 benchmarks/bench_rod_shell_hessian.py [--repeats 20]
 """
@@ -71,27 +71,20 @@ def main():
     ap.add_argument("--no-oracle", action="store_true")
     args = ap.parse_args()
     sc = scenes()
-    for threads in (1, 2):
-        torch.set_num_threads(threads)
-        print(f"--- torch threads = {threads}")
-        for name, (x, terms) in sc.items():
-            total = [0.0, 0.0]
-            for term in terms:
+    for name, (x, terms) in sc.items():
+        xn = x.numpy()
+        for term in terms:
+            k = kernels.term_kernel(term)
+            kp = timeit(lambda: k.local(xn, project=True), args.repeats)
+            ke = timeit(lambda: k.local(xn, project=False), args.repeats)
+            line = f"{name:12s} {term.name:20s} E={len(k.stencils):5d}  compiled {kp[0]:7.2f} ms (median {kp[1]:7.2f}), exact {ke[0]:7.2f} ms"
+            if not args.no_oracle:
                 xe = term.gather(x)
-                cf = timeit(lambda: term.local_gradient_hessian(xe), args.repeats)
-                total = [total[0] + cf[0], total[1] + cf[1]]
-                line = f"{name:12s} {term.name:20s} E={xe.shape[0]:5d}  closed form {cf[0]:7.2f} ms (median {cf[1]:7.2f})"
-                k = kernels.term_kernel(term)
-                if k is not None and threads == 1:
-                    xn = x.numpy()
-                    kp = timeit(lambda: k.local(xn, project=True), args.repeats)
-                    ke = timeit(lambda: k.local(xn, project=False), args.repeats)
-                    line += f" | compiled {kp[0]:7.2f} ms, exact {ke[0]:7.2f} ms"
-                if not args.no_oracle:
+                for threads in (1, 2):
+                    torch.set_num_threads(threads)
                     orc = timeit(lambda: autograd_gradient_hessian(term, xe, project=True), max(3, args.repeats // 4))
-                    line += f" | autograd oracle {orc[0]:7.2f} ms (median {orc[1]:7.2f})"
-                print(line)
-            print(f"{name:12s} {'all terms':20s}          closed form {total[0]:7.2f} ms (median {total[1]:7.2f})")
+                    line += f" | autograd oracle, {threads} thread(s) {orc[0]:7.2f} ms (median {orc[1]:7.2f})"
+            print(line)
 
 
 if __name__ == "__main__":

@@ -29,7 +29,7 @@ from latentsim import neural_modes as nm
 from latentsim.neural_modes import sheet as nm_sheet
 from latentsim.config import load_config
 from latentsim.mesh import read_mesh
-from latentsim.scene import build_potential
+from latentsim.scene import build_elastic
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -63,7 +63,7 @@ def main():
     mesh = read_mesh(args.mesh)
     X = mesh.vertices * float(scene["mesh"].get("scale", 1.0))
     arrays = {"rest_positions": X, "triangles": mesh.triangles, "dirichlet": np.zeros(0, dtype=np.int64)}
-    pot = build_potential("shell", arrays, scene["material"], 1.0, [0.0, 0.0, 0.0])
+    pot = build_elastic("shell", arrays, scene["material"])
     m = nmc["modes"]
     lm = nm.linear_modes(pot, m, X, boundary="free", normalization="euclidean")
     basis = {"X": X, "modes": lm.modes, "fixed_dofs": np.zeros(0, dtype=np.int64), "rigid": nm.rigid_modes(X, pot.masses.numpy())}

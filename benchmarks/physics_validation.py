@@ -1,4 +1,4 @@
-"""Print the analytic benchmarks that tests/test_physics.py asserts, with the measured ratios.
+"""Print the analytic benchmarks that tests/physics/test_physics.py asserts, with the measured ratios.
 
     python benchmarks/physics_validation.py
 """

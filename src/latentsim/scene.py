@@ -25,7 +25,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from latentsim.physics.incremental_potential import IncrementalPotential
+from latentsim.physics import rods, shells, tets
+from latentsim.physics.incremental_potential import ElasticPotential, IncrementalPotential
 
 BC_DIM = 6
 
@@ -79,14 +80,16 @@ def dirichlet_trajectory(rest_D: np.ndarray, p: np.ndarray, dt: float) -> np.nda
 # --- the physical model -------------------------------------------------------
 
 
-def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity, w_bc: float = 1e5, free_only: bool = False):
-    """IncrementalPotential of a scene from its mesh arrays and material.
+def build_elastic(model: str, arrays: dict, material: dict, free_only: bool = False) -> ElasticPotential:
+    """ElasticPotential of a scene (its elastic terms, lumped masses, Dirichlet set) from its mesh
+    arrays and material: the elastic energy alone, with no time step or gravity.
 
     Parameters
     ----------
     model : 'rods' | 'shell' | 'tets'
     arrays : dict with 'rest_positions' (n,3), 'dirichlet' (m,), and the
-        element arrays of the model: 'edges' (rods), 'triangles' (shell), 'tets'.
+        element arrays of the model: 'edges' and 'triples' (rods), 'triangles'
+        (shell), 'tets'.
     material : youngs_modulus [Pa], poisson_ratio, density [kg/m^3], and
         radius [m] (rods) or thickness [m] (shell).
     free_only : drop the elastic stencils whose vertices are all Dirichlet.
@@ -109,8 +112,6 @@ def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity
     Y = float(material["youngs_modulus"])
     rho = float(material["density"])
     if model == "rods":
-        from latentsim.physics import rods
-
         edges = torch.as_tensor(np.asarray(arrays["edges"], dtype=np.int64))
         triples = torch.as_tensor(np.asarray(arrays["triples"], dtype=np.int64))
         r = float(material["radius"])
@@ -118,33 +119,40 @@ def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity
         terms = [rods.RodStretch(X, active(edges), ks), rods.RodBend(X, active(triples), kb)]
         masses = rods.lumped_masses_rods(X, edges, rho, r)
     elif model == "shell":
-        from latentsim.physics import shells
-
         tris = torch.as_tensor(np.asarray(arrays["triangles"], dtype=np.int64))
         h = float(material["thickness"])
         nu = float(material["poisson_ratio"])
         hinges = shells.hinges_from_triangles(tris)
         # Grinspun's hinge weight 3|e|^2/(A1+A2) with k_b = D converges to 6x the plate energy
-        # D/2 kappa^2 per area (measured in tests/test_energy_shells.py); 1/6 calibrates it.
+        # D/2 kappa^2 per area (measured in tests/physics/test_energy_shells.py); 1/6 calibrates it.
         terms = [
             shells.ShellMembraneStVK(X, active(tris), Y, nu, h),
             shells.ShellHinge(X, active(hinges), Y, nu, h, stiffness_scale=1.0 / 6.0),
         ]
         masses = shells.lumped_masses_shell(X, tris, rho, h)
     elif model == "tets":
-        from latentsim.physics import tets
-
         T = torch.as_tensor(np.asarray(arrays["tets"], dtype=np.int64))
         terms = [tets.StVKTets(X, active(T), Y, float(material["poisson_ratio"]))]
         masses = tets.lumped_masses(X, T, rho)
     else:
         raise ValueError(f"model '{model}': use one of rods, shell, tets")
-    return IncrementalPotential(
+    return ElasticPotential(
         terms=terms,
         masses=torch.as_tensor(masses, dtype=torch.float64),
+        dirichlet=torch.as_tensor(np.asarray(arrays["dirichlet"], dtype=np.int64)),
+    )
+
+
+def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity, w_bc: float = 1e5, free_only: bool = False):
+    """IncrementalPotential of a scene: :func:`build_elastic` (same arguments) with the time
+    step ``dt`` [s], ``gravity`` (3,) [m/s^2] and the Dirichlet penalty weight ``w_bc``."""
+    elastic = build_elastic(model, arrays, material, free_only=free_only)
+    return IncrementalPotential(
+        terms=elastic.terms,
+        masses=elastic.masses,
+        dirichlet=elastic.dirichlet,
         dt=float(dt),
         g=torch.as_tensor(np.asarray(gravity, dtype=np.float64)),
-        dirichlet=torch.as_tensor(np.asarray(arrays["dirichlet"], dtype=np.int64)),
         w_bc=float(w_bc),
     )
 

@@ -1,8 +1,9 @@
 """Discrete elastic rods (no twist): stretching and bending energies.
 
 Physics checks: zero energy/force at rest, rigid-motion invariance, finite
-differences, the closed-form Hessians against the autograd oracle (raw and
-projected), batching, and analytic values (uniform stretch, circular arc).
+differences, the compiled Hessians (``local_gradient_hessian``, the kernels of
+``physics.kernels.rods``) against the autograd oracle (raw and projected),
+batching, and analytic values (uniform stretch, circular arc).
 """
 
 from __future__ import annotations
@@ -14,10 +15,10 @@ import pytest
 import torch
 
 from latentsim.physics.base import autograd_gradient_hessian, project_psd
+from latentsim.physics.kernels.core import jacobi_eigh
 from latentsim.physics.rods import (
     RodBend,
     RodStretch,
-    _jacobi_eigh,
     lumped_masses_rods,
     rod_roots,
     rod_stiffness,
@@ -229,15 +230,19 @@ def test_bend_hessian_at_straight_and_nearly_straight_states(rods):
             assert (g - g0).abs().max().item() < 1e-14 * scale
 
 
-def test_jacobi_eigensolver():
-    rng = np.random.default_rng(0)
-    A = rng.standard_normal((50, 4, 4))
+@pytest.mark.parametrize("n", [3, 4, 9])
+def test_jacobi_eigensolver(n):
+    """The kernels' one small symmetric eigensolver (``kernels.core.jacobi_eigh``)."""
+    rng = np.random.default_rng(n)
+    A = rng.standard_normal((50, n, n))
     A = A + A.transpose(0, 2, 1)
     A[0] = 0.0  # zero matrix
-    A[1] = np.diag([1.0, 1.0, 1.0, 2.0])  # repeated eigenvalues
-    A[2] = np.ones((4, 4))  # rank one
-    lam, V = _jacobi_eigh(A)
-    assert np.allclose(np.einsum("eij,ejk->eik", V.transpose(0, 2, 1), V), np.eye(4), atol=1e-13)
+    A[1] = np.diag(np.r_[np.ones(n - 1), 2.0])  # repeated eigenvalues
+    A[2] = np.ones((n, n))  # rank one
+    lam, V = np.empty((50, n)), np.empty((50, n, n))
+    for e in range(50):
+        jacobi_eigh(A[e].copy(), V[e], lam[e])
+    assert np.allclose(np.einsum("eij,ejk->eik", V.transpose(0, 2, 1), V), np.eye(n), atol=1e-13)
     assert np.allclose((V * lam[:, None, :]) @ V.transpose(0, 2, 1), A, atol=1e-12)
     assert np.allclose(np.sort(lam, 1), np.linalg.eigvalsh(A), atol=1e-12)
 

@@ -1,8 +1,8 @@
 """Discrete shells: StVK membrane triangles and dihedral-angle hinges.
 
 Physics checks: zero energy/force at rest (flat sheet and a curved piece of
-cylinder), rigid-motion invariance, finite differences, the closed-form
-Hessians against the autograd oracle (raw and projected), batching, analytic
+cylinder), rigid-motion invariance, finite differences, the compiled
+Hessians (``local_gradient_hessian``, ``physics.kernels.shells``) against the autograd oracle (raw and projected), batching, analytic
 values (affine membrane strain, a single folded hinge, cylinder bending and
 its continuum limit), masses and input validation.
 """

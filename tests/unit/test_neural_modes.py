@@ -30,7 +30,7 @@ from latentsim.neural_modes import (
     train_neural_modes,
 )
 from latentsim.physics.base import autograd_gradient_hessian
-from latentsim.scene import build_potential
+from latentsim.scene import build_elastic, build_potential
 from latentsim.solve.constrained import ConstrainedNewton
 from latentsim.solve.modes import lowest_modes, stiffness_matrix
 from latentsim.solve.sparse import scatter_gradient
@@ -55,7 +55,7 @@ def free_sheet(cells=6, width=0.2, thickness=0.003):
     V, F = cloth_grid(cells, cells, width, width)
     arrays = {"rest_positions": V, "triangles": F, "dirichlet": np.zeros(0, dtype=np.int64)}
     mat = {"youngs_modulus": 1e6, "poisson_ratio": 0.3, "density": 1000.0, "thickness": thickness}
-    return build_potential("shell", arrays, mat, 1.0, [0, 0, 0]), V
+    return build_elastic("shell", arrays, mat), V
 
 
 def _check_eigenpairs(pot, V, lm):

@@ -19,7 +19,7 @@ from latentsim.neural_modes import energy_study as nm_energy
 from latentsim.neural_modes import sheet as nm_sheet
 from latentsim.latent import fit_autoencoder
 from latentsim.mesh import beam_tets, cloth_grid
-from latentsim.scene import build_potential
+from latentsim.scene import build_elastic
 
 ONE_THREAD = True  # tiny networks (conftest)
 
@@ -28,7 +28,7 @@ def sheet(cells=4, dirichlet=()):
     V, F = cloth_grid(cells, cells, 0.2, 0.2, plane="xz")
     arrays = {"rest_positions": V, "triangles": F, "dirichlet": np.asarray(dirichlet, dtype=np.int64)}
     mat = {"youngs_modulus": 1e6, "poisson_ratio": 0.3, "density": 1000.0, "thickness": 0.003}
-    return build_potential("shell", arrays, mat, 1.0, [0, 0, 0]), V, F
+    return build_elastic("shell", arrays, mat), V, F
 
 
 # --- learning curves and early stopping ------------------------------------------------------------
@@ -175,7 +175,7 @@ def beam(n=(6, 2, 2)):
 
 def test_energy_table_rows_are_the_energies_of_each_method():
     arrays, mat = beam()
-    pot = build_potential("tets", arrays, mat, 1.0, [0, 0, 0])
+    pot = build_elastic("tets", arrays, mat)
     V, D = arrays["rest_positions"], arrays["dirichlet"]
     lm = nm.linear_modes(pot, 2, V, boundary="dirichlet", normalization="euclidean")
     gt = nm_sheet.solve_sets(pot, V, lm.modes, nm_energy.energy_sets(2, 0.05, 16, 8, 3, seed=0), free_dofs=lm.free_dofs, max_iter=20)
@@ -231,7 +231,7 @@ def test_dynamics_rows_against_the_full_simulation(beam_trajectories):
     import h5py
 
     traj, arrays = beam_trajectories
-    pot = build_potential("tets", arrays, beam()[1], 1.0, [0, 0, 0])
+    pot = build_elastic("tets", arrays, beam()[1])
     D = arrays["dirichlet"]
     lm = nm.linear_modes(pot, 2, arrays["rest_positions"], boundary="dirichlet", normalization="euclidean")
     torch.manual_seed(0)

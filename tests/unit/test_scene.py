@@ -1,8 +1,13 @@
 """The boundary-condition program: piecewise-constant rigid motion of the Dirichlet set."""
 
 import numpy as np
+import pytest
+import torch
 
-from latentsim.scene import bc_parameters, dirichlet_trajectory
+from latentsim.mesh import beam_tets, cloth_grid, rod_bundle
+from latentsim.physics.incremental_potential import ElasticPotential, IncrementalPotential
+from latentsim.physics.rods import rod_topology
+from latentsim.scene import bc_parameters, build_elastic, build_potential, dirichlet_trajectory
 
 
 def test_constant_translation_moves_by_v_dt_per_frame():
@@ -40,3 +45,38 @@ def test_rotation_is_rigid_and_about_the_centroid():
         d = np.linalg.norm(xD[t][:, None] - xD[t][None], axis=-1)
         assert np.allclose(d, np.linalg.norm(rest[:, None] - rest[None], axis=-1))
         assert np.allclose(xD[t].mean(0), 0.0)
+
+
+MATERIAL = {"youngs_modulus": 1e5, "poisson_ratio": 0.35, "density": 1000.0, "radius": 1e-3, "thickness": 2e-3}
+
+
+def scene_arrays(model):
+    if model == "tets":
+        X, T = beam_tets(3, 2, 2, 0.3, 0.1, 0.1, tets_per_cell=6)
+        return {"rest_positions": X, "tets": T, "dirichlet": np.flatnonzero(X[:, 0] < 1e-9)}
+    if model == "rods":
+        X, edges, roots = rod_bundle(2, 6, 0.2, 0.05)
+        return {"rest_positions": X, "edges": edges, "triples": rod_topology(2, 6)[1].numpy(), "dirichlet": roots}
+    X, tris = cloth_grid(3, 3, 0.3, 0.3)
+    return {"rest_positions": X, "triangles": tris, "dirichlet": np.array([0, 3])}
+
+
+@pytest.mark.parametrize("model", ["tets", "rods", "shell"])
+@pytest.mark.parametrize("free_only", [False, True])
+def test_elastic_potential_is_the_incremental_potentials_elastic_part(model, free_only):
+    """build_elastic: the terms, masses and Dirichlet set of build_potential, no time step; the
+    same elastic energy, and the incremental potential adds inertia and gravity to it."""
+    arrays = scene_arrays(model)
+    el = build_elastic(model, arrays, MATERIAL, free_only=free_only)
+    pot = build_potential(model, arrays, MATERIAL, 0.01, [0.0, -9.81, 0.0], free_only=free_only)
+    assert type(el) is ElasticPotential and isinstance(pot, IncrementalPotential) and not hasattr(el, "dt")
+    assert [t.name for t in el.terms] == [t.name for t in pot.terms]
+    assert all(torch.equal(a.stencils, b.stencils) for a, b in zip(el.terms, pot.terms))
+    assert torch.equal(el.masses, pot.masses) and torch.equal(el.dirichlet, pot.dirichlet)
+    assert el.n_vertices == len(arrays["rest_positions"])
+    X = torch.as_tensor(np.asarray(arrays["rest_positions"], dtype=np.float64))
+    x = X + 0.01 * torch.randn(X.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    e = el.elastic(x)
+    assert e > 0 and torch.equal(e, pot.elastic(x))
+    assert torch.allclose(pot(x, X, X, penalty=False), e + 0.5 / 0.01**2 * (pot.masses * ((x - X) ** 2).sum(-1)).sum()
+                          + 9.81 * (pot.masses * x[:, 1]).sum(), rtol=1e-12)  # fmt: skip

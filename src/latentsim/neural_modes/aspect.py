@@ -46,7 +46,7 @@ from tqdm import tqdm
 
 from latentsim import neural_modes as nm
 from latentsim.physics.kernels import with_compiled_elastic
-from latentsim.scene import build_potential
+from latentsim.scene import build_elastic
 
 log = logging.getLogger(__name__)
 
@@ -129,7 +129,7 @@ class ModeFamily:
 
 def ratio_potential(arrays: dict, model: str, material: dict, X):
     """The elastic potential of the scene's mesh on rest positions X (no inertia or gravity needed)."""
-    return build_potential(model, {**arrays, "rest_positions": np.asarray(X)}, material, 1.0, [0.0, 0.0, 0.0])
+    return build_elastic(model, {**arrays, "rest_positions": np.asarray(X)}, material)
 
 
 def mode_family(arrays: dict, model: str, material: dict, ratios, m: int, boundary: str = "free", normalization: str = "euclidean", extra: int = 2):

@@ -11,11 +11,15 @@ and implements
 
 - ``local_energy(xe)`` : xe (..., E, k, 3) -> (..., E), differentiable and
   batched over any leading axes (decoded latents, samples, time),
-- ``local_gradient_hessian(xe)`` : xe (E, k, 3) -> (g (E, 3k), H (E, 3k, 3k)),
-  the per-stencil gradient and a positive semi-definite Hessian (projected,
-  Teran et al. 2005) for the Newton solver.  Terms may implement it in closed
-  form; the default below uses autograd (``torch.func``) plus an eigenvalue
-  clamp and is the oracle the tests compare closed forms against.
+- ``kernel_spec()`` : the term's compiled kernels (``kernels.KernelSpec``:
+  energy, gradient and Hessian per stencil, ``physics.kernels``), or None;
+
+and so offers ``local_gradient_hessian(xe)`` : xe (E, k, 3) -> (g (E, 3k),
+H (E, 3k, 3k)), the per-stencil gradient and Hessian, exact or positive
+semi-definite (projected, Teran et al. 2005), by the compiled kernels, or by
+autograd (``torch.func``) plus an eigenvalue clamp for a term without.  The
+autograd version, ``autograd_gradient_hessian``, is the oracle the tests
+compare the kernels against.
 
 Everything here is float64 unless the caller passes float32 states.
 """
@@ -25,6 +29,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 from torch.func import vmap
+
+from latentsim.physics.kernels.core import translation_free_basis
+from latentsim.physics.kernels.dispatch import KernelSpec, TermKernel
 
 
 class EnergyTerm:
@@ -49,9 +56,26 @@ class EnergyTerm:
         """Total energy, x (..., n, 3) -> (...)."""
         return self.element_energy(x).sum(-1)
 
-    def local_gradient_hessian(self, xe: torch.Tensor):
-        """Per-stencil gradient (E, 3k) and PSD-projected Hessian (E, 3k, 3k)."""
-        return autograd_gradient_hessian(self, xe, project=True)
+    def kernel_spec(self) -> KernelSpec | None:
+        """The term's compiled kernels (``physics.kernels``); None: the term has none."""
+        return None
+
+    def local_gradient_hessian(self, xe: torch.Tensor, project: bool = True):
+        """Per-stencil gradient (E, 3k) and Hessian (E, 3k, 3k), PSD-projected when ``project``.
+
+        xe : (E, k, 3), the positions of all E stencils (in ``stencils`` order).
+        Computed by the compiled kernels (float64, returned in xe's dtype and
+        device), or by ``autograd_gradient_hessian`` for a term without.
+        """
+        spec = self.kernel_spec()
+        if spec is None:
+            return autograd_gradient_hessian(self, xe, project=project)
+        E, k, _ = xe.shape
+        if E != len(self.stencils):
+            raise ValueError(f"{self.name}: xe holds {E} stencils, the term has {len(self.stencils)} (their rest data)")
+        own = TermKernel(self.name, np.arange(E * k).reshape(E, k), spec)  # stencil e = its own k vertices
+        g, H = own.local(xe.detach().cpu().numpy().reshape(E * k, 3), project)
+        return torch.from_numpy(g).to(xe), torch.from_numpy(H).to(xe)
 
 
 def autograd_gradient_hessian(term: EnergyTerm, xe: torch.Tensor, project: bool = True):
@@ -122,4 +146,18 @@ def project_psd(H: torch.Tensor, floor: float = 0.0) -> torch.Tensor:
     return (Q * w.unsqueeze(-2)) @ Q.transpose(-1, -2)
 
 
-__all__ = ["EnergyTerm", "autograd_gradient_hessian", "project_psd", "subset_weights"]
+def project_psd_translation_free(H: torch.Tensor, k: int) -> torch.Tensor:
+    """Eigenvalue clamp of translation-invariant stencil Hessians H (E, 3k, 3k).
+
+    An energy invariant under translations of all k stencil vertices has
+    H = B M B^T with B = Q (x) I3 (3k, 3k-3), Q (k, k-1) an orthonormal basis
+    of the vectors orthogonal to (1, .., 1) (``kernels.translation_free_basis``),
+    and M = B^T H B; clamping the eigenvalues of M (``project_psd``) is the
+    exact eigenvalue clamp of H, as the compiled kernels do it.
+    """
+    B = torch.from_numpy(translation_free_basis(k)).to(H)
+    M = B.T @ H @ B
+    return B @ project_psd(0.5 * (M + M.transpose(-1, -2))) @ B.T
+
+
+__all__ = ["EnergyTerm", "autograd_gradient_hessian", "project_psd", "project_psd_translation_free", "subset_weights"]

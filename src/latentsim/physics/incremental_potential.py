@@ -1,4 +1,9 @@
-"""Per-vertex terms of the incremental potential and the potential itself.
+"""The elastic potential of a scene, the per-vertex terms of the incremental potential, and the latter.
+
+``ElasticPotential`` is the elastic energy alone, E_elastic(x) = sum of the
+scene's EnergyTerms, with its lumped masses and Dirichlet set and no time
+step: the potential energy that Neural Modes (Wang et al. 2024, Eq. 5-8)
+minimise and the stiffness their linear modes come from.
 
 Variational implicit Euler (Martin et al. 2011): the end-of-step positions
 ``x_t`` minimise
@@ -21,6 +26,7 @@ from dataclasses import dataclass, field
 import torch
 
 from latentsim.physics.base import EnergyTerm
+from latentsim.physics.kernels.dispatch import compiled_energy
 
 
 def inertia(x, x_prev, x_prev2, masses, dt):
@@ -44,25 +50,22 @@ def dirichlet_penalty(x, indices, targets, weight):
 
 
 @dataclass
-class IncrementalPotential:
-    """E_total of one scene: elastic terms + inertia + gravity (+ Dirichlet penalty).
+class ElasticPotential:
+    """E_elastic of one scene: the sum of its elastic terms, with its lumped masses and Dirichlet set.
 
     Attributes
     ----------
     terms : elastic EnergyTerms (rod stretch/bend, shell membrane/hinge, tets)
     masses : (n,) lumped vertex masses [kg]
-    dt : time step [s]
-    g : (3,) gravitational acceleration [m/s^2]
     dirichlet : (m,) indices of prescribed vertices
-    w_bc : penalty weight used where constraints are soft (learning, reduced solvers)
+    kernels : None, or one compiled ``kernels.TermKernel`` per term
+        (``kernels.with_compiled_elastic``): ``elastic`` then runs them on
+        float64 CPU states (first derivatives only)
     """
 
     terms: list[EnergyTerm]
     masses: torch.Tensor
-    dt: float
-    g: torch.Tensor
     dirichlet: torch.Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.long))
-    w_bc: float = 1e5
     kernels: list | None = None
 
     @property
@@ -72,13 +75,28 @@ class IncrementalPotential:
     def elastic(self, x: torch.Tensor) -> torch.Tensor:
         """Elastic energy, x (..., n, 3) -> (...)."""
         if self.kernels is not None and x.device.type == "cpu" and x.dtype == torch.float64:
-            from latentsim.physics.kernels import compiled_energy
-
             return compiled_energy(self.kernels, x)
         total = torch.zeros(x.shape[:-2], dtype=x.dtype, device=x.device)
         for term in self.terms:
             total = total + term.energy(x)
         return total
+
+
+@dataclass
+class IncrementalPotential(ElasticPotential):
+    """E_total of one scene: the elastic potential + inertia + gravity (+ Dirichlet penalty).
+
+    Attributes
+    ----------
+    terms, masses, dirichlet, kernels : as in ``ElasticPotential``
+    dt : time step [s]
+    g : (3,) gravitational acceleration [m/s^2]
+    w_bc : penalty weight used where constraints are soft (learning, reduced solvers)
+    """
+
+    dt: float = field(kw_only=True)
+    g: torch.Tensor = field(kw_only=True)
+    w_bc: float = 1e5
 
     def __call__(self, x, x_prev, x_prev2, targets=None, penalty=True):
         """E_total(x); ``targets`` (..., m, 3) are x*_D, penalised when ``penalty``."""

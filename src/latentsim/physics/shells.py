@@ -49,18 +49,17 @@ instead to c D/2 kappa^2 * area with the constant c = 6:
   2 sqrt(3): again 6 x D/2 kappa^2 (the tests measure 6 for 0 and 45 degree
   axes, and for the grid bent along its diagonal).
 
-``tests/test_energy_shells.py`` checks these values.  The default keeps the
+``tests/physics/test_energy_shells.py`` checks these values.  The default keeps the
 energy as specified (kb = D, i.e. 6x the plate's bending stiffness on these
 meshes); ``ShellHinge(..., stiffness_scale=1/6)`` calibrates it to the plate,
 within a few % on fine meshes.
 
-Newton derivatives.  Both terms have closed-form per-stencil gradients and
-exact Hessians (float64 NumPy, vectorised over stencils; formulas in the
-``local_gradient_hessian`` docstrings), 3-5x faster than the ``torch.func``
-oracle of ``base``, which the tests compare them with.  The eigenvalue clamp
-is done on the (3k-3)-dimensional translation-free block of each stencil
-(``project_psd_translation_free``; exact, as both energies are translation
-invariant) with a batched ``eigh``.
+Newton derivatives.  Both terms have compiled per-stencil gradients and
+exact Hessians (``kernels.shells``; formulas in the ``kernel_spec``
+docstrings), which the tests compare with the ``torch.func`` oracle of
+``base``.  The eigenvalue clamp is done on the (3k-3)-dimensional
+translation-free block of each stencil (``kernels.core.project_psd``; exact,
+as both energies are translation invariant) with a cyclic Jacobi solver.
 """
 
 from __future__ import annotations
@@ -71,6 +70,9 @@ import numpy as np
 import torch
 
 from latentsim.physics.base import EnergyTerm, subset_weights
+from latentsim.physics.kernels import shells as shell_kernels
+from latentsim.physics.kernels.core import translation_free_basis
+from latentsim.physics.kernels.dispatch import KernelSpec, float64_array
 
 __all__ = [
     "plane_stress_lame",
@@ -79,7 +81,6 @@ __all__ = [
     "lumped_masses_shell",
     "triangle_rest_frames",
     "dihedral_angle",
-    "project_psd_translation_free",
     "ShellMembraneStVK",
     "ShellHinge",
 ]
@@ -250,29 +251,6 @@ def dihedral_angle(xe: torch.Tensor) -> torch.Tensor:
     return torch.atan2(s, c)
 
 
-def project_psd_translation_free(H: torch.Tensor, k: int) -> torch.Tensor:
-    """Eigenvalue clamp of translation-invariant stencil Hessians.
-
-    A Hessian H (E, 3k, 3k) of an energy invariant under translations of all
-    k stencil vertices is H = (Q (x) I3) M (Q (x) I3)^T with Q (k, k-1) an
-    orthonormal basis of the vectors orthogonal to (1, .., 1).  Clamping the
-    eigenvalues of the (3k-3)-square M is the exact eigenvalue clamp of H.
-    """
-    Q = _translation_free_basis(k, H.dtype, H.device)
-    B = torch.kron(Q, torch.eye(3, dtype=H.dtype, device=H.device))  # (3k, 3k-3)
-    M = B.T @ H @ B
-    M = 0.5 * (M + M.transpose(-1, -2))
-    w, V = torch.linalg.eigh(M)
-    BV = B @ V
-    return (BV * w.clamp(min=0.0).unsqueeze(-2)) @ BV.transpose(-1, -2)
-
-
-def _translation_free_basis(k: int, dtype, device) -> torch.Tensor:
-    ones = torch.ones(k, 1, dtype=torch.float64)
-    Qfull, _ = torch.linalg.qr(torch.cat([ones, torch.eye(k, dtype=torch.float64)[:, : k - 1]], 1))
-    return Qfull[:, 1:].contiguous().to(dtype=dtype, device=device)
-
-
 def _per_stencil(value, count: int, name: str) -> torch.Tensor:
     t = torch.as_tensor(value, dtype=torch.float64)
     if t.ndim > 1 or (t.ndim == 1 and t.shape[0] not in (1, count)):
@@ -322,12 +300,6 @@ class ShellMembraneStVK(EnergyTerm):
         self.mu = _per_stencil(mu, T, "youngs_modulus/poisson_ratio")
         self.lam = _per_stencil(lam, T, "youngs_modulus/poisson_ratio")
         self.thickness = _per_stencil(thickness, T, "thickness")
-        # float64 NumPy copies for the closed forms: G = [[-1, -1], [1, 0], [0, 1]] Dm^-1
-        sel = torch.tensor([[-1.0, -1.0], [1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)
-        self._G_np = (sel @ self.Dm_inv).numpy()
-        self._K_np = (self.rest_area * self.thickness).numpy()
-        self._mu_np = self.mu.numpy()
-        self._lam_np = self.lam.numpy()
 
     def weighted_subset(self, index, weights) -> "ShellMembraneStVK":
         """sum_{t in index} w_t E_t: thickness w_t h_t in the energy Abar h Psi (a cubature, see
@@ -366,47 +338,23 @@ class ShellMembraneStVK(EnergyTerm):
         """||P||_F per triangle [Pa]; x (..., n, 3) -> (..., T)."""
         return torch.linalg.matrix_norm(self.first_piola(x))
 
-    def local_gradient_hessian(self, xe: torch.Tensor, project: bool = True):
-        """Closed-form gradient (T, 9) and Hessian (T, 9, 9).
+    def kernel_spec(self) -> KernelSpec:
+        """The compiled membrane kernels (``kernels.shells``).
 
-        With G (3, 2) the gradients of the barycentric coordinates in the rest
-        frame (F = sum_a x_a G_a^T), Psi_ia = (F G^T)_ia and K = Abar h:
+        With G (3, 2) = [[-1, -1], [1, 0], [0, 1]] Dm^{-1} the gradients of the
+        barycentric coordinates in the rest frame (F = sum_a x_a G_a^T),
+        Psi_ia = (F G^T)_ia and K = Abar h:
 
             g_a = K P G_a,
             H_(a i)(b j) = K [ (G S G^T)_ab delta_ij + mu Psi_ib Psi_ja
                                + mu (F F^T)_ij (G G^T)_ab + lam Psi_ia Psi_jb ].
 
-        ``project`` clamps the eigenvalues on the 6x6 translation-free block
-        (exact eigenvalue clamp of the 9x9 Hessian, batched ``eigh``).
+        The projection clamps the eigenvalues on the 6x6 translation-free
+        block (exact eigenvalue clamp of the 9x9 Hessian).
         """
-        x = xe.detach().cpu().numpy().astype(np.float64, copy=False)
-        G, K, mu, lam = self._G_np, self._K_np, self._mu_np, self._lam_np
-        F = np.einsum("eai,eaq->eiq", x, G)  # (T, 3, 2)
-        C = np.einsum("eiq,eir->eqr", F, F)
-        Eg = 0.5 * (C - np.eye(2))
-        trE = Eg[:, 0, 0] + Eg[:, 1, 1]
-        S = 2.0 * mu[:, None, None] * Eg + (lam * trE)[:, None, None] * np.eye(2)
-        P = F @ S
-        g = K[:, None, None] * np.einsum("eiq,eaq->eai", P, G)  # (T, 3 vertices, 3)
-        PsiT = np.einsum("eaq,eiq->eai", G, F)  # Psi^T: [a, i]
-        GSG = np.einsum("eaq,eqr,ebr->eab", G, S, G)
-        GG = np.einsum("eaq,ebq->eab", G, G)
-        FF = np.einsum("eiq,ejq->eij", F, F)
-        eye3 = np.eye(3)
-        Psi = PsiT.transpose(0, 2, 1)  # [i, a]
-        mu5, lam5 = mu[:, None, None, None, None], lam[:, None, None, None, None]
-        H = (  # index order [a, i, b, j]
-            GSG[:, :, None, :, None] * eye3[None, None, :, None, :]
-            + mu5 * (PsiT[:, :, None, None, :] * Psi[:, None, :, :, None])  # Psi_ib Psi_ja
-            + mu5 * (GG[:, :, None, :, None] * FF[:, None, :, None, :])
-            + lam5 * (PsiT[:, :, :, None, None] * PsiT[:, None, None, :, :])  # Psi_ia Psi_jb
-        )
-        H = K[:, None, None] * H.reshape(-1, 9, 9)
-        g = torch.from_numpy(g.reshape(-1, 9)).to(dtype=xe.dtype, device=xe.device)
-        H = torch.from_numpy(H)
-        if project:
-            H = project_psd_translation_free(H, 3)
-        return g, H.to(dtype=xe.dtype, device=xe.device)
+        sel = torch.tensor([[-1.0, -1.0], [1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)
+        args = (float64_array(sel @ self.Dm_inv), float64_array(self.rest_area * self.thickness), float64_array(self.mu), float64_array(self.lam))
+        return KernelSpec(shell_kernels.membrane_energy, shell_kernels.membrane_run, args, 3, translation_free_basis(3))
 
 
 # --------------------------------------------------------------------------
@@ -460,8 +408,6 @@ class ShellHinge(EnergyTerm):
             torch.as_tensor(thickness, dtype=torch.float64),
         )
         self.kb = float(stiffness_scale) * _per_stencil(kb, Hn, "youngs_modulus/poisson_ratio/thickness")
-        self._k_np = (self.kb * self.weight).numpy()
-        self._rest_angle_np = self.rest_angle.numpy()
 
     def weighted_subset(self, index, weights) -> "ShellHinge":
         """sum_{h in index} w_h E_h: stiffness w_h kb_h (a cubature, see ``base.subset_weights``).
@@ -480,8 +426,8 @@ class ShellHinge(EnergyTerm):
         d = d - 2.0 * math.pi * torch.round(d / (2.0 * math.pi))
         return (self.kb * self.weight).to(xe) * d * d
 
-    def local_gradient_hessian(self, xe: torch.Tensor, project: bool = True):
-        """Closed-form gradient (H, 12) and Hessian (H, 12, 12).
+    def kernel_spec(self) -> KernelSpec:
+        """The compiled hinge kernels (``kernels.shells``).
 
         With e = x1 - x0, L = |e|, d_a = x_a - x0, d_b = x_b - x0,
         N1 = e x d_a, N2 = d_b x e, t_a = d_a.e / L^2, t_b = d_b.e / L^2:
@@ -493,84 +439,8 @@ class ShellHinge(EnergyTerm):
         d(N / |N|^2) = (I - 2 n n^T) / |N|^2 dN.  The energy k (theta -
         thetabar)^2, k = kb w, has g = 2 k d grad theta and
         H = 2 k (grad theta grad theta^T + d Hess theta), d = theta - thetabar
-        (wrapped).  ``project`` clamps the eigenvalues on the 9x9
-        translation-free block (exact eigenvalue clamp, batched ``eigh``).
+        (wrapped).  The projection clamps the eigenvalues on the 9x9
+        translation-free block (exact eigenvalue clamp).
         """
-        x = xe.detach().cpu().numpy().astype(np.float64, copy=False)
-        g, H = _hinge_gradient_hessian(x, self._k_np, self._rest_angle_np)
-        g = torch.from_numpy(g).to(dtype=xe.dtype, device=xe.device)
-        H = torch.from_numpy(H)
-        if project:
-            H = project_psd_translation_free(H, 4)
-        return g, H.to(dtype=xe.dtype, device=xe.device)
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """[v]_x (E, 3, 3) with [v]_x u = v x u."""
-    z = np.zeros(v.shape[0])
-    return np.stack(
-        [np.stack([z, -v[:, 2], v[:, 1]], 1), np.stack([v[:, 2], z, -v[:, 0]], 1), np.stack([-v[:, 1], v[:, 0], z], 1)],
-        1,
-    )
-
-
-def _hinge_gradient_hessian(x: np.ndarray, k: np.ndarray, rest_angle: np.ndarray):
-    """NumPy kernel of ``ShellHinge.local_gradient_hessian``; x (E, 4, 3) float64."""
-    E = x.shape[0]
-    x0, x1, xa, xb = x[:, 0], x[:, 1], x[:, 2], x[:, 3]
-    e, da, db = x1 - x0, xa - x0, xb - x0
-    L2 = np.einsum("ei,ei->e", e, e)
-    L = np.sqrt(L2)
-    eh = e / L[:, None]
-    N1, N2 = np.cross(e, da), np.cross(db, e)
-    q1 = np.einsum("ei,ei->e", N1, N1)
-    q2 = np.einsum("ei,ei->e", N2, N2)
-    theta = np.arctan2(np.einsum("ei,ei->e", np.cross(N1, N2), eh), np.einsum("ei,ei->e", N1, N2))
-    d = theta - rest_angle
-    d = d - 2.0 * np.pi * np.round(d / (2.0 * np.pi))
-
-    ga = -(L / q1)[:, None] * N1
-    gb = -(L / q2)[:, None] * N2
-    ta = np.einsum("ei,ei->e", da, e) / L2
-    tb = np.einsum("ei,ei->e", db, e) / L2
-    g1 = -ta[:, None] * ga - tb[:, None] * gb
-    g0 = -(g1 + ga + gb)
-    grad = np.stack([g0, g1, ga, gb], 1)  # (E, 4, 3)
-
-    eye = np.eye(3)
-    n1, n2 = N1 / np.sqrt(q1)[:, None], N2 / np.sqrt(q2)[:, None]
-    M1 = (eye - 2.0 * n1[:, :, None] * n1[:, None, :]) / q1[:, None, None]
-    M2 = (eye - 2.0 * n2[:, :, None] * n2[:, None, :]) / q2[:, None, None]
-    Le = L[:, None, None]
-    Se, Sa, Sb = _skew(e), _skew(da), _skew(db)
-    # partial derivatives w.r.t. (e, d_a) and (e, d_b)
-    ga_da = -Le * (M1 @ Se)
-    ga_e = -(N1 / q1[:, None])[:, :, None] * eh[:, None, :] + Le * (M1 @ Sa)
-    gb_db = Le * (M2 @ Se)
-    gb_e = -(N2 / q2[:, None])[:, :, None] * eh[:, None, :] - Le * (M2 @ Sb)
-    ta_da = e / L2[:, None]
-    ta_e = da / L2[:, None] - (2.0 * ta / L2)[:, None] * e
-    tb_db = e / L2[:, None]
-    tb_e = db / L2[:, None] - (2.0 * tb / L2)[:, None] * e
-    # Jacobians w.r.t. the vertices (x0, x1, xa, xb): d/dx0 = -(d/de + d/dd_a + d/dd_b)
-    Z = np.zeros((E, 3, 3))
-    Ja = [-(ga_e + ga_da), ga_e, ga_da, Z]
-    Jb = [-(gb_e + gb_db), gb_e, Z, gb_db]
-    z = np.zeros((E, 3))
-    Ta = [-(ta_e + ta_da), ta_e, ta_da, z]
-    Tb = [-(tb_e + tb_db), tb_e, z, tb_db]
-    J1 = [
-        -ta[:, None, None] * Ja[c]
-        - ga[:, :, None] * Ta[c][:, None, :]
-        - tb[:, None, None] * Jb[c]
-        - gb[:, :, None] * Tb[c][:, None, :]
-        for c in range(4)
-    ]
-    J0 = [-(J1[c] + Ja[c] + Jb[c]) for c in range(4)]
-    Ht = np.stack([np.stack(row, 2) for row in (J0, J1, Ja, Jb)], 1)  # (E, 4, 3, 4, 3)
-    Ht = Ht.reshape(E, 12, 12)
-    Ht = 0.5 * (Ht + Ht.transpose(0, 2, 1))
-    gflat = grad.reshape(E, 12)
-    g = (2.0 * k * d)[:, None] * gflat
-    H = (2.0 * k)[:, None, None] * (gflat[:, :, None] * gflat[:, None, :] + d[:, None, None] * Ht)
-    return g, H
+        args = (float64_array(self.kb * self.weight), float64_array(self.rest_angle))
+        return KernelSpec(shell_kernels.hinge_energy, shell_kernels.hinge_run, args, 4, translation_free_basis(4))

@@ -36,7 +36,7 @@ from latentsim.neural_modes import energy_study as nm_energy
 from latentsim.neural_modes import sheet as nm_sheet
 from latentsim.io import ArtefactError, atomic_h5, atomic_path, read_tree, require, write_dataset, write_tree
 from latentsim.latent import save_module
-from latentsim.scene import build_potential
+from latentsim.scene import build_elastic
 from latentsim.stages.simulate import read_mesh_arrays
 
 log = logging.getLogger(__name__)
@@ -114,7 +114,7 @@ def targets(config: dict, scenes) -> list:
 def scene_potential(mesh_h5, model: str, material: dict):
     """(potential with every elastic stencil, arrays) of a scene's mesh; no inertia or gravity needed here."""
     arrays = read_mesh_arrays(mesh_h5)
-    return build_potential(model, arrays, material, 1.0, [0.0, 0.0, 0.0]), arrays
+    return build_elastic(model, arrays, material), arrays
 
 
 def linear_modes_stage(mesh_h5, params: dict, out_h5):

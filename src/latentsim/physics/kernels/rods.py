@@ -1,0 +1,282 @@
+r"""Compiled rod stretching and bending (``physics.rods``): energy, gradient, Hessian per stencil.
+
+* Stretch, e = x1 - x0, u = e/|e|: g = [-f, f], f = ks (|e|/|ebar| - 1) u, and
+  H = [[K, -K], [-K, K]], K = ks/|ebar| [u u^T + c (I - u u^T)], c = 1 - |ebar|/|e|
+  (clamped at 0 when projecting: the exact eigenvalue clamp).
+* Bend, phi(A, B, C) = alpha (A B - C^2) / (c0 + C)^2 of the Gram invariants of
+  a = e_{i-1}, b = e_i: H_(a,b) = sum_kl phi_kl j_k j_l^T + [[2 phi_A, phi_C],
+  [phi_C, 2 phi_B]] (x) I3 with j_A = (2a, 0), j_B = (0, 2b), j_C = (b, a);
+  H9 = D^T H_(a,b) D for the difference operator D.  The projection clamps the
+  eigenvalues of its translation-free block (``core.project_psd``) in the
+  stencil frame, where in-plane and out-of-plane motions decouple.
+
+The ``*_energy`` and ``*_run`` kernels follow the calling convention of
+``dispatch.TermKernel``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from latentsim.physics.kernels.core import GRADIENT, INLINE, JIT, SCATTER, emit, project_psd, scatter_gradient
+
+
+@njit(**JIT)
+def stretch_energy(x, st, order, rest_length, ks):
+    """sum_e 1/2 ks (|e|/|ebar| - 1)^2 |ebar|."""
+    total = 0.0
+    for ii in range(order.shape[0]):
+        e = order[ii]
+        i0, i1 = st[e, 0], st[e, 1]
+        d0, d1, d2 = x[i1, 0] - x[i0, 0], x[i1, 1] - x[i0, 1], x[i1, 2] - x[i0, 2]
+        lb = rest_length[e]
+        r = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2) / lb - 1.0
+        total += 0.5 * ks[e] * r * r * lb
+    return total
+
+
+@njit(**INLINE)
+def _stretch_local(e, x, st, rest_length, ks, project, u, g):
+    """Energy of stretching stencil e and its gradient g (6,); u (3,) left holding the unit edge.
+    Returns (energy, s, c): the Hessian is [[K, -K], [-K, K]], K = s (1 - c) u u^T + s c I
+    (c clamped at 0 when projecting)."""
+    i0, i1 = st[e, 0], st[e, 1]
+    ln = 0.0
+    for i in range(3):
+        u[i] = x[i1, i] - x[i0, i]
+        ln += u[i] * u[i]
+    ln = math.sqrt(ln)
+    lb = rest_length[e]
+    f = ks[e] * (ln / lb - 1.0)
+    c = 1.0 - lb / ln
+    if project and c < 0.0:
+        c = 0.0
+    for i in range(3):
+        u[i] /= ln
+        g[i] = -f * u[i]
+        g[3 + i] = f * u[i]
+    return 0.5 * f * (ln / lb - 1.0) * lb, ks[e] / lb, c
+
+
+@njit(**JIT)
+def _stretch_scatter(x, st, order, rest_length, ks, project, grad, data, slots):
+    """``stretch_run`` for SCATTER: the upper triangle of each [[K, -K], [-K, K]] straight into
+    the matrix, without the (6, 6) H that ``scatter`` reads back (half the time of the pass; the
+    same sums; a separate function: inside ``stretch_run`` the same loop ran 1.5x slower)."""
+    total = 0.0
+    g = np.empty(6)
+    K = np.empty((3, 3))
+    u = np.empty(3)
+    for ii in range(order.shape[0]):
+        e = order[ii]
+        en, s, c = _stretch_local(e, x, st, rest_length, ks, project, u, g)
+        total += en
+        scatter_gradient(e, st, g, grad, 2)
+        for i in range(3):
+            for j in range(3):
+                K[i, j] = s * (1.0 - c) * u[i] * u[j] + (s * c if i == j else 0.0)
+        for p in range(6):
+            for q in range(6):
+                if q >= p:  # entry (p, q) of the row-major upper triangle
+                    sl = slots[e, 6 * p - (p * (p - 1)) // 2 + q - p]
+                    if sl >= 0:
+                        data[sl] += -K[p % 3, q % 3] if (p < 3) != (q < 3) else K[p % 3, q % 3]
+    return total
+
+
+@njit(**JIT)
+def stretch_run(x, st, order, rest_length, ks, project, grad, data, slots, g_out, H_out, mode):
+    if mode == SCATTER:
+        return _stretch_scatter(x, st, order, rest_length, ks, project, grad, data, slots)
+    total = 0.0
+    g = np.empty(6)
+    H = np.empty((6, 6))
+    u = np.empty(3)
+    for ii in range(order.shape[0]):
+        e = order[ii]
+        en, s, c = _stretch_local(e, x, st, rest_length, ks, project, u, g)
+        total += en
+        if mode == GRADIENT:
+            scatter_gradient(e, st, g, grad, 2)
+            continue
+        for i in range(3):
+            for j in range(3):
+                K = s * (1.0 - c) * u[i] * u[j] + (s * c if i == j else 0.0)
+                H[i, j] = K
+                H[3 + i, 3 + j] = K
+                H[i, 3 + j] = -K
+                H[3 + i, j] = -K
+        emit(e, st, g, H, grad, data, slots, g_out, H_out, mode, 2)
+    return total
+
+
+@njit(**JIT)
+def bend_energy(x, st, order, alpha, c0):
+    """sum_e alpha |a x b|^2 / (c0 + a.b)^2, a = x1 - x0, b = x2 - x1."""
+    total = 0.0
+    for ii in range(order.shape[0]):
+        e = order[ii]
+        i0, i1, i2 = st[e, 0], st[e, 1], st[e, 2]
+        a0, a1, a2 = x[i1, 0] - x[i0, 0], x[i1, 1] - x[i0, 1], x[i1, 2] - x[i0, 2]
+        b0, b1, b2 = x[i2, 0] - x[i1, 0], x[i2, 1] - x[i1, 1], x[i2, 2] - x[i1, 2]
+        w0, w1, w2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+        tau = c0[e] + a0 * b0 + a1 * b1 + a2 * b2
+        total += alpha[e] * (w0 * w0 + w1 * w1 + w2 * w2) / (tau * tau)
+    return total
+
+
+@njit(**INLINE)
+def _rod_frame(a, b, frame):
+    """Rows u1 = a/|a|, u2 (in the plane of a and b), n = u1 x u2 of a bending stencil."""
+    la = math.sqrt(a[0] ** 2 + a[1] ** 2 + a[2] ** 2)
+    for i in range(3):
+        frame[0, i] = a[i] / la
+    d = b[0] * frame[0, 0] + b[1] * frame[0, 1] + b[2] * frame[0, 2]
+    for i in range(3):
+        frame[1, i] = b[i] - d * frame[0, i]
+    # second Gram-Schmidt pass: for nearly straight stencils the first leaves u2 off by eps / sin(angle)
+    d = frame[1, 0] * frame[0, 0] + frame[1, 1] * frame[0, 1] + frame[1, 2] * frame[0, 2]
+    for i in range(3):
+        frame[1, i] -= d * frame[0, i]
+    nb = math.sqrt(frame[1, 0] ** 2 + frame[1, 1] ** 2 + frame[1, 2] ** 2)
+    if not nb > 1e-12 * math.sqrt(b[0] ** 2 + b[1] ** 2 + b[2] ** 2):  # straight: any perpendicular
+        k = 0
+        for i in range(1, 3):
+            if abs(frame[0, i]) < abs(frame[0, k]):
+                k = i
+        for i in range(3):
+            frame[1, i] = (1.0 if i == k else 0.0) - frame[0, k] * frame[0, i]
+        nb = math.sqrt(frame[1, 0] ** 2 + frame[1, 1] ** 2 + frame[1, 2] ** 2)
+    for i in range(3):
+        frame[1, i] /= nb
+    frame[2, 0] = frame[0, 1] * frame[1, 2] - frame[0, 2] * frame[1, 1]
+    frame[2, 1] = frame[0, 2] * frame[1, 0] - frame[0, 0] * frame[1, 2]
+    frame[2, 2] = frame[0, 0] * frame[1, 1] - frame[0, 1] * frame[1, 0]
+
+
+@njit(**INLINE)
+def _bend_gradient(e, x, st, alpha, c0, a, b, w, g):
+    """Energy of bending stencil e and its gradient g (9,); a, b, w scratch (3,), left holding
+    x1 - x0, x2 - x1 and a x b.  Returns (energy, A, B, C, f, it2, it3, tau) for ``_bend_h6``."""
+    i0, i1, i2 = st[e, 0], st[e, 1], st[e, 2]
+    for i in range(3):
+        a[i] = x[i1, i] - x[i0, i]
+        b[i] = x[i2, i] - x[i1, i]
+    A_ = a[0] * a[0] + a[1] * a[1] + a[2] * a[2]
+    B_ = b[0] * b[0] + b[1] * b[1] + b[2] * b[2]
+    C_ = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+    w[0], w[1], w[2] = a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]
+    f = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]  # A B - C^2 without cancellation
+    tau = c0[e] + C_
+    it2 = alpha[e] / (tau * tau)
+    it3 = it2 / tau
+    # dE/da = 2 it2 b x w - 2 f it3 b,  dE/db = 2 it2 w x a - 2 f it3 a;  g = (-dE/da, dE/da - dE/db, dE/db)
+    for i in range(3):
+        i1_, i2_ = (i + 1) % 3, (i + 2) % 3
+        ga = 2.0 * it2 * (b[i1_] * w[i2_] - b[i2_] * w[i1_]) - 2.0 * f * it3 * b[i]
+        gb = 2.0 * it2 * (w[i1_] * a[i2_] - w[i2_] * a[i1_]) - 2.0 * f * it3 * a[i]
+        g[i] = -ga
+        g[3 + i] = ga - gb
+        g[6 + i] = gb
+    return it2 * f, A_, B_, C_, f, it2, it3, tau
+
+
+@njit(**INLINE)
+def _bend_h6(a, b, A_, B_, C_, f, it2, it3, tau, H6):
+    """The bending Hessian H6 (6, 6) with respect to (a, b) (see ``_bend_gradient``).
+
+    H6 = sum_lm Phi_lm grad(A, B, C)_l grad(A, B, C)_m^T + the second derivatives of (A, B, C),
+    with grad A = (2a, 0), grad B = (0, 2b), grad C = (b, a) and Phi_00 = Phi_11 = 0, block by block.
+    """
+    p1 = it2 * B_
+    p2 = it2 * A_
+    p3 = -2.0 * (C_ * it2 + f * it3)
+    P01 = it2
+    P02 = -2.0 * B_ * it3
+    P12 = -2.0 * A_ * it3
+    P22 = -2.0 * it2 + 8.0 * C_ * it3 + 6.0 * f * it3 / tau
+    for i in range(3):
+        for k in range(3):
+            d = 1.0 if i == k else 0.0
+            ab = a[i] * b[k]
+            ba = b[i] * a[k]
+            H6[i, k] = 2.0 * P02 * (ab + ba) + P22 * b[i] * b[k] + 2.0 * p1 * d
+            H6[3 + i, 3 + k] = 2.0 * P12 * (ab + ba) + P22 * a[i] * a[k] + 2.0 * p2 * d
+            hab = 4.0 * P01 * ab + 2.0 * P02 * a[i] * a[k] + 2.0 * P12 * b[i] * b[k] + P22 * ba + p3 * d
+            H6[i, 3 + k] = hab
+            H6[3 + k, i] = hab
+
+
+@njit(**JIT)
+def _bend_scatter_exact(x, st, order, alpha, c0, grad, data, slots):
+    """``bend_run`` for SCATTER of the exact Hessian: the upper triangle of H9 = D^T H6 D goes
+    straight into the matrix, block (I, J) by block, without a (9, 9) H (a separate function:
+    inside ``bend_run`` the same loop ran a third slower).  The same sums as ``scatter``'s."""
+    total = 0.0
+    g = np.empty(9)
+    H6 = np.empty((6, 6))
+    a, b, w = np.empty(3), np.empty(3), np.empty(3)
+    for ii in range(order.shape[0]):
+        e = order[ii]
+        en, A_, B_, C_, f, it2, it3, tau = _bend_gradient(e, x, st, alpha, c0, a, b, w, g)
+        total += en
+        _bend_h6(a, b, A_, B_, C_, f, it2, it3, tau, H6)
+        scatter_gradient(e, st, g, grad, 3)
+        for i in range(3):
+            for jj in range(3):
+                haa, hab = H6[i, jj], H6[i, 3 + jj]
+                hba, hbb = H6[3 + i, jj], H6[3 + i, 3 + jj]
+                for I, J, v in ((0, 0, haa), (0, 1, hab - haa), (0, 2, -hab), (1, 1, haa + hbb - hab - hba),
+                                (1, 2, hab - hbb), (2, 2, hbb)):  # fmt: skip
+                    p, q = 3 * I + i, 3 * J + jj
+                    if q >= p:  # entry (p, q) of the row-major upper triangle
+                        sl = slots[e, 9 * p - (p * (p - 1)) // 2 + q - p]
+                        if sl >= 0:
+                            data[sl] += v
+    return total
+
+
+@njit(**JIT)
+def bend_run(x, st, order, alpha, c0, project, B, grad, data, slots, g_out, H_out, mode):
+    if mode == SCATTER and not project:
+        return _bend_scatter_exact(x, st, order, alpha, c0, grad, data, slots)
+    total = 0.0
+    g = np.empty(9)
+    H = np.empty((9, 9))
+    H6 = np.empty((6, 6))
+    a, b, w = np.empty(3), np.empty(3), np.empty(3)
+    M, V, BV = np.empty((6, 6)), np.empty((6, 6)), np.empty((9, 6))
+    BH = np.empty((9, 6))
+    wv = np.empty(6)
+    frame = np.empty((3, 3))
+    for ii in range(order.shape[0]):
+        e = order[ii]
+        en, A_, B_, C_, f, it2, it3, tau = _bend_gradient(e, x, st, alpha, c0, a, b, w, g)
+        total += en
+        if mode == GRADIENT:
+            scatter_gradient(e, st, g, grad, 3)
+            continue
+        _bend_h6(a, b, A_, B_, C_, f, it2, it3, tau, H6)
+        # H9 = D^T H6 D for (a, b) = (x1 - x0, x2 - x1)
+        for i in range(3):
+            for jj in range(3):
+                haa, hab = H6[i, jj], H6[i, 3 + jj]
+                hba, hbb = H6[3 + i, jj], H6[3 + i, 3 + jj]
+                H[i, jj] = haa
+                H[i, 3 + jj] = hab - haa
+                H[i, 6 + jj] = -hab
+                H[3 + i, jj] = hba - haa
+                H[3 + i, 3 + jj] = haa + hbb - hab - hba
+                H[3 + i, 6 + jj] = hab - hbb
+                H[6 + i, jj] = -hba
+                H[6 + i, 3 + jj] = hba - hbb
+                H[6 + i, 6 + jj] = hbb
+        if project:
+            _rod_frame(a, b, frame)
+            project_psd(H, B, M, BH, V, wv, BV, frame, True)
+        emit(e, st, g, H, grad, data, slots, g_out, H_out, mode, 3)
+    return total
+
