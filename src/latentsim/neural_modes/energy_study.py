@@ -19,8 +19,10 @@ import logging
 import numpy as np
 import torch
 
-from latentsim import neural_modes as nm
-from latentsim.neural_modes.sheet import autoencoder_along_training, checkpoints, stopping_index
+from latentsim.neural_modes.baselines import autoencoder_along_training
+from latentsim.neural_modes.metrics import checkpoints, stopping_index
+from latentsim.neural_modes.network import NeuralModes
+from latentsim.neural_modes.training import modal_samples
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +39,7 @@ def energy_sets(m: int, box: float, samples: int, train: int, validation: int, s
     """``samples`` uniform coordinates in [-box, box]^m split in order: train, val, test (the rest)."""
     if train < 1 or validation < 1 or train + validation >= samples:
         raise ValueError(f"energy_sets: {samples} samples cannot be split into {train} training, {validation} validation and at least one test sample")
-    z = nm.modal_samples("stochastic", m, box, samples, generator=torch.Generator().manual_seed(seed)).numpy()
+    z = modal_samples("stochastic", m, box, samples, generator=torch.Generator().manual_seed(seed)).numpy()
     return {"train": z[:train], "val": z[train : train + validation], "test": z[train + validation :]}
 
 
@@ -55,7 +57,7 @@ def _energies(potential, x, chunk: int = 50) -> np.ndarray:
         return np.concatenate([potential.elastic(torch.as_tensor(x[i : i + chunk])).numpy() for i in range(0, len(x), chunk)])
 
 
-def energy_table(potential, X, gt: dict, model: nm.NeuralModes, settings: dict, seed: int = 0, progress: bool = False):
+def energy_table(potential, X, gt: dict, model: NeuralModes, settings: dict, seed: int = 0, progress: bool = False):
     """Table 5 for one scene.
 
     Parameters

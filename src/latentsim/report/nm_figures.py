@@ -23,7 +23,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from latentsim.neural_modes.sheet import METRICS
+from latentsim.neural_modes.metrics import METRICS
 from latentsim.report.plots import method_colours, save_figure
 from latentsim.report.render import Motion, render_frames
 
