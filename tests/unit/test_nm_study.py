@@ -24,6 +24,7 @@ from latentsim.neural_modes import symmetry as nm_symmetry
 from latentsim.latent import fit_autoencoder
 from latentsim.mesh import beam_tets, cloth_grid
 from latentsim.scene import build_potential
+from latentsim.stages.train import time_full_space
 
 ONE_THREAD = True  # tiny networks (conftest)
 
@@ -240,9 +241,10 @@ def test_dynamics_rows_against_the_full_simulation(beam_trajectories):
     lm = nm.linear_modes(pot, 2, arrays["rest_positions"], boundary="dirichlet", normalization="euclidean")
     torch.manual_seed(0)
     model = nm.NeuralModes(arrays["rest_positions"], lm.modes, [8], fixed_dofs=(3 * D[:, None] + np.arange(3)).reshape(-1))
-    settings = {"frames": 0, "max_iterations": 50, "cubature_tolerance": 0.05, "cubature_samples": 12, "cubature_max_elements": 50, "full_frames_timed": 2}
+    settings = {"frames": 0, "max_iterations": 50, "cubature_tolerance": 0.05, "cubature_samples": 12, "cubature_max_elements": 50}
     with h5py.File(traj) as f:
-        res = nm_dynamics.subspace_dynamics(f, model, 0.05, settings)
+        full = time_full_space(f, nm_dynamics.first_test_sequence(f), 2)
+        res = nm_dynamics.subspace_dynamics(f, model, 0.05, settings, full)
         ref = f["sequences/sway/positions"][()]
     rows = res["rows"].set_index("method")
     assert res["sequence"] == "sway" and len(rows) == 1 + len(nm_dynamics.DYNAMICS_METHODS)

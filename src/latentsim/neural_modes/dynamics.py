@@ -25,9 +25,14 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+import pandas as pd
+from tqdm.auto import tqdm
 
 from latentsim.neural_modes.network import NeuralModes
 from latentsim.neural_modes.numpy_map import NumpyNeuralModes
+from latentsim.scene import potential_from_artefact
+from latentsim.solve.cubature import box_samples, cubature_potential, fit_cubature
+from latentsim.solve.reduced import ReducedSettings, reduced_rollout
 
 log = logging.getLogger(__name__)
 
@@ -145,7 +150,7 @@ def first_test_sequence(f) -> str:
     raise ValueError(f"{f.filename}: no test sequence to replay (sequences: {sorted(f['sequences'])})")
 
 
-def subspace_dynamics(f, model: NeuralModes, box: float, settings: dict, progress: bool = False) -> dict:
+def subspace_dynamics(f, model: NeuralModes, box: float, settings: dict, full: dict, progress: bool = False) -> dict:
     """Replay the first test sequence's Dirichlet motion in the Neural Modes and linear-modes subspaces.
 
     Parameters
@@ -154,22 +159,16 @@ def subspace_dynamics(f, model: NeuralModes, box: float, settings: dict, progres
     model : trained Neural Modes of the scene (Dirichlet modes).
     box : the modal training box; the cubature's poses are drawn in it (data-free, like the modes).
     settings : ``frames`` (0: all), ``max_iterations`` per step, ``cubature_tolerance``,
-        ``cubature_samples`` (and half as many held out), ``cubature_max_elements``, ``full_frames_timed``.
+        ``cubature_samples`` (and half as many held out), ``cubature_max_elements``.
+    full : the full-space Newton frame of the same sequence timed in the same process
+        (``stages.train.time_full_space`` of :func:`first_test_sequence`): full_ms, full_iterations,
+        full_frames_timed.
 
     Every method of :data:`DYNAMICS_METHODS` steps the reduced implicit Euler of Eq. 15
-    (``reduced.reduced_rollout``) from rest; the full-space Newton frame of the same sequence is timed
-    in the same process (``train.time_full_space``).  Returns ``sequence``, ``reference`` (T,n,3),
+    (``reduced.reduced_rollout``) from rest.  Returns ``sequence``, ``reference`` (T,n,3),
     ``dirichlet_positions``, ``full`` (timing), ``cubatures`` {neural|linear: Cubature}, ``runs`` {slug:
     reduced_rollout's dict + ``error`` (T,)} and ``rows`` (a DataFrame, the full-space row first).
     """
-    import pandas as pd
-    from tqdm.auto import tqdm
-
-    from latentsim.solve.cubature import box_samples, cubature_potential, fit_cubature
-    from latentsim.solve.reduced import ReducedSettings, reduced_rollout
-    from latentsim.scene import potential_from_artefact
-    from latentsim.stages.train import time_full_space
-
     pot = potential_from_artefact(f)
     name = first_test_sequence(f)
     g = f["sequences"][name]
@@ -179,7 +178,6 @@ def subspace_dynamics(f, model: NeuralModes, box: float, settings: dict, progres
         raise ValueError(f"{f.filename}: sequence {name!r} has {len(ref)} frames; the dynamics study needs at least 3")
     X = f["rest_positions"][()]
     diag = float(np.linalg.norm(X.max(0) - X.min(0)))
-    full = time_full_space(f, name, int(settings["full_frames_timed"]))
     D = pot.dirichlet.numpy()
     subspaces = {"neural": NeuralModesSubspace(model, D), "linear": NeuralModesSubspace(model, D, linear_only=True)}
     cubatures, stepping = {}, {}

@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+import pandas as pd
 import torch
 
 from latentsim.neural_modes.baselines import autoencoder_along_training
@@ -74,8 +75,6 @@ def energy_table(potential, X, gt: dict, model: NeuralModes, settings: dict, see
     paper's row beside; history: PCA+AE's ``epochs``, ``val_l2``, ``test_l2``, ``test_E_avg`` along its
     training, ``stop`` (the checkpoint index kept), ``train_seconds``.
     """
-    import pandas as pd
-
     n = len(X)
     Xf = np.asarray(X, dtype=np.float64).reshape(-1)
     U = {s: torch.as_tensor(gt[s]["x"].reshape(len(gt[s]["x"]), -1) - Xf) for s in ("train", "val", "test")}

@@ -47,6 +47,7 @@ from latentsim.report.evaluate import write_table
 from latentsim.report.render import write_xdmf_series
 from latentsim.scene import build_potential
 from latentsim.stages.simulate import read_mesh_arrays
+from latentsim.stages.train import time_full_space
 
 log = logging.getLogger(__name__)
 
@@ -404,7 +405,8 @@ def dynamics_stage(trajectories_h5, model_pt, params: dict, out: dict, progress:
     model = nm.load_neural_modes(model_pt)
     st = params["study"]
     with h5py.File(trajectories_h5, "r") as f:
-        res = nm_dynamics.subspace_dynamics(f, model, float(params["box"]), st, progress)
+        full = time_full_space(f, nm_dynamics.first_test_sequence(f), int(st["full_frames_timed"]))
+        res = nm_dynamics.subspace_dynamics(f, model, float(params["box"]), st, full, progress)
         name = res["sequence"]
         for slug, run in res["runs"].items():
             label, linear, method, cubature = nm_dynamics.DYNAMICS_METHODS[slug]
