@@ -127,7 +127,7 @@ class ModeFamily:
     masses: np.ndarray
 
     def basis(self, k: int) -> dict:
-        """Ratio k's basis in ``nm_pipeline.read_linear_modes`` form."""
+        """Ratio k's basis in ``stages.neural_modes.read_linear_modes`` form."""
         return {"X": self.X[k], "modes": self.modes[k], "fixed_dofs": self.fixed_dofs, "rigid": None if self.rigid is None else self.rigid[k],
                 "masses": self.masses}  # fmt: skip
 

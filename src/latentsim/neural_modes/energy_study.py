@@ -4,7 +4,7 @@ Modal coordinates are drawn uniformly in the scene's modal box ([-b, b]^m) and e
 its ground truth (Eq. 9, ``neural_modes.ground_truth``); the samples are split in order into
 training, validation and test sets (the paper: 1,300 = 900 / 100 / 300).  PCA+AE (Fulton et al.
 2019, ``latent.fit_autoencoder``) is trained on the training states and early-stopped on the
-validation L2 (evaluated along its training, ``nm_sheet.autoencoder_along_training``); the trained
+validation L2 (evaluated along its training, ``baselines.autoencoder_along_training``); the trained
 Neural Modes, which never see a ground-truth state, are evaluated at the test coordinates (PCA+AE
 reconstructs the test states: encode, then decode).  The table gives the mean elastic energy of
 each over every 20% interval of the test set (in sample order) and over all of it; a subspace that
@@ -65,7 +65,7 @@ def energy_table(potential, X, gt: dict, model: NeuralModes, settings: dict, see
     ----------
     potential : the scene's potential (its elastic energy).
     X : (n,3) rest positions.
-    gt : ground truth (``nm_sheet.solve_sets``) of the sets train, val, test.
+    gt : ground truth (``sheet.solve_sets``) of the sets train, val, test.
     model : the trained Neural Modes.
     settings : ``widths`` (PCA+AE's, the Neural Modes'), ``ae_epochs``, ``ae_lr``, ``ae_batch_size``,
         ``curve_points`` (checkpoints along the PCA+AE training), ``intervals``.

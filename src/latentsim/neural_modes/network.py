@@ -45,7 +45,7 @@ class NeuralModes(nn.Module):
         that inner product, y <- y - l (l^T W y) / (l^T W l) (W = I or M; needs
         ``masses``), so l^T W y = 0 to round-off (``orthogonality='exact'``).
     symmetry : None, or ``(perm, R, parity)``, a symmetry of order two of the
-        scene (``nm_sheet.half_turn``): vertex i goes to vertex perm[i] with
+        scene (``symmetry.half_turn``): vertex i goes to vertex perm[i] with
         its displacement rotated by R (3,3), and mode i to parity[i] times
         itself.  The correction is averaged with its image,
         y(z) <- (y(z) + T y(S z)) / 2 with S = diag(parity), so that
@@ -184,7 +184,7 @@ def from_config(basis: dict, cfg: dict, masses=None, aux_dim: int = 0, symmetry=
     read: widths, exact_origin, orthogonality, metric, symmetry; the rest from the schema's defaults) on
     ``basis`` (X, modes, fixed_dofs, rigid: ``stages.neural_modes.read_linear_modes``).
 
-    ``cfg['symmetry']`` 'half_turn' builds ``symmetry`` (``nm_sheet.half_turn`` of the scene; required then)
+    ``cfg['symmetry']`` 'half_turn' builds ``symmetry`` (``symmetry.half_turn`` of the scene; required then)
     into the map; 'none' leaves the map free to break it.
     """
     cfg = with_defaults("neural_modes", cfg, "from_config")

@@ -36,7 +36,7 @@ from latentsim.neural_modes.training import modal_samples, train_neural_modes
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SHEET_METHODS", "SUPERVISED", "TRAIN_SET", "WALKS", "run_sheet_study", "sample_sets", "solve_sets"]
+__all__ = ["AUTOENCODERS", "SHEET_METHODS", "SUPERVISED", "TRAIN_SET", "WALKS", "run_sheet_study", "sample_sets", "solve_sets"]
 
 
 def sample_sets(m: int, box: float, train_grid=9, val_grid=7, test_grid=11, random_count=729, seed=0) -> dict:
@@ -84,6 +84,7 @@ SHEET_METHODS = {  # slug: the paper's label
     "pca_ae_grid": "PCA+AE (grid)",
 }
 SUPERVISED = ("l2_supervised", "pca_ae", "pca_ae_grid")  # early-stopped on the validation L2 in Tables 2, 4, A1
+AUTOENCODERS = ("pca_ae", "pca_ae_grid")  # the methods that reconstruct ground truth (encode, decode); the others map z
 TRAIN_SET = {"nm_stochastic": "train_random", "nm_grid": "train_grid", "nm_grid_penalty": "train_grid", "l2_supervised": "train_grid", "pca_ae": "train_random", "pca_ae_grid": "train_grid"}
 NM_SAMPLING = {"nm_stochastic": "stochastic", "nm_grid": "grid", "nm_grid_penalty": "grid"}  # the self-supervised runs
 WALKS = ("nm_grid", "pca_ae_grid")  # Fig. 3: the two trained on the same grid
@@ -183,7 +184,7 @@ class _SheetRun:
         out["train_seconds"] = float(self.seconds[slug])
         epoch = int(out["epochs"][out[f"stop_{out['table_stopping']}"]])
         snap = self.snapshots[slug][epoch]
-        if slug.startswith("pca_ae"):
+        if slug in AUTOENCODERS:
             chosen = snap
             predict = self.of_autoencoder(snap)
             with torch.no_grad():
@@ -203,7 +204,7 @@ class _SheetRun:
         """Fig. 3: shapes along each latent coordinate of ``f`` (a network over the modal box, or an
         autoencoder over the range of its training set's latents)."""
         n, m, Xf = self.n, self.m, self.Xf
-        if slug.startswith("pca_ae"):
+        if slug in AUTOENCODERS:
             with torch.no_grad():
                 lat = f.encode(torch.as_tensor(self.gt[TRAIN_SET[slug]]["x"].reshape(-1, 3 * n) - Xf)).numpy()
             low, high = lat.min(0), lat.max(0)
@@ -265,7 +266,7 @@ def run_sheet_study(potential, basis: dict, gt: dict, nm_settings: dict, study: 
         lambda model, cb: train_l2_supervised(model, gt["train_grid"]["z"], gt["train_grid"]["x"], study["l2_epochs"], cfg["lbfgs_max_iter"], callback=cb),
     )  # fmt: skip
     ae_cfg = {"latent_dim": modes.shape[1], "widths": list(cfg["widths"]), "lr": study["ae_lr"], "batch_size": study["ae_batch_size"]}
-    for slug in ("pca_ae", "pca_ae_grid"):
+    for slug in AUTOENCODERS:
         run.train_autoencoder(slug, ae_cfg, study["ae_epochs"])
     methods, chosen = {}, {}
     for slug in run.curves:

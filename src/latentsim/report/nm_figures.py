@@ -1,6 +1,6 @@
 """Figures of the Neural Modes studies (Wang et al. 2024, Figs. 2, 3, 4, 6, A2).
 
-Each function takes a study result (``nm_sheet.run_sheet_study``, read back with
+Each function takes a study result (``neural_modes.sheet.run_sheet_study``, read back with
 ``io.read_tree``) or positions, writes one image atomically (``plots.save_figure``,
 ``render.render_frames``) and returns what it drew, so tests can check the numbers without
 reading pixels.
