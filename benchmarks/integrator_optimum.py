@@ -23,7 +23,6 @@ import argparse
 from pathlib import Path
 
 import h5py
-import numpy as np
 import torch
 
 from latentsim import latent

@@ -3,8 +3,8 @@
     nice python benchmarks/neural_modes_collapse.py nm_giraffe [--epochs 20 --batch 32 --w-iso 1.0]
 
 Loads the scene's trained Neural Modes (results/neural_modes/{scene}/neural_modes.pt), trains the
-data-free subspace of Sharp et al. 2023 (energy + isometry regulariser, latentsim.neural_modes.sheet.DataFree)
-with the same widths, latent dimension, box and Dirichlet set (``latentsim.neural_modes.sheet.mode_collapse``, as
+data-free subspace of Sharp et al. 2023 (energy + isometry regulariser, latentsim.neural_modes.baselines.DataFree)
+with the same widths, latent dimension, box and Dirichlet set (``latentsim.neural_modes.baselines.mode_collapse``, as
 the sheet study does), and prints the eigenvalues of the normalised mass-weighted correlation matrix of
 the latent directions dx/dz at z = 0 for both (Neural Modes target: all in [0.5, 2]; an eigenvalue near
 0 is a collapsed direction).
@@ -21,7 +21,7 @@ import torch
 
 from latentsim import neural_modes as nm
 from latentsim.stages import neural_modes as nm_pipeline
-from latentsim.neural_modes import sheet as nm_sheet
+from latentsim.neural_modes import baselines as nm_baselines
 from latentsim.config import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -41,7 +41,7 @@ def main():
     model = nm.load_neural_modes(ROOT / "results" / "neural_modes" / args.scene / "neural_modes.pt")
     fixed = np.flatnonzero(model.mask.numpy() == 0)
     t0 = time.perf_counter()
-    out = nm_sheet.mode_collapse(
+    out = nm_baselines.mode_collapse(
         pot, arrays["rest_positions"], model.E.numpy(), {"Neural Modes": model}, settings["widths"], settings["box"],
         {"epochs": args.epochs, "batch_size": args.batch, "w_iso": args.w_iso}, fixed_dofs=fixed,
     )  # fmt: skip

@@ -32,7 +32,8 @@ import torch
 
 from latentsim.config import load_config
 from latentsim.neural_modes import load_neural_modes
-from latentsim.neural_modes.dynamics import subspace_dynamics
+from latentsim.neural_modes.dynamics import first_test_sequence, subspace_dynamics
+from latentsim.latent.timing import time_full_space
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -54,7 +55,8 @@ def main():
     for scene in args.scenes:
         model = load_neural_modes(ROOT / "results" / "neural_modes" / scene / "neural_modes.pt")
         with h5py.File(ROOT / "results" / "sim" / scene / "trajectories.h5", "r") as f:
-            res = subspace_dynamics(f, model, float(scenes_cfg[scene]["neural_modes"]["box"]), settings, progress=True)
+            full = time_full_space(f, first_test_sequence(f), settings["full_frames_timed"])
+            res = subspace_dynamics(f, model, float(scenes_cfg[scene]["neural_modes"]["box"]), settings, full, progress=True)
             dof = f["rest_positions"].size
         print(f"\n{scene} ({dof:,} DoF), sequence {res['sequence']}\n" + res["rows"].to_markdown(index=False, floatfmt=".4g"), flush=True)
         for kind, c in res["cubatures"].items():

@@ -27,6 +27,7 @@ import torch
 
 from latentsim import neural_modes as nm
 from latentsim.neural_modes import sheet as nm_sheet
+from latentsim.neural_modes import sheet_tables as nm_tables
 from latentsim.config import load_config
 from latentsim.mesh import read_mesh
 from latentsim.scene import build_elastic
@@ -80,7 +81,7 @@ def main():
         tmp.write_bytes(pickle.dumps(gt))
         tmp.rename(cache)
     study = nm_sheet.run_sheet_study(pot, basis, gt, nmc, st, mesh.triangles, progress=True)
-    tabs = nm_sheet.tables(study)
+    tabs = nm_tables.tables(study)
     print(f"\nSquare sheet, {m} modes, box {nmc['box']}, grids train {args.train_grid}^{m} (random {args.random}), "
           f"validation {args.val_grid}^{m}, test {args.test_grid}^{m}; Neural Modes {st['epochs']} L-BFGS epochs")  # fmt: skip
     for name, s in gt.items():

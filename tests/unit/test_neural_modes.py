@@ -386,7 +386,7 @@ def test_subspace_map_is_the_network_for_every_map_option(orthogonality, metric,
     from latentsim.latent import save_module
     from latentsim.neural_modes import from_config, load_neural_modes
     from latentsim.neural_modes.dynamics import NeuralModesSubspace
-    from latentsim.neural_modes.sheet import half_turn, symmetry_error
+    from latentsim.neural_modes.symmetry import half_turn, symmetry_error
 
     pot, V = free_sheet(cells=4, thickness=0.003)
     lm = linear_modes(pot, 4, V, boundary="free", normalization="euclidean")

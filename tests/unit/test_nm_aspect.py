@@ -94,7 +94,7 @@ def test_family_modes_are_each_ratios_eigenvectors_and_tracked(family):
 
 def test_conditioned_network_uses_its_ratio_and_beats_linear_modes(family, tmp_path):
     arrays, fam = family
-    cfg = {**nm.NM_DEFAULTS, "modes": 4, "widths": [32, 32], "box": 0.5, "orthogonality": "exact", "lam": 1e5, "eta": 1e5, "lbfgs_max_iter": 10}
+    cfg = {"modes": 4, "widths": [32, 32], "box": 0.5, "orthogonality": "exact", "lam": 1e5, "eta": 1e5, "lbfgs_max_iter": 10}
     torch.manual_seed(0)
     model = nm_aspect.RatioConditionedModes.build(fam, cfg, arrays["triangles"], symmetric=False)
     assert len(list(model.parameters())) == len(list(model.member(0).mlp.parameters()))  # one MLP for every ratio

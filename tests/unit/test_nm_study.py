@@ -16,9 +16,14 @@ import torch
 from latentsim import neural_modes as nm
 from latentsim.neural_modes import dynamics as nm_dynamics
 from latentsim.neural_modes import energy_study as nm_energy
+from latentsim.neural_modes import baselines as nm_baselines
+from latentsim.neural_modes import metrics as nm_metrics
 from latentsim.neural_modes import sheet as nm_sheet
+from latentsim.neural_modes import sheet_tables as nm_tables
+from latentsim.neural_modes import symmetry as nm_symmetry
 from latentsim.latent import fit_autoencoder
 from latentsim.mesh import beam_tets, cloth_grid
+from latentsim.latent.timing import time_full_space
 from latentsim.scene import build_elastic
 
 ONE_THREAD = True  # tiny networks (conftest)
@@ -33,16 +38,16 @@ def sheet(cells=4, dirichlet=()):
 
 # --- learning curves and early stopping ------------------------------------------------------------
 def test_checkpoints_are_log_spaced_and_end_at_the_last_epoch():
-    assert nm_sheet.checkpoints(100, 5).tolist() == [0, 1, 3, 10, 32, 100]
-    assert nm_sheet.checkpoints(3, 10).tolist() == [0, 1, 2, 3]  # repeats dropped
+    assert nm_metrics.checkpoints(100, 5).tolist() == [0, 1, 3, 10, 32, 100]
+    assert nm_metrics.checkpoints(3, 10).tolist() == [0, 1, 2, 3]  # repeats dropped
     with pytest.raises(ValueError, match="at least 1"):
-        nm_sheet.checkpoints(0, 5)
+        nm_metrics.checkpoints(0, 5)
 
 
 def test_stopping_index_is_the_least_validation_criterion_after_training_starts():
     epochs = np.array([0, 1, 3, 10, 30])
-    assert nm_sheet.stopping_index(epochs, [0.1, 5.0, 2.0, 2.0, 3.0]) == 2  # epoch 0 excluded; first of a tie
-    assert nm_sheet.stopping_index(epochs, [9.0, 5.0, np.nan, 4.0, 4.5]) == 3  # NaN never chosen
+    assert nm_metrics.stopping_index(epochs, [0.1, 5.0, 2.0, 2.0, 3.0]) == 2  # epoch 0 excluded; first of a tie
+    assert nm_metrics.stopping_index(epochs, [9.0, 5.0, np.nan, 4.0, 4.5]) == 3  # NaN never chosen
 
 
 def test_autoencoder_checkpoints_are_what_a_run_stopped_there_returns():
@@ -51,7 +56,7 @@ def test_autoencoder_checkpoints_are_what_a_run_stopped_there_returns():
     gen = torch.Generator().manual_seed(0)
     U = torch.randn(40, 30, generator=gen, dtype=torch.float64) @ torch.randn(30, 30, generator=gen, dtype=torch.float64) * 0.01
     cfg = {"latent_dim": 2, "widths": [8], "lr": 1e-3, "batch_size": 16}
-    got = list(nm_sheet.autoencoder_along_training(U, cfg, [0, 3, 7], seed=0))
+    got = list(nm_baselines.autoencoder_along_training(U, cfg, [0, 3, 7], seed=0))
     assert [k for k, _, _ in got] == [0, 3, 7]
     assert got[0][2] <= got[1][2] <= got[2][2]  # training time so far
     for k, model, _ in got:
@@ -79,8 +84,8 @@ def sheet_study():
 
 def test_sheet_tables_report_the_early_stopped_checkpoints(sheet_study):
     study, _, _ = sheet_study
-    tabs = nm_sheet.tables(study)
-    col = {k: nm_sheet.METRICS.index(k) for k in ("l2", "E_avg", "dE_avg")}
+    tabs = nm_tables.tables(study)
+    col = {k: nm_metrics.METRICS.index(k) for k in ("l2", "E_avg", "dE_avg")}
     for slug, r in study["methods"].items():
         epochs, val, test = r["epochs"], r["val"], r["test"]
         assert epochs[0] == 0 and epochs[-1] == {"l2_supervised": 6, "pca_ae": 30, "pca_ae_grid": 30}.get(slug, 6)
@@ -98,7 +103,7 @@ def test_sheet_tables_report_the_early_stopped_checkpoints(sheet_study):
         r = study["methods"][slug]
         assert t3.loc[r["label"], "val_E_avg_val_energy"] == r["val"][r["stop_val_energy"], col["E_avg"]]
         assert t3.loc[r["label"], "val_E_avg_val_energy"] <= t3.loc[r["label"], "val_E_avg_val_l2"]
-        assert t3.loc[r["label"], "test_E_avg_val_l2_paper"] == nm_sheet.PAPER_TABLE3[r["label"]][2]
+        assert t3.loc[r["label"], "test_E_avg_val_l2_paper"] == nm_tables.PAPER_TABLE3[r["label"]][2]
 
 
 def test_neural_modes_keep_the_origin_and_the_half_turn(sheet_study):
@@ -122,21 +127,21 @@ def test_neural_modes_keep_the_origin_and_the_half_turn(sheet_study):
 def test_half_turn_symmetry_is_found_and_measured():
     pot, V, F = sheet()
     lm = nm.linear_modes(pot, 2, V, boundary="free", normalization="euclidean")
-    sym = nm_sheet.half_turn(V, F, lm.modes)
+    sym = nm_symmetry.half_turn(V, F, lm.modes)
     assert sym is not None
     perm, R, parity = sym
     u = np.random.default_rng(0).normal(size=(3, len(V), 3))
-    assert np.allclose(nm_sheet.turn(nm_sheet.turn(u, perm, R), perm, R), u)  # a half turn twice is the identity
+    assert np.allclose(nm_symmetry.turn(nm_symmetry.turn(u, perm, R), perm, R), u)  # a half turn twice is the identity
     z = np.array([[0.1, 0.0], [-0.1, 0.0], [0.0, 0.2], [0.0, -0.2]])
     x = V + np.einsum("km,nm->kn", z, lm.modes).reshape(len(z), -1, 3)  # linear modes: symmetric by construction
-    assert nm_sheet.symmetry_error(x, z, V, sym)[1] < 1e-12
+    assert nm_symmetry.symmetry_error(x, z, V, sym)[1] < 1e-12
     x[0, 3, 1] += 1e-3  # one vertex pushed: no longer symmetric
-    assert nm_sheet.symmetry_error(x, z, V, sym)[1] > 1e-3
+    assert nm_symmetry.symmetry_error(x, z, V, sym)[1] > 1e-3
     # a sheet held at one corner only has no half-turn symmetry
     pot1, V1, F1 = sheet(dirichlet=[0])
     lm1 = nm.linear_modes(pot1, 2, V1, boundary="dirichlet", normalization="euclidean")
-    assert nm_sheet.half_turn(V1, F1, lm1.modes, fixed_dofs=[0, 1, 2]) is None
-    assert np.isnan(nm_sheet.symmetry_error(x, z, V, None)[0])
+    assert nm_symmetry.half_turn(V1, F1, lm1.modes, fixed_dofs=[0, 1, 2]) is None
+    assert np.isnan(nm_symmetry.symmetry_error(x, z, V, None)[0])
 
 
 # --- Table 5 --------------------------------------------------------------------------------------
@@ -191,7 +196,7 @@ def test_energy_table_rows_are_the_energies_of_each_method():
     assert t.loc["Neural Modes", "all"] >= t.loc["Ground truth", "all"]  # Eq. 9 is the constrained minimum
     assert list(t.columns[:5]) == ["0-20%", "20-40%", "40-60%", "60-80%", "80-100%"]
     assert t.loc["Ground truth", "0-20%"] == pytest.approx(gt["test"]["energy"][0], rel=1e-10)  # 5 samples: one each
-    assert hist["stop"] == nm_sheet.stopping_index(hist["epochs"], hist["val_l2"])
+    assert hist["stop"] == nm_metrics.stopping_index(hist["epochs"], hist["val_l2"])
     assert t.loc["PCA+AE", "epoch"] == hist["epochs"][hist["stop"]]
 
 
@@ -236,9 +241,10 @@ def test_dynamics_rows_against_the_full_simulation(beam_trajectories):
     lm = nm.linear_modes(pot, 2, arrays["rest_positions"], boundary="dirichlet", normalization="euclidean")
     torch.manual_seed(0)
     model = nm.NeuralModes(arrays["rest_positions"], lm.modes, [8], fixed_dofs=(3 * D[:, None] + np.arange(3)).reshape(-1))
-    settings = {"frames": 0, "max_iterations": 50, "cubature_tolerance": 0.05, "cubature_samples": 12, "cubature_max_elements": 50, "full_frames_timed": 2}
+    settings = {"frames": 0, "max_iterations": 50, "cubature_tolerance": 0.05, "cubature_samples": 12, "cubature_max_elements": 50}
     with h5py.File(traj) as f:
-        res = nm_dynamics.subspace_dynamics(f, model, 0.05, settings)
+        full = time_full_space(f, nm_dynamics.first_test_sequence(f), 2)
+        res = nm_dynamics.subspace_dynamics(f, model, 0.05, settings, full)
         ref = f["sequences/sway/positions"][()]
     rows = res["rows"].set_index("method")
     assert res["sequence"] == "sway" and len(rows) == 1 + len(nm_dynamics.DYNAMICS_METHODS)

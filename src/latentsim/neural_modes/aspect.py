@@ -17,7 +17,7 @@ where two modes swap their frequency order (more modes are computed where a trac
 out of the m + extra lowest).  The smallest overlap between neighbours is recorded;
 a small one means the grid is too coarse to follow the modes.
 
-Network.  One MLP y(z, r) (aux_dim = 1) shared by one :class:`~latentsim.neural_modes.NeuralModes` per
+Network.  One MLP y(z, r) (aux_dim = 1) shared by one :class:`~latentsim.neural_modes.network.NeuralModes` per
 ratio (rest shape, modes, rigid modes, symmetry of that ratio), so
 
     n(z, r) = X(r) + sum_i z_i e_i(r) + y(z, r),
@@ -44,7 +44,12 @@ from scipy.optimize import linear_sum_assignment
 from torch import nn
 from tqdm import tqdm
 
-from latentsim import neural_modes as nm
+from latentsim.config import with_defaults
+from latentsim.neural_modes.compliant_modes import ground_truth
+from latentsim.neural_modes.linear import fixed_dofs, linear_modes, rigid_modes
+from latentsim.neural_modes.network import NeuralModes, from_config, neural_modes_from_state
+from latentsim.neural_modes.symmetry import half_turn
+from latentsim.neural_modes.training import make_optimizer, modal_samples, neural_modes_loss
 from latentsim.physics.kernels import with_compiled_elastic
 from latentsim.scene import build_elastic
 
@@ -122,7 +127,7 @@ class ModeFamily:
     masses: np.ndarray
 
     def basis(self, k: int) -> dict:
-        """Ratio k's basis in ``nm_pipeline.read_linear_modes`` form."""
+        """Ratio k's basis in ``stages.neural_modes.read_linear_modes`` form."""
         return {"X": self.X[k], "modes": self.modes[k], "fixed_dofs": self.fixed_dofs, "rigid": None if self.rigid is None else self.rigid[k],
                 "masses": self.masses}  # fmt: skip
 
@@ -148,12 +153,12 @@ def mode_family(arrays: dict, model: str, material: dict, ratios, m: int, bounda
         X[k] = stretched(X0, ratios[k])
         pot = ratio_potential(arrays, model, material, X[k])
         if prev is None:
-            lm = nm.linear_modes(pot, m, X[k], boundary=boundary, normalization=normalization)
+            lm = linear_modes(pot, m, X[k], boundary=boundary, normalization=normalization)
             pick, signs = np.arange(m), np.ones(m)
         else:
             more = extra
             while True:  # a tracked mode may have left the m + extra lowest: look further up
-                lm = nm.linear_modes(pot, m + more, X[k], boundary=boundary, normalization=normalization)
+                lm = linear_modes(pot, m + more, X[k], boundary=boundary, normalization=normalization)
                 unit = lm.modes / np.linalg.norm(lm.modes, axis=0)
                 cos = (prev / np.linalg.norm(prev, axis=0)).T @ unit  # (m, m + more)
                 rows, pick = linear_sum_assignment(-np.abs(cos))
@@ -169,8 +174,8 @@ def mode_family(arrays: dict, model: str, material: dict, ratios, m: int, bounda
         prev = modes[k]
         masses = pot.masses.numpy().astype(np.float64)
         if rigid is not None:
-            rigid[k] = nm.rigid_modes(X[k], masses)
-    fixed = nm.fixed_dofs(arrays["dirichlet"], boundary)
+            rigid[k] = rigid_modes(X[k], masses)
+    fixed = fixed_dofs(arrays["dirichlet"], boundary)
     return ModeFamily(ratios, X, modes, omega2, overlap, rank, fixed, rigid, masses)
 
 
@@ -197,16 +202,15 @@ class RatioConditionedModes(nn.Module):
 
     @classmethod
     def build(cls, family: ModeFamily, cfg: dict, cells, symmetric: bool):
-        """Untrained members from ``nm.from_config`` (``cfg``: ``NM_DEFAULTS`` keys), aux_dim 1."""
-        from latentsim.neural_modes.sheet import half_turn
-
+        """Untrained members from :func:`~latentsim.neural_modes.network.from_config` (``cfg``: the
+        schema's ``neural_modes`` keys), aux_dim 1."""
         members = []
         for k, r in enumerate(family.ratios):
             basis = family.basis(k)
             sym = half_turn(basis["X"], cells, basis["modes"], basis["fixed_dofs"]) if symmetric else None
             if symmetric and sym is None:
                 raise ValueError(f"neural_modes.symmetry 'half_turn': the sheet at ratio {r:g} has no half-turn symmetry of its modes")
-            members.append(nm.from_config(basis, cfg, family.masses, aux_dim=1, symmetry=sym))
+            members.append(from_config(basis, cfg, family.masses, aux_dim=1, symmetry=sym))
         return cls(members, family.ratios)
 
     @classmethod
@@ -215,12 +219,12 @@ class RatioConditionedModes(nn.Module):
         for k, hp in enumerate(hparams["members"]):
             prefix = f"members.{k}."
             sd = {key[len(prefix):]: v for key, v in state_dict.items() if key.startswith(prefix)}
-            members.append(nm.neural_modes_from_state(hp, sd))
+            members.append(neural_modes_from_state(hp, sd))
         model = cls(members, hparams["ratios"])
         model.load_state_dict(state_dict)
         return model
 
-    def member(self, k: int) -> nm.NeuralModes:
+    def member(self, k: int) -> NeuralModes:
         return self.members[k]
 
     def forward(self, z: torch.Tensor, k: int, ratio: float | None = None) -> torch.Tensor:
@@ -240,21 +244,21 @@ def train_family(model: RatioConditionedModes, potentials: dict, cfg: dict, batc
     ``batch_size`` modal samples per training ratio.  Returns the history (loss, energy, constraint per
     epoch; seconds).
     """
-    cfg = {**nm.NM_DEFAULTS, **cfg}
+    cfg = with_defaults("neural_modes", cfg, "train_family")
     pots = {k: with_compiled_elastic(p) for k, p in potentials.items()}
     gen = torch.Generator().manual_seed(seed)
-    opt = nm.make_optimizer(list(model.parameters()), cfg)
+    opt = make_optimizer(list(model.parameters()), cfg)
     hist = {"loss": [], "energy": [], "constraint": []}
     t0 = time.perf_counter()
     for epoch in tqdm(range(int(epochs)), desc="aspect-ratio Neural Modes", disable=not progress, file=sys.stderr, leave=False):
-        zs = {k: nm.modal_samples("stochastic", model.m, cfg["box"], int(batch_size), generator=gen) for k in pots}
+        zs = {k: modal_samples("stochastic", model.m, cfg["box"], int(batch_size), generator=gen) for k in pots}
         parts = {}
 
         def closure(zs=zs, parts=parts):
             opt.zero_grad()
             total, energy, constraint = 0.0, 0.0, 0.0
             for k, z in zs.items():
-                loss, p = nm.neural_modes_loss(model.member(k), pots[k], z, aux_of(z, model.ratios[k]), cfg["lam"], cfg["eta"], cfg["orthogonality"], cfg["metric"])
+                loss, p = neural_modes_loss(model.member(k), pots[k], z, aux_of(z, model.ratios[k]), cfg["lam"], cfg["eta"], cfg["orthogonality"], cfg["metric"])
                 total = total + loss / len(zs)
                 energy += float(p["energy"]) / len(zs)
                 constraint += float(p["constraint"]) / len(zs)
@@ -262,7 +266,7 @@ def train_family(model: RatioConditionedModes, potentials: dict, cfg: dict, batc
             parts.update(loss=float(total.detach()), energy=energy, constraint=constraint)
             return total
 
-        nm.optimizer_step(opt, closure)
+        opt.step(closure)  # L-BFGS evaluates the closure itself; Adam once before its step
         for key, values in hist.items():
             values.append(parts[key])
         if not np.isfinite(hist["loss"][-1]):
@@ -276,7 +280,7 @@ def evaluate_family(model: RatioConditionedModes, family: ModeFamily, potentials
     """Every ratio's energies on the test samples z (N,m), with and without the right auxiliary input,
     the ground truth of Eq. 9, and the first mode's folding direction; arrays over ratios (K,), and
     ``modes_plus`` (K,m,n,3): each mode decoded at z_i = ``amplitude`` * ``cfg['box']`` (the fold is measured there)."""
-    cfg = {**nm.NM_DEFAULTS, **cfg}
+    cfg = with_defaults("neural_modes", cfg, "evaluate_family")
     box = float(cfg["box"])
     ratios = family.ratios
     K, m = len(ratios), model.m
@@ -302,7 +306,7 @@ def evaluate_family(model: RatioConditionedModes, family: ModeFamily, potentials
             zi = torch.as_tensor(amplitude * box * np.eye(m))
             modes_plus[k] = model(zi, k).numpy()
         t0 = time.perf_counter()
-        _, e_gt, infos = nm.ground_truth(pot, family.X[k], family.modes[k], z, free_dofs=free, rigid=None if family.rigid is None else family.rigid[k],
+        _, e_gt, infos = ground_truth(pot, family.X[k], family.modes[k], z, free_dofs=free, rigid=None if family.rigid is None else family.rigid[k],
                                          metric=cfg["metric"], max_iter=max_iter)  # fmt: skip
         gt_seconds += time.perf_counter() - t0
         out["E_gt"][k], out["E_nm"][k], out["E_linear"][k], out["E_wrong_ratio"][k] = e_gt.mean(), e_nm.mean(), e_lin.mean(), e_wrong.mean()

@@ -14,33 +14,30 @@ rest, so the map carries the whole Neural Mode with the set's rigid motion,
     phi(z, x*_D) = R (n(z) - c_0) + c,     (R, c) the Kabsch fit of X_D -> x*_D,
 
 which places the Dirichlet vertices exactly (n(z) leaves them at rest), so the
-subspace imposes the boundary conditions (``hard_dirichlet``).  The map is
-evaluated in float64 NumPy with its Jacobian by forward mode through the
-GELU MLP (no autograd in the step).
+subspace imposes the boundary conditions (``hard_dirichlet``).  The map and
+its Jacobian are evaluated by ``numpy_map.NumpyNeuralModes`` (float64 NumPy,
+forward mode through the GELU MLP; no PyTorch in the step: see that module for
+why and for the timings).
 """
 
 from __future__ import annotations
 
 import logging
-import math
 
 import numpy as np
-from scipy.special import erf
+import pandas as pd
+from tqdm.auto import tqdm
 
-from latentsim.neural_modes import NeuralModes
+from latentsim.neural_modes.network import NeuralModes
+from latentsim.neural_modes.numpy_map import NumpyNeuralModes
 from latentsim.report.metrics import bbox_diagonal
+from latentsim.scene import potential_from_artefact
+from latentsim.solve.cubature import box_samples, cubature_potential, fit_cubature
+from latentsim.solve.reduced import ReducedSettings, reduced_rollout
 
 log = logging.getLogger(__name__)
 
 __all__ = ["DYNAMICS_METHODS", "NeuralModesSubspace", "keyframe_coordinates", "relative_errors", "smallest_rotation", "subspace_dynamics"]
-
-
-def _gelu(s):
-    return 0.5 * s * (1.0 + erf(s / math.sqrt(2.0)))
-
-
-def _gelu_prime(s):
-    return 0.5 * (1.0 + erf(s / math.sqrt(2.0))) + s * np.exp(-0.5 * s * s) / math.sqrt(2.0 * math.pi)
 
 
 def smallest_rotation(a, b) -> np.ndarray:
@@ -70,73 +67,22 @@ class NeuralModesSubspace:
     """
 
     def __init__(self, model: NeuralModes, dirichlet, linear_only: bool = False):
+        self.net = NumpyNeuralModes(model)
         self.dim = int(model.m)
         self.n_vertices = int(model.n)
         self.dirichlet = np.asarray(dirichlet, dtype=np.int64)
         self.hard_dirichlet = len(self.dirichlet) > 0
-        self.X = model.X.detach().numpy().copy()
-        self.E = model.E.detach().numpy().copy()
+        self.X, self.E = self.net.X, self.net.E
         self.linear_only = bool(linear_only)
-        lin = [m for m in model.mlp if hasattr(m, "weight")]
-        self.layers = [(m.weight.detach().numpy().copy(), m.bias.detach().numpy().copy()) for m in lin]
-        self.mask = model.mask.detach().numpy().copy()
-        self.R = None if model.R is None else model.R.detach().numpy().copy()
-        self.MR = None if model.MR is None else model.MR.detach().numpy().copy()
-        # l^T W y = 0 built into the map (orthogonality 'exact'): W the vertex masses (metric 'mass') or 1
-        self.exact_orthogonality = model.exact_orthogonality is not None
-        self.w3 = np.ones(len(self.X)) if model.w3 is None else model.w3.detach().numpy().copy()
-        self.symmetry = None  # (source (n,), R (3,3), parity (m,)) when built into the map
-        if model.sym_R is not None:
-            self.symmetry = tuple(b.detach().numpy().copy() for b in (model.sym_source, model.sym_R, model.sym_parity))
-        self.y0 = self._mlp(np.zeros(self.dim))[0] if model.exact_origin else np.zeros_like(self.X)
         XD = self.X.reshape(-1, 3)[self.dirichlet]
         self.c0 = XD.mean(0) if len(XD) else np.zeros(3)
         self._XDc = XD - self.c0
 
-    def _mlp(self, q, jac=False):
-        a, J = q, (np.eye(self.dim) if jac else None)
-        for W, b in self.layers[:-1]:
-            s = W @ a + b
-            a = _gelu(s)
-            if jac:
-                J = _gelu_prime(s)[:, None] * (W @ J)
-        W, b = self.layers[-1]
-        return W @ a + b, (W @ J if jac else None)
-
     def _correction(self, q, jac):
+        """y (3n,) and, with ``jac``, dy/dq (3n, m): the network's, or zero for the linear modes alone."""
         if self.linear_only:
             return np.zeros_like(self.X), (np.zeros((len(self.X), self.dim)) if jac else None)
-        y, Jy = self._mlp(q, jac)
-        y = y - self.y0
-        if self.symmetry is not None:  # y <- (y(q) + T y(S q)) / 2, as NeuralModes.correction
-            source, Rs, parity = self.symmetry
-            if np.all(parity > 0):  # S q = q
-                ys, Jys = y, Jy
-            else:
-                ys, Jys = self._mlp(parity * q, jac)
-                ys = ys - self.y0
-            y = 0.5 * (y + (ys.reshape(-1, 3) @ Rs.T)[source].reshape(-1))
-            if jac:
-                Jt = np.einsum("ij,njr->nir", Rs, Jys.reshape(-1, 3, self.dim))[source].reshape(-1, self.dim)
-                Jy = 0.5 * (Jy + Jt * parity)
-        y = y * self.mask
-        if jac:
-            Jy = Jy * self.mask[:, None]
-        if self.R is not None:
-            y = y - self.R @ (self.MR.T @ y)
-            if jac:
-                Jy = Jy - self.R @ (self.MR.T @ Jy)
-        if self.exact_orthogonality:  # y <- y - l c, c = (l^T W y) / (l^T W l), as NeuralModes.correction
-            l = self.E @ q
-            wl = self.w3 * l
-            b = float(wl @ l)
-            if b > 0:
-                c = float(wl @ y) / b
-                if jac:
-                    dc = ((self.w3 * y) @ self.E + wl @ Jy - 2.0 * c * (wl @ self.E)) / b
-                    Jy = Jy - self.E * c - np.outer(l, dc)
-                y = y - l * c
-        return y, Jy
+        return self.net.correction(q, jac)
 
     def _frame(self, xD):
         """Rotation R and centre c of the best rigid fit of the rest Dirichlet set onto xD.
@@ -205,7 +151,7 @@ def first_test_sequence(f) -> str:
     raise ValueError(f"{f.filename}: no test sequence to replay (sequences: {sorted(f['sequences'])})")
 
 
-def subspace_dynamics(f, model: NeuralModes, box: float, settings: dict, progress: bool = False) -> dict:
+def subspace_dynamics(f, model: NeuralModes, box: float, settings: dict, full: dict, progress: bool = False) -> dict:
     """Replay the first test sequence's Dirichlet motion in the Neural Modes and linear-modes subspaces.
 
     Parameters
@@ -214,22 +160,16 @@ def subspace_dynamics(f, model: NeuralModes, box: float, settings: dict, progres
     model : trained Neural Modes of the scene (Dirichlet modes).
     box : the modal training box; the cubature's poses are drawn in it (data-free, like the modes).
     settings : ``frames`` (0: all), ``max_iterations`` per step, ``cubature_tolerance``,
-        ``cubature_samples`` (and half as many held out), ``cubature_max_elements``, ``full_frames_timed``.
+        ``cubature_samples`` (and half as many held out), ``cubature_max_elements``.
+    full : the full-space Newton frame of the same sequence timed in the same process
+        (``latent.timing.time_full_space`` of :func:`first_test_sequence`): full_ms, full_iterations,
+        full_frames_timed.
 
     Every method of :data:`DYNAMICS_METHODS` steps the reduced implicit Euler of Eq. 15
-    (``reduced.reduced_rollout``) from rest; the full-space Newton frame of the same sequence is timed
-    in the same process (``latent.timing.time_full_space``).  Returns ``sequence``, ``reference`` (T,n,3),
+    (``reduced.reduced_rollout``) from rest.  Returns ``sequence``, ``reference`` (T,n,3),
     ``dirichlet_positions``, ``full`` (timing), ``cubatures`` {neural|linear: Cubature}, ``runs`` {slug:
     reduced_rollout's dict + ``error`` (T,)} and ``rows`` (a DataFrame, the full-space row first).
     """
-    import pandas as pd
-    from tqdm.auto import tqdm
-
-    from latentsim.solve.cubature import box_samples, cubature_potential, fit_cubature
-    from latentsim.solve.reduced import ReducedSettings, reduced_rollout
-    from latentsim.scene import potential_from_artefact
-    from latentsim.latent.timing import time_full_space
-
     pot = potential_from_artefact(f)
     name = first_test_sequence(f)
     g = f["sequences"][name]
@@ -239,7 +179,6 @@ def subspace_dynamics(f, model: NeuralModes, box: float, settings: dict, progres
         raise ValueError(f"{f.filename}: sequence {name!r} has {len(ref)} frames; the dynamics study needs at least 3")
     X = f["rest_positions"][()]
     diag = bbox_diagonal(X)
-    full = time_full_space(f, name, int(settings["full_frames_timed"]))
     D = pot.dirichlet.numpy()
     subspaces = {"neural": NeuralModesSubspace(model, D), "linear": NeuralModesSubspace(model, D, linear_only=True)}
     cubatures, stepping = {}, {}

@@ -4,7 +4,7 @@ Modal coordinates are drawn uniformly in the scene's modal box ([-b, b]^m) and e
 its ground truth (Eq. 9, ``neural_modes.ground_truth``); the samples are split in order into
 training, validation and test sets (the paper: 1,300 = 900 / 100 / 300).  PCA+AE (Fulton et al.
 2019, ``latent.fit_autoencoder``) is trained on the training states and early-stopped on the
-validation L2 (evaluated along its training, ``nm_sheet.autoencoder_along_training``); the trained
+validation L2 (evaluated along its training, ``baselines.autoencoder_along_training``); the trained
 Neural Modes, which never see a ground-truth state, are evaluated at the test coordinates (PCA+AE
 reconstructs the test states: encode, then decode).  The table gives the mean elastic energy of
 each over every 20% interval of the test set (in sample order) and over all of it; a subspace that
@@ -17,10 +17,13 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+import pandas as pd
 import torch
 
-from latentsim import neural_modes as nm
-from latentsim.neural_modes.sheet import autoencoder_along_training, checkpoints, stopping_index
+from latentsim.neural_modes.baselines import autoencoder_along_training
+from latentsim.neural_modes.metrics import checkpoints, stopping_index
+from latentsim.neural_modes.network import NeuralModes
+from latentsim.neural_modes.training import modal_samples
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +40,7 @@ def energy_sets(m: int, box: float, samples: int, train: int, validation: int, s
     """``samples`` uniform coordinates in [-box, box]^m split in order: train, val, test (the rest)."""
     if train < 1 or validation < 1 or train + validation >= samples:
         raise ValueError(f"energy_sets: {samples} samples cannot be split into {train} training, {validation} validation and at least one test sample")
-    z = nm.modal_samples("stochastic", m, box, samples, generator=torch.Generator().manual_seed(seed)).numpy()
+    z = modal_samples("stochastic", m, box, samples, generator=torch.Generator().manual_seed(seed)).numpy()
     return {"train": z[:train], "val": z[train : train + validation], "test": z[train + validation :]}
 
 
@@ -55,14 +58,14 @@ def _energies(potential, x, chunk: int = 50) -> np.ndarray:
         return np.concatenate([potential.elastic(torch.as_tensor(x[i : i + chunk])).numpy() for i in range(0, len(x), chunk)])
 
 
-def energy_table(potential, X, gt: dict, model: nm.NeuralModes, settings: dict, seed: int = 0, progress: bool = False):
+def energy_table(potential, X, gt: dict, model: NeuralModes, settings: dict, seed: int = 0, progress: bool = False):
     """Table 5 for one scene.
 
     Parameters
     ----------
     potential : the scene's potential (its elastic energy).
     X : (n,3) rest positions.
-    gt : ground truth (``nm_sheet.solve_sets``) of the sets train, val, test.
+    gt : ground truth (``sheet.solve_sets``) of the sets train, val, test.
     model : the trained Neural Modes.
     settings : ``widths`` (PCA+AE's, the Neural Modes'), ``ae_epochs``, ``ae_lr``, ``ae_batch_size``,
         ``curve_points`` (checkpoints along the PCA+AE training), ``intervals``.
@@ -72,8 +75,6 @@ def energy_table(potential, X, gt: dict, model: nm.NeuralModes, settings: dict, 
     paper's row beside; history: PCA+AE's ``epochs``, ``val_l2``, ``test_l2``, ``test_E_avg`` along its
     training, ``stop`` (the checkpoint index kept), ``train_seconds``.
     """
-    import pandas as pd
-
     n = len(X)
     Xf = np.asarray(X, dtype=np.float64).reshape(-1)
     U = {s: torch.as_tensor(gt[s]["x"].reshape(len(gt[s]["x"]), -1) - Xf) for s in ("train", "val", "test")}

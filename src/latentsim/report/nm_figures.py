@@ -1,6 +1,6 @@
 """Figures of the Neural Modes studies (Wang et al. 2024, Figs. 2, 3, 4, 6, A2).
 
-Each function takes a study result (``nm_sheet.run_sheet_study``, read back with
+Each function takes a study result (``neural_modes.sheet.run_sheet_study``, read back with
 ``io.read_tree``) or positions, writes one image atomically (``plots.save_figure``,
 ``render.render_frames``) and returns what it drew, so tests can check the numbers without
 reading pixels.
@@ -23,7 +23,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from latentsim.neural_modes.sheet import METRICS
+from latentsim.neural_modes.metrics import METRICS
 from latentsim.report.plots import method_colours, save_figure
 from latentsim.report.render import Motion, render_frames
 

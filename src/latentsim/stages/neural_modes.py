@@ -27,15 +27,25 @@ import time
 from pathlib import Path
 
 import h5py
+import meshio
 import numpy as np
+import pandas as pd
 import torch
 
 from latentsim import neural_modes as nm
+from latentsim.config import with_defaults
+from latentsim.io import ArtefactError, atomic_h5, atomic_path, read_tree, require, write_dataset, write_tree
+from latentsim.latent import save_module
+from latentsim.neural_modes import aspect as nm_aspect
 from latentsim.neural_modes import dynamics as nm_dynamics
 from latentsim.neural_modes import energy_study as nm_energy
 from latentsim.neural_modes import sheet as nm_sheet
-from latentsim.io import ArtefactError, atomic_h5, atomic_path, read_tree, require, write_dataset, write_tree
-from latentsim.latent import save_module
+from latentsim.neural_modes.sheet_tables import tables as sheet_tables
+from latentsim.neural_modes.symmetry import half_turn
+from latentsim.report import nm_figures
+from latentsim.report.paraview import write_xdmf_series
+from latentsim.report.tables import write_table
+from latentsim.latent.timing import time_full_space
 from latentsim.scene import build_elastic
 from latentsim.stages.simulate import read_mesh_arrays
 
@@ -121,7 +131,7 @@ def linear_modes_stage(mesh_h5, params: dict, out_h5):
     """Stage ``nm_linear_modes``: the scene's lowest m modes (sparse shift-invert) to ``linear_modes.h5``.
 
     ``params``: :func:`modes_params` (or :func:`scene_params`: only the mode keys are read)."""
-    cfg = {**nm.NM_DEFAULTS, **params["neural_modes"]}
+    cfg = with_defaults("neural_modes", params["neural_modes"], "linear_modes_stage")
     pot, arrays = scene_potential(mesh_h5, params["model"], params["material"])
     X = np.asarray(arrays["rest_positions"], dtype=np.float64)
     t0 = time.perf_counter()
@@ -141,18 +151,16 @@ def linear_modes_stage(mesh_h5, params: dict, out_h5):
 
 
 def scene_symmetry(cfg: dict, basis: dict, arrays: dict):
-    """The half turn of ``nm_sheet.half_turn`` when ``neural_modes.symmetry`` asks for it, else None."""
-    if cfg.get("symmetry", "none") != "half_turn":
+    """The half turn of ``symmetry.half_turn`` when ``neural_modes.symmetry`` asks for it, else None."""
+    if cfg["symmetry"] != "half_turn":
         return None
-    from latentsim.neural_modes.sheet import half_turn
-
     cells = arrays["triangles"] if "triangles" in arrays else arrays["tets"]
     return half_turn(basis["X"], cells, basis["modes"], basis["fixed_dofs"])
 
 
 def train_stage(mesh_h5, modes_h5, params: dict, seed: int, out_pt, out_h5):
     """Stage ``nm_train``: self-supervised Neural Modes (Eq. 13), its history and latent-direction correlation."""
-    cfg = {**nm.NM_DEFAULTS, **params["neural_modes"]}
+    cfg = with_defaults("neural_modes", params["neural_modes"], "train_stage")
     pot, arrays = scene_potential(mesh_h5, params["model"], params["material"])
     basis = read_linear_modes(modes_h5)
     masses = pot.masses.numpy()
@@ -185,8 +193,6 @@ def train_stage(mesh_h5, modes_h5, params: dict, seed: int, out_pt, out_h5):
 
 def summary_stage(history_files: dict, out_csv, out_md):
     """Stage ``nm_summary``: one row per scene (energy vs linear modes, constraint, origin, correlation eigenvalues)."""
-    import pandas as pd
-
     rows = []
     for scene, path in sorted(history_files.items()):
         with h5py.File(path, "r") as f:
@@ -222,13 +228,6 @@ def read_linear_modes(path) -> dict:
         out = {k: require(f, name, path=path)[()] for k, name in names.items()}
         out["rigid"] = f["rigid_modes"][()] if "rigid_modes" in f else None
     return out
-
-
-def write_table(df, path):
-    """A DataFrame as CSV, atomically (``evaluate.write_table``)."""
-    from latentsim.report.tables import write_table as write_csv
-
-    write_csv(df, path)
 
 
 def write_markdown(path, sections: dict, preamble: str = ""):
@@ -326,14 +325,12 @@ def sheet_tables_stage(study_h5, out: dict):
     ``out``: paths by name: the keys of :data:`SHEET_TABLES`, ``markdown``, ``learning_curves``,
     ``latent_walk``, ``correlation_figure``.
     """
-    from latentsim.report import nm_figures
-
     with h5py.File(study_h5, "r") as f:
         study = read_tree(f)
     for key in ("methods", "walk", "correlation", "rest_positions", "triangles"):
         if key not in study:
             raise ArtefactError(f"{study_h5}: missing '{key}'; rerun nm_sheet_study")
-    tabs = nm_sheet.tables(study)
+    tabs = sheet_tables(study)
     for name in SHEET_TABLES:
         write_table(tabs[name], out[name])
     st, g = json.loads(study["config"])["study"], study["ground_truth"]
@@ -405,12 +402,11 @@ def dynamics_stage(trajectories_h5, model_pt, params: dict, out: dict, progress:
     ``out``: ``csv``, ``markdown``, ``paraview`` (folder), and one path per method slug (trajectory
     layout, the scene's test sequence: positions, latents, step_ms, iterations, error).
     """
-    from latentsim.report.paraview import write_xdmf_series
-
     model = nm.load_neural_modes(model_pt)
     st = params["study"]
     with h5py.File(trajectories_h5, "r") as f:
-        res = nm_dynamics.subspace_dynamics(f, model, float(params["box"]), st, progress)
+        full = time_full_space(f, nm_dynamics.first_test_sequence(f), int(st["full_frames_timed"]))
+        res = nm_dynamics.subspace_dynamics(f, model, float(params["box"]), st, full, progress)
         name = res["sequence"]
         for slug, run in res["runs"].items():
             label, linear, method, cubature = nm_dynamics.DYNAMICS_METHODS[slug]
@@ -448,9 +444,6 @@ def dynamics_stage(trajectories_h5, model_pt, params: dict, out: dict, progress:
 def keyframes_stage(mesh_h5, model_pt, params: dict, out_h5, out_png, out_paraview):
     """Stage ``nm_keyframes`` (Fig. 6): keyframe poses interpolated linearly in modal coordinates, decoded by
     Neural Modes and by the linear modes alone; a trajectory-layout file, a figure and ParaView series."""
-    from latentsim.report import nm_figures
-    from latentsim.report.paraview import write_xdmf_series
-
     model = nm.load_neural_modes(model_pt)
     arrays = read_mesh_arrays(mesh_h5)
     st = params["study"]
@@ -506,14 +499,9 @@ def aspect_stage(mesh_h5, params: dict, out: dict, progress: bool = False):
     ratio, one network conditioned on the ratio trained on every other ratio, evaluated at all of them.
 
     ``out``: model, family (h5), csv, markdown, figure, paraview (folder)."""
-    import meshio
-    import pandas as pd
-
-    from latentsim.neural_modes import aspect as nm_aspect
-    from latentsim.report import nm_figures
-
     st = params["study"]
-    cfg = {**nm.NM_DEFAULTS, **params["neural_modes"], "modes": int(st["modes"]), "widths": [int(w) for w in st["widths"]]}
+    # the scene's map and loss settings, the study's own modes and widths (its training sets the rest)
+    cfg = {**params["neural_modes"], "modes": int(st["modes"]), "widths": [int(w) for w in st["widths"]]}
     arrays = read_mesh_arrays(mesh_h5)
     ratios, train = aspect_ratios(st)
     t0 = time.perf_counter()
@@ -535,55 +523,10 @@ def aspect_stage(mesh_h5, params: dict, out: dict, progress: bool = False):
     ev = nm_aspect.evaluate_family(model, family, pots, z, train, cfg, max_iter=int(st["gt_max_iterations"]),
                                   amplitude=float(st["figure_amplitude"]), progress=progress)  # fmt: skip
     save_module(out["model"], model, extra={"config": cfg, "study": st, "seed": int(params["seed"])})
-    with atomic_h5(out["family"], config=params, seed=int(params["seed"])) as f:
-        for key in ("ratios", "X", "modes", "omega2", "overlap", "rank", "fixed_dofs", "masses"):
-            write_dataset(f, key, getattr(family, key))
-        if family.rigid is not None:
-            write_dataset(f, "rigid", family.rigid)
-        write_dataset(f, "train", train)
-        write_dataset(f, "triangles", arrays["triangles"])
-        write_dataset(f, "test_z", z)
-        g = f.create_group("evaluation")
-        for key, value in ev.items():
-            if key != "gt_seconds":
-                write_dataset(g, key, value)
-        h = f.create_group("history")
-        for key in ("loss", "energy", "constraint"):
-            write_dataset(h, key, np.asarray(hist[key]))
-        f.attrs.update(train_seconds=hist["seconds"], ground_truth_seconds=ev["gt_seconds"])
-    df = pd.DataFrame(
-        {
-            "ratio": ratios, "split": np.where(train, "train", "held out"), "E_avg ground truth": ev["E_gt"], "E_avg Neural Modes": ev["E_nm"],
-            "E_avg linear modes": ev["E_linear"], "E_avg Neural Modes, far ratio": ev["E_wrong_ratio"], "dE_avg Neural Modes": ev["dE_nm"],
-            "dE_avg linear modes": ev["dE_linear"], "mode 1 fold Neural Modes [deg]": ev["fold_nm"], "mode 1 fold linear [deg]": ev["fold_linear"],
-            "mode tracking overlap": family.overlap, "max |cos(l, y)|": ev["constraint_max"],
-        }
-    )  # fmt: skip
+    _write_aspect_family(out["family"], params, family, train, arrays["triangles"], z, ev, hist)
+    df, summary = _aspect_tables(ratios, train, family, ev)
     write_table(df, out["csv"])
-    held = ~train
-    summary = pd.DataFrame(
-        {
-            "ratios": ["train", "held out"],
-            "dE_avg Neural Modes": [ev["dE_nm"][train].mean(), ev["dE_nm"][held].mean()],
-            "dE_avg linear modes": [ev["dE_linear"][train].mean(), ev["dE_linear"][held].mean()],
-            "E_avg Neural Modes / ground truth": [(ev["E_nm"] / ev["E_gt"])[train].mean(), (ev["E_nm"] / ev["E_gt"])[held].mean()],
-            "E_avg far ratio / right ratio": [(ev["E_wrong_ratio"] / ev["E_nm"])[train].mean(), (ev["E_wrong_ratio"] / ev["E_nm"])[held].mean()],
-        }
-    )  # fmt: skip
-    write_markdown(
-        out["markdown"], {"Per ratio": df, "Training against held-out ratios": summary},
-        preamble=(
-            "# Neural Modes conditioned on the aspect ratio (Wang et al. 2024, Sec. 4.3, Fig. A2)\n\n"
-            "The paper: starting from a 2:1 sheet, the folding direction (of the first mode) smoothly changes from the short axis to the "
-            "diagonal as the ratio decreases towards 1:1 (no numbers given). Here: one network y(z, r) with the ratio r as its auxiliary "
-            f"input, trained on the ratios marked train ({hist['seconds']:.0f} s, {int(st['epochs'])} epochs), the others held out; "
-            f"{len(z)} uniform test samples in the modal box at every ratio, ground truth by Eq. 9 at that ratio. Fold: the angle between "
-            "the long axis and the principal direction of the larger curvature of mode 1 at z_1 = "
-            f"{float(st['figure_amplitude']):g} box (0: the long axis bends, i.e. the fold "
-            "runs along the short axis; 45: diagonal). 'Far ratio': the same shapes' network told the other end of the range instead of "
-            "their own ratio.\n"
-        ),
-    )  # fmt: skip
+    write_markdown(out["markdown"], {"Per ratio": df, "Training against held-out ratios": summary}, preamble=_aspect_preamble(st, hist, len(z)))
     normal = nm_aspect.sheet_axes(family.X[0])[2]
     rows = np.unique(np.linspace(0, len(ratios) - 1, min(int(st["figure_rows"]), len(ratios))).round().astype(int))[::-1]
     nm_figures.aspect_ratio_figure(ratios, train, family.X, ev["modes_plus"], arrays["triangles"], normal, ev, out["figure"], rows=rows,
@@ -594,3 +537,61 @@ def aspect_stage(mesh_h5, params: dict, out: dict, progress: bool = False):
                 u = ev["modes_plus"][k, j] - family.X[k]
                 meshio.write(Path(tmp) / f"ratio_{r:.3f}_mode_{j + 1}.vtu",
                              meshio.Mesh(family.X[k], [("triangle", np.asarray(arrays["triangles"]))], point_data={"displacement": u}))  # fmt: skip
+
+
+def _write_aspect_family(path, params: dict, family, train, triangles, z, ev: dict, hist: dict) -> None:
+    """``family.h5`` of the aspect-ratio study: the tracked modes, the splits, the evaluation and the training history."""
+    with atomic_h5(path, config=params, seed=int(params["seed"])) as f:
+        for key in ("ratios", "X", "modes", "omega2", "overlap", "rank", "fixed_dofs", "masses"):
+            write_dataset(f, key, getattr(family, key))
+        if family.rigid is not None:
+            write_dataset(f, "rigid", family.rigid)
+        write_dataset(f, "train", train)
+        write_dataset(f, "triangles", triangles)
+        write_dataset(f, "test_z", z)
+        g = f.create_group("evaluation")
+        for key, value in ev.items():
+            if key != "gt_seconds":
+                write_dataset(g, key, value)
+        h = f.create_group("history")
+        for key in ("loss", "energy", "constraint"):
+            write_dataset(h, key, np.asarray(hist[key]))
+        f.attrs.update(train_seconds=hist["seconds"], ground_truth_seconds=ev["gt_seconds"])
+
+
+def _aspect_tables(ratios, train, family, ev: dict):
+    """(per-ratio table, training against held-out summary) of the aspect-ratio study."""
+    df = pd.DataFrame(
+        {
+            "ratio": ratios, "split": np.where(train, "train", "held out"), "E_avg ground truth": ev["E_gt"], "E_avg Neural Modes": ev["E_nm"],
+            "E_avg linear modes": ev["E_linear"], "E_avg Neural Modes, far ratio": ev["E_wrong_ratio"], "dE_avg Neural Modes": ev["dE_nm"],
+            "dE_avg linear modes": ev["dE_linear"], "mode 1 fold Neural Modes [deg]": ev["fold_nm"], "mode 1 fold linear [deg]": ev["fold_linear"],
+            "mode tracking overlap": family.overlap, "max |cos(l, y)|": ev["constraint_max"],
+        }
+    )  # fmt: skip
+    held = ~train
+    summary = pd.DataFrame(
+        {
+            "ratios": ["train", "held out"],
+            "dE_avg Neural Modes": [ev["dE_nm"][train].mean(), ev["dE_nm"][held].mean()],
+            "dE_avg linear modes": [ev["dE_linear"][train].mean(), ev["dE_linear"][held].mean()],
+            "E_avg Neural Modes / ground truth": [(ev["E_nm"] / ev["E_gt"])[train].mean(), (ev["E_nm"] / ev["E_gt"])[held].mean()],
+            "E_avg far ratio / right ratio": [(ev["E_wrong_ratio"] / ev["E_nm"])[train].mean(), (ev["E_wrong_ratio"] / ev["E_nm"])[held].mean()],
+        }
+    )  # fmt: skip
+    return df, summary
+
+
+def _aspect_preamble(st: dict, hist: dict, samples: int) -> str:
+    """The aspect-ratio Markdown's introduction: what the paper shows and what the table measures."""
+    return (
+        "# Neural Modes conditioned on the aspect ratio (Wang et al. 2024, Sec. 4.3, Fig. A2)\n\n"
+        "The paper: starting from a 2:1 sheet, the folding direction (of the first mode) smoothly changes from the short axis to the "
+        "diagonal as the ratio decreases towards 1:1 (no numbers given). Here: one network y(z, r) with the ratio r as its auxiliary "
+        f"input, trained on the ratios marked train ({hist['seconds']:.0f} s, {int(st['epochs'])} epochs), the others held out; "
+        f"{samples} uniform test samples in the modal box at every ratio, ground truth by Eq. 9 at that ratio. Fold: the angle between "
+        "the long axis and the principal direction of the larger curvature of mode 1 at z_1 = "
+        f"{float(st['figure_amplitude']):g} box (0: the long axis bends, i.e. the fold "
+        "runs along the short axis; 45: diagonal). 'Far ratio': the same shapes' network told the other end of the range instead of "
+        "their own ratio.\n"
+    )

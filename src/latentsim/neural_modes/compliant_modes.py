@@ -1,0 +1,45 @@
+r"""Ground truth of Neural Modes (Wang et al. 2024, Eq. 9): nonlinear compliant modes per modal sample,
+
+    n(z) = argmin_x E(x)   s.t.   l^T (x - X - l) = 0   (i.e. l^T y = 0),
+
+solved sample after sample by the constrained Newton method of ``latentsim.solve.constrained``
+(``ConstrainedNewton``: Newton on the KKT system of the single linear constraint, sparse per-stencil
+Hessians, a backtracking line search on E, a tiny Levenberg term for free-floating objects).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from latentsim.solve.constrained import ConstrainedNewton
+
+__all__ = ["ground_truth"]
+
+
+def ground_truth(
+    potential, rest_positions, modes, z, free_dofs=None, rigid=None, metric="euclidean", rtol=1e-5, etol=1e-7, max_iter=60, progress=None
+):
+    """Eq. 9 for every row of z (N, m): positions (N, n, 3), energies (N,), infos.
+
+    Each sample starts from the lower-energy of X + l and the previous
+    sample's correction made feasible (grids are visited in order, so the
+    previous sample is usually a neighbour).
+    """
+    solver = ConstrainedNewton(potential, rest_positions, free_dofs, rigid, metric)
+    E = np.asarray(modes, dtype=np.float64)
+    z = np.asarray(z, dtype=np.float64)
+    X = solver.X.reshape(-1)
+    out, infos = np.empty((len(z), len(X))), []
+    y_prev = None
+    for i, zi in enumerate(z):
+        l = E @ zi
+        y0 = None
+        if y_prev is not None and solver.energy(X + l + y_prev) < solver.energy(X + l):
+            y0 = y_prev  # made feasible by solve()
+        x, info = solver.solve(l, y0, rtol=rtol, etol=etol, max_iter=max_iter)
+        out[i] = x
+        infos.append(info)
+        y_prev = x - X - l
+        if progress is not None:
+            progress(i, info)
+    return out.reshape(len(z), -1, 3), np.array([i.energy for i in infos]), infos
