@@ -134,7 +134,8 @@ def test_half_turn_symmetry_is_found_and_measured():
     assert np.allclose(nm_symmetry.turn(nm_symmetry.turn(u, perm, R), perm, R), u)  # a half turn twice is the identity
     z = np.array([[0.1, 0.0], [-0.1, 0.0], [0.0, 0.2], [0.0, -0.2]])
     x = V + np.einsum("km,nm->kn", z, lm.modes).reshape(len(z), -1, 3)  # linear modes: symmetric by construction
-    assert nm_symmetry.symmetry_error(x, z, V, sym)[1] < 1e-12
+    # eigenvectors from Lanczos are exact to ~1e-12 of their scale, not to the bit
+    assert nm_symmetry.symmetry_error(x, z, V, sym)[1] < 1e-10
     x[0, 3, 1] += 1e-3  # one vertex pushed: no longer symmetric
     assert nm_symmetry.symmetry_error(x, z, V, sym)[1] > 1e-3
     # a sheet held at one corner only has no half-turn symmetry

@@ -28,7 +28,6 @@ from latentsim.runtime import numpy_stepper
 
 # torch.func.jvp (the Jvp oracle) scripts torch's own decompositions (torch._decomp.decompositions_for_jvp) with
 # torch.jit at its first use, which warns; the project itself uses no torch.jit
-pytestmark = pytest.mark.filterwarnings("ignore:`torch.jit.script` is deprecated:DeprecationWarning")
 
 K = 6  # boundary-condition parameters per frame
 R = 3  # latent dimension

@@ -71,9 +71,15 @@ def lowest_modes(potential: IncrementalPotential, k: int, x, free_dofs=None, tol
     return w[order], fix_sign(V[:, order]), free
 
 
-def fix_sign(V: np.ndarray) -> np.ndarray:
-    """Make each column's largest-magnitude entry positive (eigenvectors have no sign)."""
-    idx = np.argmax(np.abs(V), axis=0)
+def fix_sign(V: np.ndarray, ties: float = 1e-8) -> np.ndarray:
+    """Make each column's largest-magnitude entry positive (eigenvectors have no sign).
+
+    Entries within a relative ``ties`` of the column's largest magnitude count as tied, and the
+    first of them decides: a mode with a symmetry has pairs of entries of equal size (and opposite
+    sign under a half turn), where a plain argmax would let the last bit of rounding pick the sign.
+    """
+    mag = np.abs(V)
+    idx = np.argmax(mag >= (1.0 - ties) * mag.max(axis=0), axis=0)  # the first of the tied entries
     s = np.sign(V[idx, np.arange(V.shape[1])])
     s[s == 0] = 1.0
     return V * s
