@@ -30,7 +30,7 @@ def configure_threads(n: int | None = None):
     The OpenMP/MKL wait policy is set when ``latentsim`` is imported.
     """
     if n:
-        import torch
+        import torch  # here, not at the top: torch is slow to import and utils serves code that may not need it
 
         torch.set_num_threads(int(n))
 
