@@ -127,14 +127,18 @@ def _npz(path: Path) -> dict:
 
 
 def _csv(path: Path) -> dict:
+    """One entry per row, named by the row's text cells (scene, method, ...): its numbers, timing
+    columns left out.  Rows are matched by name, so a table sorted by speed compares as well."""
     df = pd.read_csv(path)
     df = df[[c for c in df.columns if not is_timing(str(c))]]
-    # rows in a canonical order: some tables are sorted by speed, which two identical runs may not share
-    df = df.iloc[sorted(range(len(df)), key=lambda i: [str(v) for v in df.iloc[i]])]
-    out = {}
-    for c in df.columns:
-        col = df[c]
-        out[str(c)] = _entry(col.to_numpy(np.float64) if col.dtype.kind in "fiub" else col.astype(str).to_numpy())
+    text = [c for c in df.columns if df[c].dtype.kind not in "fiub"]
+    numbers = [c for c in df.columns if c not in text]
+    out: dict = {"columns": _entry(np.asarray(list(map(str, df.columns))))}
+    for i in range(len(df)):
+        name = "row " + "/".join(str(df[c].iloc[i]) for c in text)
+        while name in out:  # rows with the same text cells: numbered in file order
+            name += "'"
+        out[name] = _entry(df[numbers].iloc[i].to_numpy(np.float64))
     return out
 
 
@@ -162,11 +166,12 @@ def _close(a: dict, b: dict, rtol: float) -> bool:
     return abs(a["sum"] - b["sum"]) <= rtol * scale and abs(a["abs"] - b["abs"]) <= rtol * scale
 
 
-def compare(reference: dict, current: dict, rtol: float | None = None, only=None) -> list[str]:
+def compare(reference: dict, current: dict, rtol: float | None = None, only=None, skip_name=None) -> list[str]:
     """What differs between two ``{path: {name: entry}}`` maps: bitwise (``rtol`` None) or to ``rtol``.
 
-    ``only``: a predicate on the relative path choosing the files to compare.  A file or array that
-    one side has and the other lacks is a difference.
+    ``only``: a predicate on the relative path choosing the files to compare; ``skip_name``: one on
+    (path, array name) leaving arrays out.  A file or array that one side has and the other lacks
+    is a difference.
     """
     problems = []
     for path in sorted(set(reference) | set(current)):
@@ -177,6 +182,8 @@ def compare(reference: dict, current: dict, rtol: float | None = None, only=None
             continue
         ref, cur = reference[path], current[path]
         for name in sorted(set(ref) | set(cur)):
+            if skip_name is not None and skip_name(path, name):
+                continue
             if name not in ref or name not in cur:
                 problems.append(f"{path}:{name}: only in the {'reference' if name in ref else 'current run'}")
             elif (ref[name]["sha256"] != cur[name]["sha256"]) if rtol is None else not _close(ref[name], cur[name], rtol):
