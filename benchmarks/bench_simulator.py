@@ -17,10 +17,9 @@ per-stencil kernels (``energy.kernels``, the solver's default; they add
 straight into the matrix, so their scatter counts as grad+Hess+proj and
 assembly is what remains: inertia, gravity, the matrix wrapper), on one and
 on two threads (``--kernel-threads``: two vertex-disjoint halves of each
-term's stencils at once), and with the reference path (the terms' NumPy
-closed forms and PyTorch energies, as before the kernels); the last column
-is how far each path's final state lies from the reference path's after the
-same frames.  The untimed warm-up frames also absorb the
+term's stencils at once), fused or not (``--paths``); the last column is how
+far each row's final state lies from the first row's (fused, first thread
+count) after the same frames.  The untimed warm-up frames also absorb the
 kernels' JIT compile (or cache load).
 
     python benchmarks/bench_simulator.py [--frames 20] [--scenes armadillo hair_rotation] [--repeats 3]
@@ -72,8 +71,7 @@ def bench_scene(name, sc, arrays, pot, frames, warmup, hessian, path="kernels", 
 
     ``path``: 'kernels' (compiled per-stencil kernels, on ``threads`` threads; the line search's
     full-step trial builds the next Hessian in the same pass), 'unfused' (the same kernels, the
-    trial an energy + gradient pass and the Hessian a pass of its own) or 'reference' (the terms'
-    NumPy closed forms and PyTorch energies, as before the kernels).
+    trial an energy + gradient pass and the Hessian a pass of its own).
     """
     settings = NewtonSettings(**dict(sc["newton"], hessian=hessian, fused_trial=path == "kernels"))
     solver = ImplicitEuler(pot, settings, threads=threads)
@@ -117,7 +115,7 @@ def bench_scene(name, sc, arrays, pot, frames, warmup, hessian, path="kernels", 
     return dict(
         scene=name,
         hessian=hessian,
-        path=path if path == "reference" else f"{'kernels' if path == 'kernels' else 'kernels unfused'}, {threads} thread{'s' if threads > 1 else ''}",
+        path=f"{'kernels' if path == 'kernels' else 'kernels unfused'}, {threads} thread{'s' if threads > 1 else ''}",
         dof=int(rest.size),
         solver=solver.linear.method,
         ms_frame=float(np.mean(frame_ms)),
@@ -187,7 +185,7 @@ def against_artefact(path, frames):
         data, _ = simulate_sequence(solver, rest, dict(seq, frames=len(pos)), cfg["dt"], seq["name"])
         dev = max(dev, float(np.abs(data["positions"] - pos).max()))
         motion = max(motion, float(np.abs(pos - rest).max()))
-    return {"frames": len(pos), "max_dev": dev, "motion": motion, "kernels": True}  # the compiled kernels: the solver's only path
+    return {"frames": len(pos), "max_dev": dev, "motion": motion}
 
 
 def median_row(runs):
@@ -206,9 +204,9 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=30, help="frames timed, after --warmup frames")
     ap.add_argument("--warmup", type=int, default=5, help="frames from rest not timed (the initial drop)")
     ap.add_argument("--hessian", nargs="+", default=["projected", "exact_first"])
-    ap.add_argument("--paths", nargs="+", default=["reference", "kernels"], choices=["reference", "kernels", "unfused"],
-                    help="reference: the terms' NumPy closed forms + PyTorch energies; kernels: compiled (numba), "
-                         "the line search's full-step trial fused with the next Hessian; unfused: kernels, not fused")
+    ap.add_argument("--paths", nargs="+", default=["kernels", "unfused"], choices=["kernels", "unfused"],
+                    help="kernels: compiled (numba), the line search's full-step trial fused with the next Hessian; "
+                         "unfused: the same kernels, not fused")
     ap.add_argument("--repeats", type=int, default=1, help="runs of each row, interleaved; medians are reported")
     ap.add_argument("--scenes", nargs="*")
     ap.add_argument("--threads", type=int, default=2, help="torch and linear-solver threads")
@@ -223,8 +221,7 @@ def main(argv=None):
         print("|---|---|---|---|---|")
         for name in args.against:
             r = against_artefact(ROOT / "results" / "sim" / name / "trajectories.h5", args.frames)
-            path = "kernels" if r["kernels"] else "reference"
-            print(f"| {name} | {r['frames']} | {path} | {r['max_dev']:.2e} | {r['max_dev'] / r['motion']:.1e} |")
+            print(f"| {name} | {r['frames']} | kernels | {r['max_dev']:.2e} | {r['max_dev'] / r['motion']:.1e} |")
         return
     torch.set_num_threads(args.threads)
     cfg = load_config(args.config)
@@ -234,18 +231,18 @@ def main(argv=None):
         sc = cfg["scenes"][name]
         arrays, pot = prepare_scene(name, sc, cfg["meshes"])
         for hessian in args.hessian:
-            variants = [(p, t) for p in args.paths for t in (args.kernel_threads if p != "reference" else [1])]
+            variants = [(p, t) for p in args.paths for t in args.kernel_threads]
             runs = {v: [] for v in variants}
             for _ in range(args.repeats):
                 for path, threads in variants:
                     r = bench_scene(name, sc, arrays, pot, args.frames, args.warmup, hessian, path, threads)
                     r["ratio"] = r["ms_iteration"] / max(r["floor_ms"], 1e-9)
                     runs[path, threads].append(r)
-            ref = runs["reference", 1][0]["final"] if "reference" in args.paths else None
+            ref = runs[variants[0]][0]["final"]
             for v in variants:
                 row = median_row(runs[v])
                 # same frames from the same start: how far the two paths' final states are apart
-                row["deviation"] = float(np.abs(row["final"] - ref).max() / row["size"]) if ref is not None else float("nan")
+                row["deviation"] = float(np.abs(row["final"] - ref).max() / row["size"])
                 rows.append(row)
             print(f"  {name} ({hessian}): done", file=sys.stderr, flush=True)
     head = ["scene", "DoF", "Hessian", "path", "solver", "ms/frame", "paper ms/frame", "target", "Newton it/frame",
