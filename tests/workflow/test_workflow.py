@@ -89,6 +89,11 @@ def planned_outputs(output: str) -> list[str]:
     return sorted(jobs)
 
 
+def test_rules_are_in_snakefmt_form():
+    proc = subprocess.run([sys.executable, "-m", "snakefmt", "--check", "Snakefile", "workflow/rules"], cwd=ROOT, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
 def test_lint_is_clean():
     proc = snakemake("--lint", check=False)
     assert proc.returncode == 0, proc.stdout + proc.stderr

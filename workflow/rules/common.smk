@@ -91,13 +91,15 @@ def integrator_params(wildcards):
     )
 
 
+def rollout_paths(scene):
+    """The rollout of every method of a scene: its latent integrators and its reduced baselines."""
+    methods = scene_methods(config, scene) + config["scenes"][scene]["baselines"]
+    return [f"results/rollout/{scene}/{m}/rollout.h5" for m in methods]
+
+
 def scene_rollouts(wildcards):
-    """Input function: the rollout of every latent-integrator method of a scene."""
-    return [
-        f"results/rollout/{wildcards.scene}/{m}/rollout.h5"
-        for m in scene_methods(config, wildcards.scene)
-        + config["scenes"][wildcards.scene]["baselines"]
-    ]
+    """Input function: the rollout of every method of a scene."""
+    return rollout_paths(wildcards.scene)
 
 
 def sweep_points(scene):
@@ -177,12 +179,7 @@ def gpu_count(wildcards):
 
 
 def all_targets():
-    out = [
-        f"results/rollout/{scene}/{method}/rollout.h5"
-        for scene in SCENES
-        for method in scene_methods(config, scene)
-        + config["scenes"][scene]["baselines"]
-    ]
+    out = [path for scene in SCENES for path in rollout_paths(scene)]
     out += expand("results/evaluation/{scene}/metrics.csv", scene=SCENES)
     out += expand("results/evaluation/{scene}/frames.png", scene=SCENES)
     out += list(sweep_choices().values())

@@ -118,14 +118,14 @@ rule summary:
             caption="../report/speed_accuracy.rst",
             category="Summary",
         ),
-    params:
-        sizes=model_sizes(),
-        sweep_choices=sweep_choices(),
     log:
         "logs/evaluation/summary.log",
     benchmark:
         "results/benchmarks/summary/summary.tsv"
     conda:
         "../../envs/latentsim.yaml"
+    params:
+        sizes=model_sizes(),
+        sweep_choices=sweep_choices(),
     script:
         "../scripts/summary.py"
