@@ -65,8 +65,9 @@ from latentsim.latent import (
 from latentsim.report.metrics import bbox_diagonal
 from latentsim.report.paper import LI2025_TABLE1, LI2025_TABLE2
 from latentsim.stages.mesh import prepare_mesh
+from latentsim.latent.subspaces import DecoderSubspace
+from latentsim.latent.timing import EagerStepper
 from latentsim.solve.reduced import (
-    DecoderSubspace,
     ReducedImplicitEuler,
     ReducedSettings,
     reduced_rollout,
@@ -186,7 +187,7 @@ def bench_scene(name, sc, cfg, args, reading):
     np_step = rt.NumpyStepper(folded, np.float32)
     t_np = rt.time_step(np_step, z1, z2, p, p, p, xD, repeats=args.repeats)
     t_export = rt.time_step(rt.ExportedStepper(folded), z1, z2, p, p, p, xD, repeats=args.repeats)
-    t_eager = rt.time_step(rt.EagerStepper(ae, integ, coords), z1, z2, p, p, p, xD, repeats=args.repeats)
+    t_eager = rt.time_step(EagerStepper(ae, integ, coords), z1, z2, p, p, p, xD, repeats=args.repeats)
 
     # single-vertex Jvp: the vertex furthest from the Dirichlet set's centroid (a free one)
     enc = coords.encoded_vertices.numpy()

@@ -28,7 +28,7 @@ import torch
 
 from latentsim import latent
 from latentsim.solve import reduced
-from latentsim.latent.baselines import fit_subspace_cubature, make_subspace
+from latentsim.stages.baselines import fit_subspace_cubature, make_subspace
 from latentsim.solve.cubature import cubature_potential
 from latentsim.report.metrics import bbox_diagonal
 from latentsim.scene import potential_from_artefact

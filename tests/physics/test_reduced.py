@@ -18,12 +18,12 @@ import torch
 
 from latentsim.latent import Autoencoder, RelativeCoordinates
 from latentsim.mesh import beam_tets
-from latentsim.latent.baselines import modes_subspace
+from latentsim.stages.baselines import modes_subspace
 from latentsim.scene import build_potential
 from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings
 from latentsim.solve.modes import lowest_modes, stiffness_matrix
 from latentsim.solve.reduced import ReducedImplicitEuler, ReducedSettings, reduced_rollout
-from latentsim.solve.subspaces import DecoderSubspace, LinearSubspace
+from latentsim.latent.subspaces import DecoderSubspace, LinearSubspace
 
 DT = 1.0 / 30.0
 

@@ -30,6 +30,21 @@ def test_modules_import_one_another_without_a_cycle():
     assert tool.cycles(every) == []
 
 
+def test_packages_depend_on_one_another_in_layers():
+    """No two packages import each other, even through different modules: physics below solve, the
+    methods above both, stages on top (docs/architecture.md)."""
+    tool = load_tool()
+    mods, edges, hidden = tool.graph()
+    packages = {}
+    for m in mods:
+        for d in edges[m] | set(hidden.get(m, ())):
+            a, b = tool.package_of(m), tool.package_of(d)
+            if a != b and "latentsim" not in (a, b):
+                packages.setdefault(a, set()).add(b)
+    assert tool.cycles(packages) == []
+    assert "physics" in packages.get("solve", set()) and not packages.get("physics")
+
+
 def test_architecture_doc_is_what_the_code_says():
     proc = subprocess.run([sys.executable, str(ROOT / "tools" / "architecture.py"), "--check"], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr

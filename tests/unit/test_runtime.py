@@ -23,6 +23,7 @@ from latentsim.latent import (
     decode_latents,
     rollout,
 )
+from latentsim.latent.timing import EagerStepper
 from latentsim.runtime import compiled as rc
 from latentsim.runtime import numpy_stepper
 
@@ -302,7 +303,7 @@ def test_every_stepper_is_timed_alike():
     ``inputs``): time_step reports each part, and their steps agree."""
     ae, integ, coords = _trained_modules("mean", seed=9)
     folded = rt.fold_networks(ae, integ, coords)
-    steppers = {"numpy": rt.NumpyStepper(folded), "exported": rt.ExportedStepper(folded), "eager": rt.EagerStepper(ae, integ, coords)}
+    steppers = {"numpy": rt.NumpyStepper(folded), "exported": rt.ExportedStepper(folded), "eager": EagerStepper(ae, integ, coords)}
     if rc.available():
         steppers["compiled"] = rc.CompiledStepper(folded)
     frame = [a.numpy() for a in _inputs(coords)]

@@ -4,7 +4,7 @@ import json
 from snakemake.exceptions import WorkflowError
 
 from latentsim.stages import neural_modes as nm_pipeline
-from latentsim.latent.baselines import BASELINES
+from latentsim.stages.baselines import BASELINES
 from latentsim.report.tables import layers_text
 from latentsim.latent.sweep import parse_label, point_label
 from latentsim.config import (

@@ -1,5 +1,5 @@
-"""Stage: a reduced-order baseline's rollouts (see latentsim.latent.baselines.baseline_rollouts)."""
-from latentsim.latent.baselines import baseline_rollouts
+"""Stage: a reduced-order baseline's rollouts (see latentsim.stages.baselines.baseline_rollouts)."""
+from latentsim.stages.baselines import baseline_rollouts
 from latentsim.utils import run_stage
 
 

@@ -12,8 +12,25 @@ import torch
 
 from latentsim import runtime
 from latentsim.io import require
+from latentsim.latent.autoencoder import decode_latents
 from latentsim.scene import potential_from_artefact
 from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings
+
+
+class EagerStepper(runtime.TorchStepper):
+    """The training modules themselves (eval mode): the eager-PyTorch baseline of
+    :func:`latentsim.runtime.time_step`, beside the folded runtimes."""
+
+    def __init__(self, ae, integrator, coords):
+        self.ae, self.integrator, self.coords = ae.eval(), integrator.eval(), coords
+        dtype = next(integrator.parameters()).dtype
+        super().__init__(self._integrate_frame, self._decode_frame, ae.latent_dim, integrator.bc_dim, coords.n, dtype)
+
+    def _integrate_frame(self, z_prev, z_prev2, p, p_prev, p_prev2):
+        return self.integrator(z_prev[None], z_prev2[None], p[None], p_prev[None], p_prev2[None])[0]
+
+    def _decode_frame(self, z, xD):
+        return decode_latents(self.ae, self.coords, z[None], xD[None])[0]
 
 
 def time_steppers(steppers: dict, z1, z0, p, xD, repeats: int) -> dict:

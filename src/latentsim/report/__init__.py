@@ -2,8 +2,8 @@
 
 - :mod:`latentsim.report.metrics`: errors, kinetic energy, Pareto front (NumPy only);
 - :mod:`latentsim.report.tables`: Li et al. Tables 1-2, stability, sizes, glance tables (pandas);
-- :mod:`latentsim.report.plots`: charts (matplotlib); :mod:`latentsim.report.nm_figures`: the Neural
-  Modes studies' figures;
+- :mod:`latentsim.report.plots`: charts (matplotlib); the Neural Modes studies' own figures are
+  :mod:`latentsim.neural_modes.figures`;
 - :mod:`latentsim.report.motion`: a sequence of a trajectory file; :mod:`latentsim.report.render`:
   frames and clips of it; :mod:`latentsim.report.paraview`: its ParaView series;
 - :mod:`latentsim.report.paper`: the papers' printed numbers.

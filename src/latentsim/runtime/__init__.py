@@ -13,8 +13,8 @@ Every runtime is a :class:`Stepper` (:mod:`latentsim.runtime.stepper`) over the 
   buffers, float32 or float64 networks; also the forward-mode derivatives of the decode;
 - :class:`latentsim.runtime.compiled.CompiledStepper`: the same frame as one numba kernel call;
 - :class:`ExportedStepper` (:mod:`~latentsim.runtime.torch_stepper`): the folded step as
-  ``torch.export`` programs, PyTorch's deployment path; :class:`EagerStepper` the training
-  modules themselves (the eager baseline).
+  ``torch.export`` programs, PyTorch's deployment path.  The runtime knows no training module:
+  the eager baseline that steps them, :class:`latentsim.latent.timing.EagerStepper`, lives with them.
 
 Files (:mod:`~latentsim.runtime.files`): ``runtime.npz`` (NumPy, no pickle) and a
 ``torch.export`` program (``.pt2``); timing in :mod:`~latentsim.runtime.timing`.
@@ -25,13 +25,12 @@ from latentsim.runtime.fold import FORMAT, VERSION, fold_decoder, fold_networks
 from latentsim.runtime.numpy_stepper import NumpyStepper
 from latentsim.runtime.stepper import Stepper, rollout_runtime
 from latentsim.runtime.timing import jvp_vertex_torch, time_jvp, time_step
-from latentsim.runtime.torch_stepper import EagerStepper, ExportedStepper, FoldedStep, TorchStepper, export_step
+from latentsim.runtime.torch_stepper import ExportedStepper, FoldedStep, TorchStepper, export_step
 
 
 __all__ = [
     "FORMAT",
     "VERSION",
-    "EagerStepper",
     "ExportedStepper",
     "FoldedStep",
     "NumpyStepper",

@@ -11,9 +11,9 @@ PyTorch's deployment path is ``torch.export``: :func:`export_step` traces
 :class:`FoldedStep` into an ``ExportedProgram`` (specialised to one frame's shapes and
 dtypes), which ``torch.export.save`` writes and ``torch.export.load`` alone reads back;
 ``program.module()`` runs it.  :class:`ExportedStepper` steps with such programs,
-:class:`EagerStepper` with the training modules themselves (the eager baseline); both
-are :class:`TorchStepper`\\ s, behind the :class:`latentsim.runtime.Stepper` interface
-(tensors of one frame in and out).
+:class:`TorchStepper` wraps any pair of PyTorch frame functions behind the
+:class:`latentsim.runtime.Stepper` interface (tensors of one frame in and out); the eager
+training modules are one (:class:`latentsim.latent.timing.EagerStepper`).
 """
 
 from __future__ import annotations
@@ -23,10 +23,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from latentsim.latent import decode_latents
 from latentsim.runtime.numpy_stepper import HARD_MODES
 
-__all__ = ["EagerStepper", "ExportedStepper", "FoldedDecoder", "FoldedIntegrator", "FoldedStep", "TorchStepper", "export_step"]
+__all__ = ["ExportedStepper", "FoldedDecoder", "FoldedIntegrator", "FoldedStep", "TorchStepper", "export_step"]
 
 
 def _linear(W, b, dtype: torch.dtype) -> nn.Linear:
@@ -190,18 +189,3 @@ class ExportedStepper(TorchStepper):
         hdr = folded["header"]
         parts = {part: export_step(folded, dtype, part).module() for part in ("integrate", "decode", "step")}
         super().__init__(parts["integrate"], parts["decode"], hdr["latent_dim"], hdr["bc_dim"], hdr["n_vertices"], dtype, step=parts["step"])
-
-
-class EagerStepper(TorchStepper):
-    """The training modules themselves (eval mode): the eager-PyTorch baseline of :func:`latentsim.runtime.time_step`."""
-
-    def __init__(self, ae, integrator, coords):
-        self.ae, self.integrator, self.coords = ae.eval(), integrator.eval(), coords
-        dtype = next(integrator.parameters()).dtype
-        super().__init__(self._integrate_frame, self._decode_frame, ae.latent_dim, integrator.bc_dim, coords.n, dtype)
-
-    def _integrate_frame(self, z_prev, z_prev2, p, p_prev, p_prev2):
-        return self.integrator(z_prev[None], z_prev2[None], p[None], p_prev[None], p_prev2[None])[0]
-
-    def _decode_frame(self, z, xD):
-        return decode_latents(self.ae, self.coords, z[None], xD[None])[0]

@@ -31,8 +31,8 @@ Both minimisers run the one Newton loop and line search of :mod:`latentsim.solve
 
 A subspace is any object with ``dim``, ``n_vertices``, ``hard_dirichlet``,
 ``dirichlet`` and ``jacobian(q, xD) -> (x (n, 3), J (3n, r))`` /
-``map(q, xD) -> x``: :class:`~latentsim.solve.subspaces.LinearSubspace` (x = X + U q in the
-relative coordinates) and :class:`~latentsim.solve.subspaces.DecoderSubspace` (the autoencoder's
+``map(q, xD) -> x``: :class:`~latentsim.latent.subspaces.LinearSubspace` (x = X + U q in the
+relative coordinates) and :class:`~latentsim.latent.subspaces.DecoderSubspace` (the autoencoder's
 decoder), re-exported here.
 """
 
@@ -48,11 +48,8 @@ import torch
 from latentsim.physics.incremental_potential import IncrementalPotential, dirichlet_penalty
 from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings
 from latentsim.solve.newton import LineSearch, minimise
-from latentsim.solve.subspaces import DecoderSubspace, LinearSubspace
 
 __all__ = [
-    "DecoderSubspace",
-    "LinearSubspace",
     "ReducedFailed",
     "ReducedImplicitEuler",
     "ReducedSettings",
@@ -128,7 +125,7 @@ class ReducedImplicitEuler:
 
     Parameters
     ----------
-    subspace : :class:`LinearSubspace`, :class:`DecoderSubspace` or any object
+    subspace : :class:`~latentsim.latent.subspaces.LinearSubspace`, :class:`~latentsim.latent.subspaces.DecoderSubspace` or any object
         with the same attributes and ``jacobian``/``map``.
     potential : the scene's IncrementalPotential with *every* elastic stencil
         (``build_potential(..., free_only=False)``, as ``potential_from_artefact``

@@ -1,1 +1,1 @@
-"""stages"""
+"""The function each rule's script calls: one module per rule file of ``workflow/rules/``."""

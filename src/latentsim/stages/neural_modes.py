@@ -5,7 +5,7 @@ and the evaluation studies of Wang et al. 2024 that a scene's ``nm_study`` block
 - ``nm_ground_truth``: Eq. 9 on the sample sets of a study (``sheet``: grids and random samples;
   ``energy``: uniform samples split in order), its own artefact so retraining never re-solves it;
 - ``nm_sheet_study``, ``nm_sheet_tables``: every method of Sec. 4.1-4.4 along its training, then
-  Tables 2, 3, 4, A1 and Figs. 2, 3, 4 (``latentsim.neural_modes.sheet``, ``latentsim.report.nm_figures``);
+  Tables 2, 3, 4, A1 and Figs. 2, 3, 4 (``latentsim.neural_modes.sheet``, ``latentsim.neural_modes.figures``);
 - ``nm_energy_table``: Table 5 (``latentsim.neural_modes.energy_study``);
 - ``nm_dynamics``: the subspace dynamics of Sec. 4.5 against the full simulation, with ParaView series;
 - ``nm_keyframes``: Fig. 6, linear interpolation of modal coordinates between keyframes;
@@ -42,7 +42,7 @@ from latentsim.neural_modes import energy_study as nm_energy
 from latentsim.neural_modes import sheet as nm_sheet
 from latentsim.neural_modes.sheet_tables import tables as sheet_tables
 from latentsim.neural_modes.symmetry import half_turn
-from latentsim.report import nm_figures
+from latentsim.neural_modes import figures as nm_figures
 from latentsim.report.paraview import write_xdmf_series
 from latentsim.report.tables import write_table
 from latentsim.latent.timing import time_full_space

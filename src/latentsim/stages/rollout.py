@@ -22,7 +22,7 @@ from latentsim.latent.data import load_sequences
 from latentsim.latent.rollout import rollout
 from latentsim.latent.serialization import load_autoencoder, load_extra, load_integrator
 from latentsim.latent.stability import stress_test
-from latentsim.latent.timing import time_full_space, time_jvps, time_steppers
+from latentsim.latent.timing import EagerStepper, time_full_space, time_jvps, time_steppers
 from latentsim.runtime import compiled as runtime_compiled
 from latentsim.scene import potential_from_artefact
 
@@ -85,7 +85,7 @@ def _read_scene(trajectories, coordinates: str | None, cfg: dict) -> dict:
 def _steppers(ae, integ, coords, runtime_paths) -> dict:
     """The steppers to time: eager PyTorch, and with ``runtime_paths`` the runtime exported there
     and read back (NumPy, compiled where numba imports) and its ``torch.export`` program."""
-    steppers = {"eager": runtime.EagerStepper(ae, integ, coords)}
+    steppers = {"eager": EagerStepper(ae, integ, coords)}
     if runtime_paths is not None:
         npz, pt = runtime_paths
         runtime.export_runtime(ae, integ, coords, npz)

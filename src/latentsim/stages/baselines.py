@@ -51,7 +51,7 @@ from latentsim.solve import reduced
 from latentsim.solve.cubature import check_supported, cubature_potential, fit_cubature
 from latentsim.solve.implicit_euler import ImplicitEuler, NewtonFailed, NewtonSettings
 from latentsim.solve.modes import lowest_modes
-from latentsim.solve.subspaces import DecoderSubspace, LinearSubspace
+from latentsim.latent.subspaces import DecoderSubspace, LinearSubspace
 from latentsim.latent.data import load_sequences
 from latentsim.latent.serialization import autoencoder_coordinates
 from latentsim.latent.timing import time_full_space
@@ -121,7 +121,7 @@ def make_subspace(method: str, ae, coords, train: dict, settings: dict, potentia
 
 
 def modes_subspace(coords, potential, rest_positions, r: int) -> LinearSubspace:
-    """The r lowest vibration modes of the rest state as a :class:`~latentsim.solve.subspaces.LinearSubspace` of
+    """The r lowest vibration modes of the rest state as a :class:`~latentsim.latent.subspaces.LinearSubspace` of
     ``coords`` (zero on the Dirichlet vertices, which follow their prescribed motion)."""
     X = np.asarray(rest_positions, dtype=np.float64)
     _, V, free = lowest_modes(potential, r, X)
