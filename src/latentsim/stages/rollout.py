@@ -41,7 +41,7 @@ def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out, m
     ``runtime_paths``: (``.npz``, ``.pt``) files to export the deployable
     runtime to (:mod:`latentsim.runtime`).  One latent step is timed with the
     NumPy runtime, the compiled one (:mod:`latentsim.runtime.compiled`, where
-    numba imports), TorchScript and eager PyTorch, and a few full-space Newton
+    numba imports), its `torch.export` program and eager PyTorch, and a few full-space Newton
     frames in the same process, so the speed-up is a same-run ratio.
     """
     cfg = with_defaults("rollout", settings, "rollout_scene")
