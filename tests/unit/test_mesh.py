@@ -568,3 +568,72 @@ def test_scene_mesh_beam():
     assert quality["volume_total"] == pytest.approx(8 * 0.25) and quality["problems"] == []
     with pytest.raises(MeshError, match="needs model 'rods'"):
         M.build_mesh("tets", {"generator": "rod_bundle"}, sources={})
+
+
+# ---------------------------------------------------------------------------
+# a user's own mesh file (mesh.file a path, optional mesh.sha256)
+# ---------------------------------------------------------------------------
+
+def _cube_surface():
+    """The unit cube's closed surface: 8 vertices, 12 outward triangles."""
+    V = np.array([[x, y, z] for z in (0.0, 1.0) for y in (0.0, 1.0) for x in (0.0, 1.0)])
+    F = np.array([[0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4],
+                  [2, 6, 3], [3, 6, 7], [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5]])
+    return V, F
+
+
+def _write_user_mesh(path: Path) -> None:
+    import meshio
+
+    V, F = _cube_surface()
+    if path.suffix == ".obj":  # OBJ with per-corner normals (f v//vn), as exporters write it
+        lines = [f"v {x} {y} {z}" for x, y, z in V] + ["vn 0 0 1"]
+        lines += [f"f {a + 1}//1 {b + 1}//1 {c + 1}//1" for a, b, c in F]
+        path.write_text("\n".join(lines) + "\n")
+    elif path.suffix == ".vtu":  # a volume mesh: the cube as 5 tets
+        T = np.array([[0, 1, 2, 4], [1, 3, 2, 7], [1, 4, 5, 7], [2, 7, 6, 4], [1, 2, 4, 7]])
+        meshio.write(path, meshio.Mesh(V, [("tetra", T)]))
+    else:
+        fmt = {".msh": "gmsh22"}.get(path.suffix)
+        meshio.write(path, meshio.Mesh(V, [("triangle", F)]), file_format=fmt)
+
+
+@pytest.mark.parametrize("name", ["part.obj", "part.stl", "part.ply", "part.vtu", "part.msh",
+                                  "part.mesh"])
+def test_user_mesh_file_any_format_to_tets(tmp_path, name):
+    path = tmp_path / name
+    _write_user_mesh(path)
+    target = 0 if name.endswith(".vtu") else 40
+    cfg = {"generator": "file", "file": str(path), "target_vertices": target}
+    out = M.build_mesh("tets", cfg, {"local_dir": None, "cache_dir": str(tmp_path / "cache")})
+    vol = M.tet_volumes(out["rest_positions"], out["tets"])
+    assert (vol > 0).all()
+    assert vol.sum() == pytest.approx(1.0, rel=1e-9)  # the cube, whatever the tetrahedralisation
+    assert not (tmp_path / "cache").exists()  # a user's file is read in place
+
+
+def test_user_mesh_file_shell_and_local_dir(tmp_path):
+    _write_user_mesh(tmp_path / "part.obj")
+    sources = {"local_dir": str(tmp_path), "cache_dir": str(tmp_path / "cache")}
+    assert M.user_mesh_path("part.obj", sources) == tmp_path / "part.obj"
+    assert M.user_mesh_path("square.obj", sources) is None  # pinned names stay pinned
+    out = M.build_mesh("shell", {"generator": "file", "file": "part.obj"}, sources)
+    assert out["triangles"].shape == (12, 3) and out["rest_positions"].shape == (8, 3)
+
+
+def test_user_mesh_file_sha256_and_errors(tmp_path):
+    path = tmp_path / "part.stl"
+    _write_user_mesh(path)
+    sources = {"local_dir": None, "cache_dir": str(tmp_path / "cache")}
+    good = M.sha256_of(path)
+    assert M.mesh_file(str(path), sources, sha256=good.upper()) == path
+    wrong = "f" * 64
+    with pytest.raises(MeshError) as err:
+        M.mesh_file(str(path), sources, sha256=wrong)
+    assert str(path) in str(err.value) and wrong in str(err.value) and good in str(err.value)
+    with pytest.raises(MeshError, match="sha256 must be 64 hex"):
+        M.mesh_file(str(path), sources, sha256="abc")
+    with pytest.raises(MeshError, match=r"mesh.file: mesh file '.*missing.obj' not found"):
+        M.mesh_file(str(tmp_path / "missing.obj"), sources)
+    with pytest.raises(MeshError, match="needs mesh.file"):
+        M.build_mesh("tets", {"generator": "file", "file": None}, sources)

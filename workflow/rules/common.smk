@@ -7,6 +7,7 @@ from latentsim.stages import neural_modes as nm_pipeline
 from latentsim.stages.baselines import BASELINES
 from latentsim.report.tables import layers_text
 from latentsim.latent.sweep import parse_label, point_label
+from latentsim.mesh.sources import user_mesh_path
 from latentsim.config import (
     ConfigError,
     autoencoder_dir,
@@ -55,6 +56,15 @@ def scene_cfg(*keys):
 
 def mesh_sources():
     return canonical(config["meshes"])
+
+
+def user_mesh(wildcards):
+    """Input function: a scene's own mesh file (not a pinned one), so that editing it reruns the scene."""
+    mesh = config["scenes"][wildcards.scene]["mesh"]
+    if mesh.get("generator") != "file" or not mesh.get("file"):
+        return []
+    path = user_mesh_path(mesh["file"], config["meshes"])
+    return [] if path is None else [str(path)]
 
 
 def autoencoder_params(wildcards):

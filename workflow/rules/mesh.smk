@@ -1,5 +1,7 @@
 # Mesh preparation: generate or fetch, tetrahedralise, select Dirichlet vertices, check quality.
 rule prepare_mesh:
+    input:
+        user_mesh,
     output:
         mesh="results/mesh/{scene}/mesh.h5",
         vtu="results/mesh/{scene}/mesh.vtu",

@@ -8,7 +8,8 @@ the vertex array (0-based).
 Modules, one job each:
 
 * :mod:`~latentsim.mesh.validation`: :class:`MeshError` and the argument checks;
-* :mod:`~latentsim.mesh.sources`: pinned meshes (:data:`MESH_SOURCES`), :func:`fetch_mesh`;
+* :mod:`~latentsim.mesh.sources`: pinned meshes (:data:`MESH_SOURCES`), :func:`fetch_mesh`,
+  a scene's file (pinned or the user's own) by :func:`mesh_file`;
 * :mod:`~latentsim.mesh.readers`: :class:`Mesh`, :func:`read_obj`, :func:`read_mesh`;
 * :mod:`~latentsim.mesh.geometry`: volumes, areas, orientation, unreferenced vertices;
 * :mod:`~latentsim.mesh.generators`: :func:`rod_bundle`, :func:`cloth_grid`, :func:`beam_tets`;
@@ -56,7 +57,9 @@ from latentsim.mesh.sources import (
     DEFAULT_CACHE_DIR,
     MESH_SOURCES,
     fetch_mesh,
+    mesh_file,
     sha256_of,
+    user_mesh_path,
 )
 from latentsim.mesh.surface import check_closed_surface, surface_of, weld
 from latentsim.mesh.tetgen import tetrahedralize, tetrahedralize_to
@@ -69,7 +72,9 @@ __all__ = [
     "MeshError",
     "Mesh",
     "sha256_of",
+    "user_mesh_path",
     "fetch_mesh",
+    "mesh_file",
     "read_mesh",
     "read_obj",
     "rod_bundle",

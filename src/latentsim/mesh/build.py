@@ -19,7 +19,7 @@ from latentsim.mesh.geometry import remove_unreferenced
 from latentsim.mesh.quality import check_mesh
 from latentsim.mesh.readers import read_mesh
 from latentsim.mesh.selection import select_dirichlet
-from latentsim.mesh.sources import fetch_mesh
+from latentsim.mesh.sources import mesh_file
 from latentsim.mesh.surface import surface_of
 from latentsim.mesh.tetgen import tetrahedralize_to
 from latentsim.mesh.transform import place
@@ -34,8 +34,9 @@ def _from_file(model: str, cfg: dict, sources: dict) -> dict[str, np.ndarray]:
     A tet model keeps the file's tets unless ``target_vertices`` is set (> 0);
     then the file's surface is tetrahedralised to about that many vertices.
     """
-    path = fetch_mesh(cfg["file"], local_dir=sources.get("local_dir"),
-                      cache_dir=sources["cache_dir"])
+    if not cfg.get("file"):
+        raise MeshError("mesh.generator 'file' needs mesh.file (a pinned mesh name or a path)")
+    path = mesh_file(cfg["file"], sources, sha256=cfg.get("sha256"))
     m = read_mesh(path)
     out = {"rest_positions": m.vertices}
     if model == "tets":

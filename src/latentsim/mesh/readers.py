@@ -208,7 +208,9 @@ def _read_meshio(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray 
     import meshio
 
     try:
-        m = meshio.read(path)
+        # meshio's STL reader tells ASCII from binary by a size check that overflows harmlessly
+        with np.errstate(over="ignore"):
+            m = meshio.read(path)
     except (Exception, SystemExit) as exc:  # meshio raises many types, even sys.exit
         raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from exc
     vertices = np.asarray(m.points, dtype=np.float64)

@@ -198,3 +198,50 @@ def fetch_mesh(
     if not url:
         raise MeshError(f"mesh {name!r} is not available locally and has no url to download")
     return _download(name, url, sha256, cache, timeout)
+
+
+def user_mesh_path(file: str, sources: dict) -> Path | None:
+    """The path of a user's own mesh file, or None for a pinned mesh (see :func:`mesh_file`).
+
+    ``file`` is a pinned mesh when it is a plain file name listed in :data:`MESH_SOURCES`.
+    Otherwise it is the user's: a plain name is looked for in ``sources['local_dir']``
+    (when set), anything else is a path (relative to the working directory).
+    """
+    if file in MESH_SOURCES:
+        return None
+    local_dir = sources.get("local_dir")
+    if local_dir is not None and Path(file).name == file:
+        return Path(local_dir) / file
+    return Path(file)
+
+
+def mesh_file(file: str, sources: dict, sha256: str | None = None, where: str = "mesh.file") -> Path:
+    """A verified local path for a scene's ``mesh.file`` (and optional ``mesh.sha256``).
+
+    A pinned mesh (a name in :data:`MESH_SOURCES`) goes through :func:`fetch_mesh`
+    with its pinned hash (or ``sha256`` when given).  A user's own file
+    (:func:`user_mesh_path`) is read where it is; its sha256 is checked only when
+    ``sha256`` is given, so a mesh of one's own needs no entry in the package.
+
+    Raises
+    ------
+    MeshError
+        Missing file, bad or mismatching sha256; the message names ``where`` and the path.
+    """
+    path = user_mesh_path(file, sources)
+    if path is None:
+        return fetch_mesh(file, local_dir=sources.get("local_dir"),
+                          cache_dir=sources["cache_dir"], sha256=sha256)
+    if not path.is_file():
+        raise MeshError(
+            f"{where}: mesh file {str(path)!r} not found (a path relative to the working "
+            f"directory, or a file name in meshes.local_dir; pinned meshes: "
+            f"{', '.join(sorted(MESH_SOURCES))})")
+    if sha256 is not None:
+        expected = sha256.lower()
+        if not re.fullmatch(r"[0-9a-f]{64}", expected):
+            raise MeshError(f"{where}: sha256 must be 64 hex digits, got {sha256!r}")
+        _verify(sha256_of(path), expected, f"{where}: mesh file {str(path)!r}")
+    logger.info("mesh %s: using the user's file %s%s", file, path,
+                " (sha256 ok)" if sha256 is not None else "")
+    return path
