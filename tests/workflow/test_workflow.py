@@ -23,6 +23,8 @@ import yaml
 
 from latentsim.config import scene_methods, validate_config
 
+from workflow_support import HANG_SECONDS
+
 ROOT = Path(__file__).resolve().parents[2]
 TINY = ROOT / "config" / "tiny.yaml"
 SCENES_TINY = ["tiny_cloth", "tiny_nm", "tiny_rods"]
@@ -48,9 +50,6 @@ def is_timing(name: str, explicit: set) -> bool:
     return name in explicit or name == "seconds" or name.endswith(("_ms", "_seconds"))
 
 
-# Only catches a hang: the tiny run takes about 2 min on a quiet 2-core machine and several times that
-# with other work beside it; a correct run must never hit this.
-HANG_SECONDS = 3 * 3600
 
 
 def snakemake(*args, cwd=ROOT, check=True, timeout=HANG_SECONDS):
@@ -145,15 +144,6 @@ def test_malformed_config_stops_before_any_job(tmp_path, edit, key):
 
 
 # --- the tiny config end to end -----------------------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
-    """One complete run of the tiny config in a fresh directory."""
-    work = tmp_path_factory.mktemp("tiny_a")
-    t0 = time.perf_counter()
-    snakemake("all", "--cores", "2", "--configfile", str(TINY), "--directory", str(work))
-    return work, time.perf_counter() - t0
 
 
 def test_tiny_run_writes_tables_and_figures(tiny_run):

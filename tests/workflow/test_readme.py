@@ -1,0 +1,81 @@
+"""The README's commands, as written: every one is either run here or named with the reason it is not.
+
+The quick ones run in the tiny run's copy of the repository (``conftest.tiny_run``, itself the
+README's tiny command), in the README's order.
+"""
+
+from __future__ import annotations
+
+import re
+import subprocess
+from pathlib import Path
+
+import pytest
+import torch
+from workflow_support import ROOT, TINY_COMMAND, shell
+
+README = ROOT / "README.md"
+
+# Commands the README shows that this test does not run, and why.
+NOT_RUN = {
+    "pip install -r envs/requirements.txt -e .": "the install: .ci/run runs it before the tests",
+    "snakemake --cores 2 all": "the default run takes hours; its dry run is run below and in test_workflow",
+    "snakemake --report report.html": "needs the default run's results; the tiny run's report is built below",
+    "snakemake --cores 2 all --configfile config/examples/my_part.yaml": "run by test_example_scene.py",
+    "snakemake --workflow-profile profiles/slurm all": "needs a SLURM cluster; test_workflow dry-runs the profile",
+    "python -m pytest -q tests": "the test command itself",
+    'python -m pytest -q -m "not slow" tests': "a part of the test command itself",
+}
+if not torch.cuda.is_available():
+    NOT_RUN["snakemake --cores 2 all --config device=cuda"] = "needs a GPU; test_latent checks the error without one"
+
+# Commands run after the tiny run, in this order, each with a check of what it made.
+RUN = [
+    TINY_COMMAND,
+    "snakemake --report report.html --configfile config/tiny.yaml",
+    "snakemake -n all",
+    "python tools/readme_glance.py",
+]
+
+
+def readme_commands(text: str) -> list[str]:
+    """Every command the README shows: each line of its ``bash`` blocks, and inline ``snakemake ...``/``python ...``."""
+    out = []
+    for block in re.findall(r"```bash\n(.*?)```", text, flags=re.S):
+        out += [line.split("  #")[0].strip() for line in block.splitlines() if line.strip() and not line.startswith("#")]
+    out += re.findall(r"`((?:snakemake|python) [^`]+)`", text)
+    return list(dict.fromkeys(out))
+
+
+def test_every_readme_command_is_run_or_has_a_reason():
+    shown = readme_commands(README.read_text())
+    assert TINY_COMMAND in shown
+    unclassified = [c for c in shown if c not in NOT_RUN and c not in RUN]
+    assert not unclassified, f"README commands neither run by this test nor listed in NOT_RUN: {unclassified}"
+    gone = [c for c in [*NOT_RUN, *RUN] if c not in shown and "device=cuda" not in c]
+    assert not gone, f"listed here but no longer in the README: {gone}"
+
+
+def test_the_example_scene_test_runs_the_readme_command():
+    assert "config/examples/my_part.yaml" in (ROOT / "tests" / "workflow" / "test_example_scene.py").read_text()
+
+
+def test_readme_quick_commands_run_as_written(tiny_run):
+    work, _ = tiny_run
+    # the copy has no history: make it a checkout of its own, so the glance script can name its commit
+    subprocess.run("git init -q && git add -A && git -c user.name=t -c user.email=t@t commit -qm copy",
+                   shell=True, cwd=work, check=True, capture_output=True)
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=work, capture_output=True, text=True).stdout.strip()
+    for command in RUN[1:]:
+        out = shell(command, work)
+        if "--report" in command:
+            html = (work / "report.html").read_text(errors="replace")
+            assert len(html) > 100_000 and "tiny_cloth" in html
+        elif command.startswith("snakemake -n"):
+            assert "rule train_integrator" in out.stdout and "This was a dry-run" in out.stdout
+        elif "readme_glance" in command:
+            text = (work / "README.md").read_text()
+            block = text.split("glance: begin", 1)[1].split("glance: end", 1)[0]
+            assert f"at commit {commit}" in block
+            assert all(s in block for s in ("| tiny_cloth |", "| tiny_rods |", "| tiny_nm |"))
+            assert shell("python tools/readme_glance.py --check", work).returncode == 0
