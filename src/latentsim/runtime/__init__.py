@@ -21,7 +21,9 @@ Files (:mod:`~latentsim.runtime.files`): ``runtime.npz`` (NumPy, no pickle) and 
 """
 
 from latentsim.runtime.files import export_runtime, load_runtime, read_runtime
-from latentsim.runtime.fold import FORMAT, VERSION, fold_decoder, fold_networks
+from latentsim.runtime.encoder import Encoder
+from latentsim.runtime.fold import FORMAT, VERSION, fold_decoder, fold_encoder, fold_networks
+from latentsim.runtime.model import TrainedModel, load
 from latentsim.runtime.numpy_stepper import NumpyStepper
 from latentsim.runtime.stepper import Stepper, rollout_runtime
 from latentsim.runtime.timing import jvp_vertex_torch, time_jvp, time_step
@@ -31,16 +33,20 @@ from latentsim.runtime.torch_stepper import ExportedStepper, FoldedStep, TorchSt
 __all__ = [
     "FORMAT",
     "VERSION",
+    "Encoder",
     "ExportedStepper",
     "FoldedStep",
     "NumpyStepper",
     "Stepper",
     "TorchStepper",
+    "TrainedModel",
     "export_runtime",
     "export_step",
     "fold_decoder",
+    "fold_encoder",
     "fold_networks",
     "jvp_vertex_torch",
+    "load",
     "load_runtime",
     "read_runtime",
     "rollout_runtime",
