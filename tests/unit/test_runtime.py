@@ -9,10 +9,14 @@ and the hand-written forward-mode Jvp must equal ``torch.func.jvp``.
 from __future__ import annotations
 
 import copy
+import importlib.util
 import json
 import re
 import tracemalloc
 
+from pathlib import Path
+
+import h5py
 import numpy as np
 import pytest
 import torch
@@ -33,6 +37,7 @@ from latentsim.runtime import numpy_stepper
 # torch.func.jvp (the Jvp oracle) scripts torch's own decompositions (torch._decomp.decompositions_for_jvp) with
 # torch.jit at its first use, which warns; the project itself uses no torch.jit
 
+EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "step_trained_model.py"
 K = 6  # boundary-condition parameters per frame
 R = 3  # latent dimension
 
@@ -553,3 +558,40 @@ def test_a_runtime_file_without_encoder_steps_but_says_how_to_encode(tmp_path):
         model.encode(x[0].numpy(), x[1].numpy(), xD[0].numpy(), bc[:2].numpy())
     with pytest.raises(FileNotFoundError, match="runtime.npz"):
         rt.load(tmp_path / "elsewhere")
+
+
+def _load_example():
+    spec = importlib.util.spec_from_file_location("step_trained_model", EXAMPLE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_example_steps_a_trained_model_as_the_pipeline_rolls_out(tmp_path, capsys):
+    """examples/step_trained_model.py on a rollout folder of a tiny trained model and a trajectories file: its NumPy
+    frames and its torch.export program's are the rollout stage's (encode_positions, then latent.rollout)."""
+    ae, integ, coords = _trained_modules("roots", seed=5)
+    T = 10
+    x, xD, bc = _frames(coords, T, seed=16)
+    folder = tmp_path / "rollout"
+    rt.export_runtime(ae, integ, coords, folder / "runtime.npz")
+    rt.export_runtime(ae, integ, coords, folder / "runtime.pt")
+    with h5py.File(tmp_path / "trajectories.h5", "w") as f:
+        f["rest_positions"] = x[0].numpy()
+        for name, split in (("train_a", "train"), ("test_a", "test")):
+            g = f.create_group(f"sequences/{name}")
+            g.attrs["split"] = split
+            g["positions"], g["dirichlet_positions"], g["bc"] = x.numpy(), xD.numpy(), bc.numpy()
+    z01 = encode_positions(ae, coords, x[:2], xD[:2])
+    ref = rollout(integ, ae, coords, z01[0], z01[1], bc, xD)["positions"].numpy()
+    out = _load_example().main([str(folder), "--trajectories", str(tmp_path / "trajectories.h5")])
+    printed = capsys.readouterr().out
+    assert out["sequence"] == "test_a" and "test_a: frames 0, 1 encoded, 8 stepped" in printed and "torch.export program" in printed
+    scale = np.abs(ref).max()
+    assert np.abs(out["positions"][2:] - ref[2:]).max() < 1e-4 * scale
+    assert np.abs(out["torch_export_positions"][2:] - ref[2:]).max() < 1e-4 * scale
+    assert np.abs(out["positions"][2:] - x[2:].numpy()).max() > 1e-2 * scale  # stepped, not copied from the file
+    assert out["numpy_ms"] > 0 and out["mean_error"] > 0
+    short = _load_example().main([str(folder / "runtime.npz"), "--trajectories", str(tmp_path / "trajectories.h5"), "--frames", "4", "--no-torch-export"])
+    assert short["positions"].shape == (4, coords.n, 3) and "torch_export_positions" not in short
+    assert np.array_equal(short["positions"], out["positions"][:4])
