@@ -102,7 +102,7 @@ def main(argv=None) -> dict:
     mean_e, max_e = vertex_error(x[2:], seq["positions"][2:T], diagonal)
     print(f"{name}: frames 0, 1 encoded, {T - 2} stepped (r = {model.r} latents, {model.n} vertices)")
     print(f"NumPy runtime:        {1e3 * seconds:8.3f} ms per step; vertex error against the simulation: mean {mean_e:.2e}, max {max_e:.2e} of the bounding-box diagonal")
-    result = {"sequence": name, "positions": x, "numpy_ms": 1e3 * seconds, "mean_error": mean_e, "max_error": max_e}
+    result = {"sequence": name, "positions": x, "latents": z01, "numpy_ms": 1e3 * seconds, "mean_error": mean_e, "max_error": max_e}
     program = os.path.join(os.path.dirname(os.path.abspath(args.rollout)) if args.rollout.endswith(".npz") else args.rollout, "runtime.pt")
     if not args.no_torch_export and os.path.isfile(program):
         xt, seconds_t = step_torch_export(program, z01, seq, T)
