@@ -13,7 +13,6 @@ import importlib.util
 import json
 import re
 import tracemalloc
-
 from pathlib import Path
 
 import h5py

@@ -37,8 +37,8 @@ encoder, version 1 files step but cannot encode) and a ``torch.export`` program 
 (``runtime.pt``); timing in :mod:`~latentsim.runtime.timing`.  See ``docs/artefacts.md``.
 """
 
-from latentsim.runtime.files import export_runtime, load_runtime, read_runtime
 from latentsim.runtime.encoder import Encoder
+from latentsim.runtime.files import export_runtime, load_runtime, read_runtime
 from latentsim.runtime.fold import FORMAT, VERSION, fold_decoder, fold_encoder, fold_networks
 from latentsim.runtime.model import TrainedModel, load
 from latentsim.runtime.numpy_stepper import NumpyStepper
