@@ -9,8 +9,13 @@ and the hand-written forward-mode Jvp must equal ``torch.func.jvp``.
 from __future__ import annotations
 
 import copy
+import importlib.util
+import json
+import re
 import tracemalloc
+from pathlib import Path
 
+import h5py
 import numpy as np
 import pytest
 import torch
@@ -21,6 +26,7 @@ from latentsim.latent import (
     LatentIntegrator,
     RelativeCoordinates,
     decode_latents,
+    encode_positions,
     rollout,
 )
 from latentsim.latent.timing import EagerStepper
@@ -30,6 +36,7 @@ from latentsim.runtime import numpy_stepper
 # torch.func.jvp (the Jvp oracle) scripts torch's own decompositions (torch._decomp.decompositions_for_jvp) with
 # torch.jit at its first use, which warns; the project itself uses no torch.jit
 
+EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "step_trained_model.py"
 K = 6  # boundary-condition parameters per frame
 R = 3  # latent dimension
 
@@ -455,3 +462,135 @@ def test_float32_silu_without_libm_is_float32_accurate():
     rel = np.abs(y[inside] - ref[inside]) / np.maximum(np.abs(ref[inside]), np.finfo(np.float32).tiny)
     assert rel.max() < np.finfo(np.float32).eps
     assert y[-3] == 100.0 and y[-2] == 1e4 and abs(y[-4]) < 1e-30 and abs(y[-5]) < 1e-30 and np.isnan(y[-1])
+
+
+# ---------------------------------------------------------------------------
+# the encoder, and a trained model stepped from full-space frames (runtime.load)
+# ---------------------------------------------------------------------------
+def _frames(coords, T: int, seed: int):
+    """T frames of positions (T, n, 3), Dirichlet positions (T, m, 3) that are those of the frames, and parameters (T, K)."""
+    g = torch.Generator().manual_seed(seed)
+    x = 0.3 + torch.randn(T, coords.n, 3, generator=g, dtype=torch.float64)
+    xD = x[:, coords.dirichlet].clone()
+    return x, xD, torch.randn(T, K, generator=g)
+
+
+@pytest.mark.parametrize("widths", [[16, 16, 8], [12], []])
+@pytest.mark.parametrize("mode", ["roots", "mean", "hard_mean"])
+def test_encoder_matches_encode_positions(mode, widths):
+    """The folded encoder gives the pipeline's latents (encode_positions: float64 relative coordinates, float32
+    network) to float32 rounding, and the float64 module's to 1e-12 in float64; with and without identity
+    skips and hidden layers; a whole sequence in one call."""
+    ae, integ, coords = _trained_modules(mode, seed=11)
+    if widths != [16, 16, 8]:  # another shape of encoder, BatchNorm statistics and output layer made non-trivial
+        torch.manual_seed(12)
+        ae = Autoencoder(coords.dim, R, widths, pca_dim=12)
+        with torch.no_grad():
+            ae.enc_branch.out.weight.normal_(0.0, 0.3)
+            for blk in ae.enc_branch.blocks:
+                blk[1].running_mean.normal_(0.0, 0.2)
+                blk[1].running_var.uniform_(0.5, 2.0)
+        ae.eval()
+    x, xD, _ = _frames(coords, 5, seed=13)
+    folded = rt.fold_networks(ae, integ, coords)
+    assert folded["header"]["encoder"] and folded["header"]["version"] == rt.VERSION == 2
+    z_ref = encode_positions(ae, coords, x, xD).numpy()
+    assert np.abs(z_ref).max() > 0.1
+    z = rt.NumpyStepper(folded, np.float32).encode(x.numpy(), xD.numpy())
+    assert z.dtype == np.float32 and z.shape == (5, R)
+    assert np.abs(z - z_ref).max() < 1e-5 * np.abs(z_ref).max()
+    ae64 = copy.deepcopy(ae).double()
+    with torch.no_grad():
+        z64_ref = ae64.encode(coords.encode(x, xD)).numpy()
+    z64 = rt.NumpyStepper(folded, np.float64).encode(x[2].numpy(), xD[2].numpy())
+    assert np.allclose(z64, z64_ref[2], rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match=r"positions: need shape \(\.\.\., 12, 3\)"):
+        rt.NumpyStepper(folded).encode(x[0, :5].numpy(), xD[0].numpy())
+
+
+@pytest.mark.parametrize("mode", ["roots", "mean", "hard_mean"])
+def test_loaded_model_encodes_and_steps_as_the_pipeline_rolls_out(mode, tmp_path):
+    """runtime.load(folder): encode two full-space frames, step with the parameters and Dirichlet positions of each
+    frame: the rollout stage's frames (encode_positions, then latent.rollout in PyTorch) to float32 rounding."""
+    ae, integ, coords = _trained_modules(mode, seed=5)
+    T = 12
+    x, xD, bc = _frames(coords, T, seed=14)
+    z01 = encode_positions(ae, coords, x[:2], xD[:2])
+    ref = rollout(integ, ae, coords, z01[0], z01[1], bc, xD)
+    assert ref["diverged_frame"] == -1
+    rt.export_runtime(ae, integ, coords, tmp_path / "runtime.npz")
+    model = rt.load(tmp_path)
+    assert (model.r, model.k, model.n, model.m) == (R, K, coords.n, coords.dirichlet.numel())
+    z = model.encode(x[0].numpy(), x[1].numpy(), xD[:2].numpy(), bc[:2].numpy())
+    assert np.abs(z - z01.numpy()).max() < 1e-5 * np.abs(z01.numpy()).max()
+    X = np.stack([model.step(bc[t].numpy(), xD[t].numpy()) for t in range(2, T)])
+    scale = float(ref["positions"].abs().max())
+    assert np.abs(X - ref["positions"][2:].numpy()).max() < 1e-4 * scale
+    assert np.abs(np.diff(X, axis=0)).max() > 1e-2 * scale  # the frames move
+    assert np.abs(model.latent - ref["latents"][-1].numpy()).max() < 1e-4
+    # start from stored latents instead: the same frames; xD omitted keeps the last frame's (a boundary at rest)
+    again = rt.load(tmp_path / "runtime.npz")
+    again.start(z[0], z[1], bc[:2].numpy(), xD[1].numpy())
+    assert np.array_equal(again.step(bc[2].numpy(), xD[2].numpy()), X[0])
+    assert np.array_equal(again.step(bc[3].numpy()), model.stepper.decode(again.latent, xD[2].numpy()))
+    with pytest.raises(ValueError, match=r"p need shape \(6,\)"):
+        again.step(bc[:2].numpy())
+    with pytest.raises(RuntimeError, match="encode two frames"):
+        rt.load(tmp_path).step(bc[2].numpy())
+
+
+def test_a_runtime_file_without_encoder_steps_but_says_how_to_encode(tmp_path):
+    """A format version 1 file (before the encoder was exported) still loads and steps from stored latents;
+    encode() names the file and says to rerun the rollout job."""
+    ae, integ, coords = _trained_modules("roots", seed=5)
+    folded = rt.fold_networks(ae, integ, coords)
+    header = {k: v for k, v in folded["header"].items() if not k.startswith("encoder")} | {"version": 1}
+    arrays = {k: v for k, v in folded.items() if k != "header" and not k.startswith("enc_")}
+    old = tmp_path / "runtime.npz"
+    np.savez(old, header=np.asarray(json.dumps(header)), **arrays)
+    model = rt.load(old)
+    x, xD, bc = _frames(coords, 3, seed=15)
+    z01 = encode_positions(ae, coords, x[:2], xD[:2]).numpy()
+    model.start(z01[0], z01[1], bc[:2].numpy(), xD[1].numpy())
+    assert np.isfinite(model.step(bc[2].numpy(), xD[2].numpy())).all()
+    with pytest.raises(ValueError, match=rf"{re.escape(str(old))}: .*format version 1.*rerun the rollout job"):
+        model.encode(x[0].numpy(), x[1].numpy(), xD[0].numpy(), bc[:2].numpy())
+    with pytest.raises(FileNotFoundError, match="runtime.npz"):
+        rt.load(tmp_path / "elsewhere")
+
+
+def _load_example():
+    spec = importlib.util.spec_from_file_location("step_trained_model", EXAMPLE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_example_steps_a_trained_model_as_the_pipeline_rolls_out(tmp_path, capsys):
+    """examples/step_trained_model.py on a rollout folder of a tiny trained model and a trajectories file: its NumPy
+    frames and its torch.export program's are the rollout stage's (encode_positions, then latent.rollout)."""
+    ae, integ, coords = _trained_modules("roots", seed=5)
+    T = 10
+    x, xD, bc = _frames(coords, T, seed=16)
+    folder = tmp_path / "rollout"
+    rt.export_runtime(ae, integ, coords, folder / "runtime.npz")
+    rt.export_runtime(ae, integ, coords, folder / "runtime.pt")
+    with h5py.File(tmp_path / "trajectories.h5", "w") as f:
+        f["rest_positions"] = x[0].numpy()
+        for name, split in (("train_a", "train"), ("test_a", "test")):
+            g = f.create_group(f"sequences/{name}")
+            g.attrs["split"] = split
+            g["positions"], g["dirichlet_positions"], g["bc"] = x.numpy(), xD.numpy(), bc.numpy()
+    z01 = encode_positions(ae, coords, x[:2], xD[:2])
+    ref = rollout(integ, ae, coords, z01[0], z01[1], bc, xD)["positions"].numpy()
+    out = _load_example().main([str(folder), "--trajectories", str(tmp_path / "trajectories.h5")])
+    printed = capsys.readouterr().out
+    assert out["sequence"] == "test_a" and "test_a: frames 0, 1 encoded, 8 stepped" in printed and "torch.export program" in printed
+    scale = np.abs(ref).max()
+    assert np.abs(out["positions"][2:] - ref[2:]).max() < 1e-4 * scale
+    assert np.abs(out["torch_export_positions"][2:] - ref[2:]).max() < 1e-4 * scale
+    assert np.abs(out["positions"][2:] - x[2:].numpy()).max() > 1e-2 * scale  # stepped, not copied from the file
+    assert out["numpy_ms"] > 0 and out["mean_error"] > 0
+    short = _load_example().main([str(folder / "runtime.npz"), "--trajectories", str(tmp_path / "trajectories.h5"), "--frames", "4", "--no-torch-export"])
+    assert short["positions"].shape == (4, coords.n, 3) and "torch_export_positions" not in short
+    assert np.array_equal(short["positions"], out["positions"][:4])

@@ -626,3 +626,37 @@ def test_report_captions_are_valid_restructuredtext(caption):
     found = [n for n in doctree.findall() if n.tagname == "system_message"] + list(doctree.transform_messages)
     messages = [m.astext() for m in found if int(m["level"]) >= Reporter.ERROR_LEVEL]
     assert not messages, messages
+
+
+@pytest.mark.parametrize("scene", ["tiny_rods", "tiny_cloth"])
+def test_the_example_encodes_and_steps_the_trained_model_as_the_rollout(tiny_run, scene):
+    """examples/step_trained_model.py, run as a user runs it (from the workflow directory) on the rollout folder and
+    the scene's trajectories: it imports latentsim.runtime and no training code; the latents it encodes frames 0
+    and 1 to are latents.h5's, and the frames it steps are the rollout stage's, to float32 rounding."""
+    import importlib.util
+
+    work, _ = tiny_run
+    example = ROOT / "examples" / "step_trained_model.py"
+    args = [f"results/rollout/{scene}/self_supervised", "--trajectories", f"results/sim/{scene}/trajectories.h5"]
+    check = ("import runpy, sys; sys.argv = sys.argv[1:]; runpy.run_path(sys.argv[0], run_name='__main__'); "
+             "print('training modules:', sorted(m for m in sys.modules if m.startswith('latentsim.') and not m.startswith('latentsim.runtime')))")  # fmt: skip
+    env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
+    proc = subprocess.run([sys.executable, "-c", check, str(example), *args], cwd=work, capture_output=True, text=True, timeout=HANG_SECONDS, env=env)
+    assert proc.returncode == 0, proc.stderr
+    assert "ms per step" in proc.stdout and "torch.export program" in proc.stdout and "training modules: []" in proc.stdout, proc.stdout
+    assert subprocess.run([sys.executable, str(example), "--help"], cwd=work, capture_output=True, env=env).returncode == 0
+    spec = importlib.util.spec_from_file_location("step_trained_model", example)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    out = module.main([str(work / args[0]), "--trajectories", str(work / args[2])])
+    with h5py.File(work / f"results/autoencoder/{scene}/latents.h5") as f:
+        stored = f["sequences"][out["sequence"]]["latents"][:2]
+    assert np.abs(out["latents"] - stored).max() < 1e-5 * np.abs(stored).max()
+    with h5py.File(work / args[0] / "rollout.h5") as g:
+        seq = g["sequences"][out["sequence"]]
+        X, last = seq["positions"][()], int(seq.attrs["diverged_frame"])
+    T = len(X) if last < 0 else last
+    scale = np.abs(X[:T]).max()
+    for key in ("positions", "torch_export_positions"):
+        assert np.abs(out[key][2:T] - X[2:T]).max() < 1e-4 * scale, key
+    assert np.abs(np.diff(X[:T], axis=0)).max() > 1e-3 * scale  # the frames move

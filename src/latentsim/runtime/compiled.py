@@ -27,6 +27,8 @@ prescribed vertices are copied back in runs of consecutive indices.
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from latentsim.runtime.files import read_runtime
@@ -326,13 +328,15 @@ class CompiledStepper:
     given.  Inputs should be C-contiguous arrays of the network dtype (``z``,
     ``p``) and float64 (``xD``): they go to the kernel as they are (another
     dtype or layout compiles another specialisation).  The first call of each
-    specialisation compiles (cached on disk).
+    specialisation compiles (cached on disk).  :meth:`encode` is the NumPy stepper's
+    (:meth:`latentsim.runtime.NumpyStepper.encode`); ``source`` names the file in its errors.
     """
 
-    def __init__(self, folded: dict, dtype=np.float32):
+    def __init__(self, folded: dict, dtype=np.float32, source=None):
         if not available():
             raise RuntimeError("the compiled runtime needs numba (pinned in envs/requirements.txt)")
-        ref = NumpyStepper(folded, dtype)  # validates the header and decides the output layout
+        ref = NumpyStepper(folded, dtype, source)  # validates the header and decides the output layout
+        self.encode = ref.encode  # NumpyStepper.encode: encoding is once per motion, not per frame
         self.header, self.dtype = ref.header, ref.dtype
         self.r, self.k, self.n, self.mode, self.layout = ref.r, ref.k, ref.n, ref.mode, ref.layout
         self.n_integrator_layers = len(ref._int_A)
@@ -404,7 +408,7 @@ class CompiledStepper:
 
 def load_runtime(path, dtype=np.float32) -> CompiledStepper:
     """The compiled stepper of an exported ``.npz`` runtime (:func:`latentsim.runtime.export_runtime`)."""
-    return CompiledStepper(read_runtime(path), dtype=dtype)
+    return CompiledStepper(read_runtime(path), dtype=dtype, source=os.fspath(path))
 
 
 def deployable_steppers(folded: dict, dtype=np.float32) -> dict:

@@ -1,6 +1,7 @@
 """The deployable runtime's files: ``runtime.npz`` (NumPy) and a ``torch.export`` program.
 
 - ``*.npz``: the folded float64 weights and index arrays of :func:`latentsim.runtime.fold_networks`
+  (the encoder's too, from format version 2; version 1 files are read, and step, but cannot encode)
   plus a JSON ``header`` (its ``format`` and ``version`` checked on reading); NumPy only,
   ``allow_pickle=False``.  :func:`load_runtime` steps it with a
   :class:`latentsim.runtime.NumpyStepper` (:func:`latentsim.runtime.compiled.load_runtime`:
@@ -70,4 +71,4 @@ def load_runtime(path, dtype=np.float32) -> NumpyStepper:
         raise ValueError(f"{path}: a torch.export program; torch.export.load(path).module() runs it")
     if not path.endswith(".npz"):
         raise ValueError(f"runtime path {path!r}: use a .npz file")
-    return NumpyStepper(read_runtime(path), dtype=dtype)
+    return NumpyStepper(read_runtime(path), dtype=dtype, source=path)

@@ -20,9 +20,18 @@ One frame is then (Li et al. 2025, Eq. 3, and the decode)::
     h_0 = z_t,  h_{i+1} = h_i + SiLU(W_i h_i + b_i)  (or without h_i where widths differ)
     u = W_cat [z_t; h_L] + b_cat,   x = decode_relative(u, x*_D)
 
+The encoder (:func:`fold_encoder`; what turns a full-space frame into the latent that starts a
+rollout, exactly as the pipeline encodes: the relative coordinates in float64, then the network)
+folds the same way: its PCA input layer ``h_0 = W_in u + b_in`` is kept, the branch's hidden
+layers get their BatchNorm folded, and the PCA skip ``z = h_0[:r] + W_o h_L + b_o`` becomes one
+matrix on ``[h_0; h_L]``::
+
+    h_0 = W_in u + b_in,  h_{i+1} = h_i + SiLU(W_i h_i + b_i)  (or without h_i),   z = W_out [h_0; h_L] + b_out
+
 The folded dict (``int_W{i}``, ``int_b{i}``, ``dec_W{i}``, ``dec_b{i}``, optional
-``dec_Wmid``/``dec_bmid``, ``dec_Wout``/``dec_bout``, the coordinates' ``dirichlet``,
-``free`` and ``root_slot`` index arrays, and a JSON-able ``header``) is what every
+``dec_Wmid``/``dec_bmid``, ``dec_Wout``/``dec_bout``, the encoder's ``enc_Win``/``enc_bin``,
+``enc_W{i}``/``enc_b{i}``, ``enc_Wout``/``enc_bout`` (format version 2 on), the coordinates'
+``dirichlet``, ``free`` and ``root_slot`` index arrays, and a JSON-able ``header``) is what every
 stepper is built from and what ``runtime.npz`` holds (:mod:`latentsim.runtime.files`).
 """
 
@@ -32,10 +41,10 @@ import numpy as np
 import torch
 from torch import nn
 
-__all__ = ["FORMAT", "VERSION", "fold_decoder", "fold_networks"]
+__all__ = ["FORMAT", "VERSION", "fold_decoder", "fold_encoder", "fold_networks"]
 
 FORMAT = "latentsim-latent-runtime"
-VERSION = 1
+VERSION = 2  # 2: the encoder (enc_* arrays, header "encoder"); version 1 files (no encoder) are still read
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
@@ -106,19 +115,39 @@ def fold_decoder(ae, coords) -> dict:
     return out
 
 
+def fold_encoder(ae) -> dict:
+    """Fold an eval-mode encoder (:meth:`latentsim.latent.Autoencoder.encode`) into float64 arrays.
+
+    Returns ``enc_Win`` (p, d), ``enc_bin`` (p,) (the PCA input layer), ``enc_W{i}`` (w_{i+1}, w_i),
+    ``enc_b{i}`` for each hidden layer of the branch (BatchNorm folded; SiLU, identity skip where
+    ``encoder_skips[i]``), ``enc_Wout`` (r, p + w_L) acting on ``[h_0; h_L]`` ((r, p) acting on h_0
+    without hidden layers), ``enc_bout`` (r,), and the ``header`` entries ``encoder`` (True) and ``encoder_skips``.
+    """
+    r, p = int(ae.latent_dim), int(ae.pca_dim)
+    br = ae.enc_branch
+    out: dict = {"enc_Win": _np(ae.pca_in.weight), "enc_bin": _np(ae.pca_in.bias)}
+    for i, block in enumerate(br.blocks):
+        out[f"enc_W{i}"], out[f"enc_b{i}"] = _fold_linear_bn(block[0], block[1])
+    Wo, bo = _np(br.out.weight), _np(br.out.bias)  # (r, w_L), (r,)
+    first = np.eye(r, p)  # the PCA skip: z = h_0[:r] + ...
+    out["enc_Wout"] = np.concatenate([first, Wo], axis=1) if len(br.blocks) else first + Wo
+    out["enc_bout"] = bo
+    return {"arrays": out, "header": {"encoder": True, "encoder_skips": [bool(s) for s in br.skip]}}
+
+
 def fold_networks(ae, integrator, coords) -> dict:
     """Fold an eval-mode integrator + decoder + relative coordinates into arrays.
 
     Parameters
     ----------
-    ae : :class:`latentsim.latent.Autoencoder` (only its decoder is used).
+    ae : :class:`latentsim.latent.Autoencoder` (its encoder and decoder).
     integrator : :class:`latentsim.latent.LatentIntegrator`.
     coords : :class:`latentsim.latent.RelativeCoordinates`.
 
     Returns
     -------
     dict of float64/int64 arrays plus ``header`` (a JSON-able dict); the
-    layout of :func:`export_runtime`'s ``.npz`` file.
+    layout of :func:`export_runtime`'s ``.npz`` file, the encoder (:func:`fold_encoder`) included.
     """
     if integrator.latent_dim != ae.latent_dim:
         raise ValueError(f"integrator latent dim {integrator.latent_dim} != autoencoder latent dim {ae.latent_dim}")
@@ -141,4 +170,7 @@ def fold_networks(ae, integrator, coords) -> dict:
         integrator_layers=len(lins),
         integrator_hparams=dict(integrator.hparams),
     )
+    enc = fold_encoder(ae)
+    out.update(enc["arrays"])
+    out["header"].update(enc["header"])
     return out

@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import expit
 
+from latentsim.runtime.encoder import Encoder, missing_encoder
 from latentsim.runtime.fold import FORMAT
 
 __all__ = ["FULL_LAYOUT_MAX_GROWTH", "HARD_MODES", "NumpyStepper", "OutputLayout"]
@@ -183,6 +184,11 @@ class NumpyStepper:
     dtype : network dtype, ``np.float32`` (default) or ``np.float64``.
         Positions are always float64: the network output is added to the
         float64 Dirichlet origin.
+    source : where ``folded`` was read from (a path), named in error messages.
+
+    Beyond the :class:`latentsim.runtime.Stepper` protocol, :meth:`encode` gives the latent of a
+    full-space frame (the autoencoder's encoder, :class:`latentsim.runtime.encoder.Encoder`), where
+    the runtime holds one (format version 2 on).
 
     ``int_W``/``int_b``, ``dec_W``/``dec_b``, ``W_mid``/``b_mid`` and ``W_out``/``b_out``
     are (out, in) and (out,) views of the augmented ``[W^T; b^T]`` matrices.
@@ -193,11 +199,12 @@ class NumpyStepper:
     previous output back in as ``z_prev`` is safe.
     """
 
-    def __init__(self, folded: dict, dtype=np.float32):
+    def __init__(self, folded: dict, dtype=np.float32, source=None):
         hdr = folded["header"]
         if hdr.get("format") != FORMAT:
             raise ValueError(f"not a latent runtime: format {hdr.get('format')!r}")
-        self.header = hdr
+        self.header, self.source = hdr, source
+        self.encoder = Encoder(folded, dtype) if hdr.get("encoder") else None
         self.dtype = np.dtype(dtype)
         self.r, self.k = int(hdr["latent_dim"]), int(hdr["bc_dim"])
         self.n, self.mode, self.residual = int(hdr["n_vertices"]), hdr["mode"], bool(hdr["residual"])
@@ -254,6 +261,16 @@ class NumpyStepper:
         """New C-contiguous arrays of one frame's arguments: latents and parameters in the network dtype, xD float64."""
         net = tuple(np.array(a, dtype=self.dtype, order="C") for a in (z_prev, z_prev2, p, p_prev, p_prev2))
         return net + (np.array(xD, dtype=np.float64, order="C"),)
+
+    def encode(self, x, xD) -> np.ndarray:
+        """Latent z (r,) in the network dtype of positions x (n, 3) with Dirichlet positions xD (m, 3)
+        (leading axes broadcast: (..., n, 3) -> (..., r)); as the pipeline encodes. Allocates.
+
+        Raises ``ValueError`` naming the file where the runtime holds no encoder (format version 1).
+        """
+        if self.encoder is None:
+            raise ValueError(missing_encoder(self.header, self.source))
+        return self.encoder.encode(x, xD)
 
     # -- integrator ------------------------------------------------------------
     def integrate(self, z_prev, z_prev2, p, p_prev, p_prev2, out=None) -> np.ndarray:

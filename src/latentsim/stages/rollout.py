@@ -39,7 +39,8 @@ def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out, m
     ``out`` records as its config.  ``method`` names the integrator (self_supervised or a config
     variant) in the file's ``method`` attribute; ``mode`` records its loss.
     ``runtime_paths``: (``.npz``, ``.pt``) files to export the deployable
-    runtime to (:mod:`latentsim.runtime`).  One latent step is timed with the
+    runtime to (:mod:`latentsim.runtime`): the ``.npz`` holds the encoder too (a user encodes a new
+    motion's first two frames with it, :func:`latentsim.runtime.load`), the ``.pt`` the step alone.  One latent step is timed with the
     NumPy runtime, the compiled one (:mod:`latentsim.runtime.compiled`, where
     numba imports), its `torch.export` program and eager PyTorch, and a few full-space Newton
     frames in the same process, so the speed-up is a same-run ratio.
