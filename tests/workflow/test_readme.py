@@ -35,6 +35,7 @@ RUN = [
     "snakemake --report report.html --configfile config/tiny.yaml",
     "snakemake -n all",
     "python tools/readme_glance.py",
+    "python examples/step_trained_model.py",
 ]
 
 
@@ -79,3 +80,24 @@ def test_readme_quick_commands_run_as_written(tiny_run):
             assert f"at commit {commit}" in block
             assert all(s in block for s in ("| tiny_cloth |", "| tiny_rods |", "| tiny_nm |"))
             assert shell("python tools/readme_glance.py --check", work).returncode == 0
+        elif "step_trained_model" in command:
+            assert "torch.export" in out.stdout and "error" in out.stdout
+
+
+def test_readme_python_snippet_runs_on_the_tiny_run(tiny_run, monkeypatch):
+    """The README's ``python`` block, given a test sequence's frames, steps the tiny rods' model."""
+    import h5py
+    import numpy as np
+
+    work, _ = tiny_run
+    (snippet,) = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
+    with h5py.File(work / "results/sim/tiny_rods/trajectories.h5", "r") as f:
+        seq = next(g for g in f["sequences"].values() if g.attrs["split"] == "test")
+        x = seq["positions"][()]
+        names = {"x0": x[0], "x1": x[1], "xD": seq["dirichlet_positions"][()], "p": seq["bc"][()]}
+    monkeypatch.chdir(work)
+    exec(compile(snippet, "README.md", "exec"), names)
+    x2 = names["x2"]
+    assert x2.shape == x[2].shape and np.isfinite(x2).all()
+    extent = np.ptp(x.reshape(-1, 3), axis=0).max()
+    assert np.abs(x2 - x[2]).max() < 0.2 * extent  # a learned step near the simulated frame, not garbage
