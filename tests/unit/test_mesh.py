@@ -637,3 +637,36 @@ def test_user_mesh_file_sha256_and_errors(tmp_path):
         M.mesh_file(str(tmp_path / "missing.obj"), sources)
     with pytest.raises(MeshError, match="needs mesh.file"):
         M.build_mesh("tets", {"generator": "file", "file": None}, sources)
+
+
+def test_user_surface_mesh_errors_name_the_file(tmp_path):
+    """A surface for model tets needs target_vertices; an open one cannot be filled: both name the file."""
+    import meshio
+
+    sources = {"local_dir": None, "cache_dir": str(tmp_path / "cache")}
+    path = tmp_path / "part.stl"
+    _write_user_mesh(path)
+    with pytest.raises(MeshError, match=r"part\.stl: a surface .* set mesh\.target_vertices"):
+        M.build_mesh("tets", {"generator": "file", "file": str(path), "target_vertices": 0}, sources)
+    V, F = _cube_surface()
+    meshio.write(tmp_path / "open.stl", meshio.Mesh(V, [("triangle", F[:-1])]))
+    with pytest.raises(MeshError, match=r"open\.stl: cannot fill with tets: .*open"):
+        M.build_mesh("tets", {"generator": "file", "file": str(tmp_path / "open.stl"), "target_vertices": 20}, sources)
+
+
+def test_missing_user_mesh_message_says_where_it_looked(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "parts").mkdir()
+    _write_user_mesh(tmp_path / "parts" / "bracket.stl")
+    none = {"local_dir": None}
+    assert M.check_user_mesh("parts/bracket.stl", none) == Path("parts/bracket.stl")
+    assert M.check_user_mesh("bunny.obj", {"local_dir": "nowhere"}) is None  # pinned: fetched later
+    with pytest.raises(MeshError) as err:
+        M.check_user_mesh("parts/braket.stl", none, where="config key 'scenes.s.mesh.file'")
+    msg = str(err.value)
+    assert msg.startswith("config key 'scenes.s.mesh.file': mesh file 'parts/braket.stl' not found")
+    assert repr(str(tmp_path)) in msg and "did you mean 'parts/bracket.stl'?" in msg
+    with pytest.raises(MeshError, match="folder 'prats' does not exist"):
+        M.check_user_mesh("prats/bracket.stl", none)
+    with pytest.raises(MeshError, match="a bare file name is read from meshes.local_dir, 'parts'.*did you mean"):
+        M.check_user_mesh("bracet.stl", {"local_dir": "parts"})

@@ -7,7 +7,8 @@ from latentsim.stages import neural_modes as nm_pipeline
 from latentsim.stages.baselines import BASELINES
 from latentsim.report.tables import layers_text
 from latentsim.latent.sweep import parse_label, point_label
-from latentsim.mesh.sources import user_mesh_path
+from latentsim.mesh import MeshError
+from latentsim.mesh.sources import check_user_mesh, user_mesh_path
 from latentsim.config import (
     ConfigError,
     autoencoder_dir,
@@ -21,7 +22,16 @@ from latentsim.config import (
 
 try:
     validate_config(config, workflow.source_path("../schemas/config.schema.yaml"))
-except ConfigError as e:
+    # a user's own mesh file must exist before any job runs (with outputs present, Snakemake would
+    # otherwise skip a missing input silently and keep the old mesh)
+    for _name, _scene in config["scenes"].items():
+        if _scene["mesh"]["generator"] == "file" and _scene["mesh"].get("file"):
+            check_user_mesh(
+                _scene["mesh"]["file"],
+                config["meshes"],
+                f"config key 'scenes.{_name}.mesh.file'",
+            )
+except (ConfigError, MeshError) as e:
     raise WorkflowError(f"invalid config: {e}")
 
 SCENES = sorted(config["scenes"])

@@ -9,7 +9,8 @@ Modules, one job each:
 
 * :mod:`~latentsim.mesh.validation`: :class:`MeshError` and the argument checks;
 * :mod:`~latentsim.mesh.sources`: pinned meshes (:data:`MESH_SOURCES`), :func:`fetch_mesh`,
-  a scene's file (pinned or the user's own) by :func:`mesh_file`;
+  a scene's file (pinned or the user's own) by :func:`mesh_file`, a missing own file by
+  :func:`check_user_mesh`;
 * :mod:`~latentsim.mesh.readers`: :class:`Mesh`, :func:`read_obj`, :func:`read_mesh`;
 * :mod:`~latentsim.mesh.geometry`: volumes, areas, orientation, unreferenced vertices;
 * :mod:`~latentsim.mesh.generators`: :func:`rod_bundle`, :func:`cloth_grid`, :func:`beam_tets`;
@@ -56,6 +57,7 @@ from latentsim.mesh.selection import select_dirichlet, select_vertices
 from latentsim.mesh.sources import (
     DEFAULT_CACHE_DIR,
     MESH_SOURCES,
+    check_user_mesh,
     fetch_mesh,
     mesh_file,
     sha256_of,
@@ -73,6 +75,7 @@ __all__ = [
     "Mesh",
     "sha256_of",
     "user_mesh_path",
+    "check_user_mesh",
     "fetch_mesh",
     "mesh_file",
     "read_mesh",

@@ -43,10 +43,19 @@ def _from_file(model: str, cfg: dict, sources: dict) -> dict[str, np.ndarray]:
         if m.tets is not None and cfg.get("target_vertices") in (None, 0):
             out["tets"] = m.tets
         else:
+            if not cfg.get("target_vertices"):
+                raise MeshError(
+                    f"{path}: a surface (triangles, no tets); model 'tets' fills it with tets by "
+                    f"TetGen: set mesh.target_vertices (> 0) to the vertex count wanted")
             surf = m.triangles if m.triangles is not None else surface_of(m.tets)
             V, surf, _ = remove_unreferenced(m.vertices, surf)
-            out["rest_positions"], out["tets"] = tetrahedralize_to(
-                V, surf, int(cfg["target_vertices"]), str(path))
+            try:
+                out["rest_positions"], out["tets"] = tetrahedralize_to(
+                    V, surf, int(cfg["target_vertices"]), str(path))
+            except MeshError as exc:  # name the file where the message does not
+                if str(path) in str(exc):
+                    raise
+                raise MeshError(f"{path}: cannot fill with tets: {exc}") from exc
     elif model == "shell":
         if m.triangles is None:
             raise MeshError(f"{path}: model 'shell' needs a triangle mesh")

@@ -8,6 +8,7 @@ the sha256 either way, so an unverified file is never used or cached.
 
 from __future__ import annotations
 
+import difflib
 import hashlib
 import logging
 import os
@@ -215,6 +216,38 @@ def user_mesh_path(file: str, sources: dict) -> Path | None:
     return Path(file)
 
 
+def check_user_mesh(file: str, sources: dict, where: str = "mesh.file") -> Path | None:
+    """:func:`user_mesh_path`, checked: the user's file must exist (None for a pinned mesh).
+
+    Called when the workflow loads its config, so that a mistyped path stops the run
+    before any job, and by :func:`mesh_file` when the mesh is built.
+
+    Raises
+    ------
+    MeshError
+        The user's file is missing; the message names ``where``, the path, the
+        folder a relative path is read from and the closest names found there.
+    """
+    path = user_mesh_path(file, sources)
+    if path is None or path.is_file():
+        return path
+    folder = path.parent
+    if path.is_absolute():
+        base = ""
+    elif sources.get("local_dir") is not None and Path(file).name == file:
+        base = f" (a bare file name is read from meshes.local_dir, {str(folder)!r})"
+    else:
+        base = f" (a path is read relative to the working directory, {str(Path.cwd())!r})"
+    if folder.is_dir():
+        close = difflib.get_close_matches(path.name, sorted(p.name for p in folder.iterdir()), n=3)
+        hint = f"; did you mean {', '.join(repr(str(folder / c)) for c in close)}?" if close else ""
+    else:
+        hint = f"; folder {str(folder)!r} does not exist"
+    raise MeshError(
+        f"{where}: mesh file {str(path)!r} not found{base}{hint} (pinned meshes, read from "
+        f"meshes.local_dir or downloaded: {', '.join(sorted(MESH_SOURCES))})")
+
+
 def mesh_file(file: str, sources: dict, sha256: str | None = None, where: str = "mesh.file") -> Path:
     """A verified local path for a scene's ``mesh.file`` (and optional ``mesh.sha256``).
 
@@ -228,15 +261,10 @@ def mesh_file(file: str, sources: dict, sha256: str | None = None, where: str = 
     MeshError
         Missing file, bad or mismatching sha256; the message names ``where`` and the path.
     """
-    path = user_mesh_path(file, sources)
+    path = check_user_mesh(file, sources, where)
     if path is None:
         return fetch_mesh(file, local_dir=sources.get("local_dir"),
                           cache_dir=sources["cache_dir"], sha256=sha256)
-    if not path.is_file():
-        raise MeshError(
-            f"{where}: mesh file {str(path)!r} not found (a path relative to the working "
-            f"directory, or a file name in meshes.local_dir; pinned meshes: "
-            f"{', '.join(sorted(MESH_SOURCES))})")
     if sha256 is not None:
         expected = sha256.lower()
         if not re.fullmatch(r"[0-9a-f]{64}", expected):
