@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from test_workflow import ROOT, snakemake
+from workflow_support import ROOT, snakemake
 
 EXAMPLES = ROOT / "config" / "examples"
 CONFIG = yaml.safe_load((EXAMPLES / "ring.yaml").read_text())

@@ -21,7 +21,8 @@ NOT_RUN = {
     "pip install -r envs/requirements.txt -e .": "the install: .ci/run runs it before the tests",
     "snakemake --cores 2 all": "the default run takes hours; its dry run is run below and in test_workflow",
     "snakemake --report report.html": "needs the default run's results; the tiny run's report is built below",
-    "snakemake --cores 2 all --configfile config/examples/my_part.yaml": "run by test_example_scene.py",
+    "snakemake --cores 2 all --configfile config/examples/ring.yaml": "run by test_example_scene.py",
+    "snakemake --cores 2 all --configfile config/my_part.yaml": "the same run as the example's, in test_example_scene.py",
     "snakemake --workflow-profile profiles/slurm all": "needs a SLURM cluster; test_workflow dry-runs the profile",
     "python -m pytest -q tests": "the test command itself",
     'python -m pytest -q -m "not slow" tests': "a part of the test command itself",
@@ -36,6 +37,10 @@ RUN = [
     "snakemake -n all",
     "python tools/readme_glance.py",
     "python examples/step_trained_model.py",
+    "python config/examples/make_mesh.py",
+    "cp config/examples/ring.yaml config/my_part.yaml",
+    "snakemake --cores 1 results/mesh/ring/mesh.h5 --configfile config/my_part.yaml",
+    "grep quality logs/mesh/ring.log",
 ]
 
 
@@ -58,7 +63,7 @@ def test_every_readme_command_is_run_or_has_a_reason():
 
 
 def test_the_example_scene_test_runs_the_readme_command():
-    assert "config/examples/my_part.yaml" in (ROOT / "tests" / "workflow" / "test_example_scene.py").read_text()
+    assert "config/examples/ring.yaml" in (ROOT / "tests" / "workflow" / "test_example_scene.py").read_text()
 
 
 def test_readme_quick_commands_run_as_written(tiny_run):
@@ -80,6 +85,10 @@ def test_readme_quick_commands_run_as_written(tiny_run):
             assert f"at commit {commit}" in block
             assert all(s in block for s in ("| tiny_cloth |", "| tiny_rods |", "| tiny_nm |"))
             assert shell("python tools/readme_glance.py --check", work).returncode == 0
+        elif "make_mesh" in command:
+            assert shell("git diff --quiet -- config/examples/ring.stl", work).returncode == 0  # the same bytes
+        elif command.startswith("grep quality"):
+            assert "vertices" in out.stdout
         elif "step_trained_model" in command:
             assert "torch.export" in out.stdout and "error" in out.stdout
 

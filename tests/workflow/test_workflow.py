@@ -23,7 +23,7 @@ import yaml
 
 from latentsim.config import scene_methods, validate_config
 
-from workflow_support import HANG_SECONDS
+from workflow_support import HANG_SECONDS, snakemake
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = ROOT / "config" / "tiny.yaml"
@@ -49,16 +49,6 @@ def is_timing(name: str, explicit: set) -> bool:
     """A wall-time field: named in ``explicit`` or by its suffix."""
     return name in explicit or name == "seconds" or name.endswith(("_ms", "_seconds"))
 
-
-
-
-def snakemake(*args, cwd=ROOT, check=True, timeout=HANG_SECONDS):
-    cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(ROOT / "Snakefile"), *args]
-    env = dict(os.environ, CI="1")
-    proc = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, timeout=timeout, env=env)
-    if check and proc.returncode != 0:
-        raise AssertionError(f"{' '.join(cmd)} failed:\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}")
-    return proc
 
 
 def planned_jobs(output: str, methods: bool = False) -> list[tuple]:

@@ -42,3 +42,13 @@ def shell(command: str, cwd: Path, timeout: float = HANG_SECONDS) -> subprocess.
     return proc
 
 
+
+
+def snakemake(*args, cwd=ROOT, check=True, timeout=HANG_SECONDS):
+    """``python -m snakemake`` on the repository's Snakefile (from ``cwd``, e.g. with ``--directory``)."""
+    cmd = [sys.executable, "-m", "snakemake", "--snakefile", str(ROOT / "Snakefile"), *args]
+    env = dict(os.environ, CI="1")
+    proc = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, timeout=timeout, env=env)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"{' '.join(cmd)} failed:\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}")
+    return proc
