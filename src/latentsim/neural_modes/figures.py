@@ -22,6 +22,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.lines import Line2D
 
 from latentsim.neural_modes.metrics import METRICS
 from latentsim.report.plots import method_colours, save_figure
@@ -41,7 +42,7 @@ def learning_curves(study: dict, path, dpi=100) -> dict:
     """Fig. 2: each method's train L2, test L2, test E_avg and test |S|_avg against its epochs.
 
     The checkpoint each table uses is circled (the last epoch for Neural Modes, the least validation
-    L2 for the supervised methods); the ground truth's test E_avg and |S|_avg are dashed lines.
+    L2 for the supervised methods); the ground truth's test E_avg is a dashed line in the energy panel.  One legend for all panels, below them.
     Returns {panel title: {method label: (epochs, values)}}.
     """
     fig, axes = plt.subplots(2, 2, figsize=(11, 7.5))
@@ -61,16 +62,21 @@ def learning_curves(study: dict, path, dpi=100) -> dict:
             ref = {"E_avg": "E_gt", "Sw_avg": None}[metric]
             if ref is not None:
                 first = next(iter(methods.values()))
-                ax.axhline(np.asarray(first["test"])[0, METRICS.index(ref)], color="k", ls="--", lw=1, label="ground truth")
+                ax.axhline(np.asarray(first["test"])[0, METRICS.index(ref)], color="k", ls="--", lw=1)
         ax.set_xscale("symlog", linthresh=1)
         ax.set_xlim(left=0)
         ax.set_yscale("log")
         ax.set_xlabel("epoch")
         ax.set_title(title, fontsize=10)
         ax.grid(True, which="both", alpha=0.25)
-    axes[0, 0].legend(fontsize=8)
-    fig.suptitle("Learning curves (Wang et al. Fig. 2); circles: the checkpoint in Tables 2, 4, A1", fontsize=11)
-    fig.tight_layout()
+    # one legend for the four panels, below them: no panel's curves under it
+    handles = [Line2D([], [], color=colours[r["label"]], marker="o", ms=3, lw=1.2, label=r["label"]) for r in methods.values()]
+    handles += [Line2D([], [], color="0.3", marker="o", ms=9, mfc="none", ls="", label="checkpoint in Tables 2, 4, A1"),
+                Line2D([], [], color="k", ls="--", lw=1, label="ground truth's test E_avg (Eq. 9)")]  # fmt: skip
+    ncol = min(len(handles), 4)
+    fig.legend(handles=handles, loc="lower center", ncol=ncol, fontsize=8, frameon=False)
+    fig.suptitle("Learning curves (Wang et al. Fig. 2)", fontsize=11)
+    fig.tight_layout(rect=(0, 0.035 * -(-len(handles) // ncol), 1, 1))
     save_figure(fig, path, dpi=dpi)
     return drawn
 
