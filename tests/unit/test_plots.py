@@ -448,6 +448,52 @@ def test_write_xdmf_series_reads_back(example, tmp_path):
         np.testing.assert_allclose(pd_["displacement"], example["good"][7] - example["rest"])
         np.testing.assert_allclose(pd_["error"], np.sqrt(3) * 0.002)
         np.testing.assert_array_equal(np.flatnonzero(pd_["dirichlet"]), example["D"])
+    assert_one_block(out, T)
+
+
+def assert_one_block(xdmf, steps):
+    """ParaView reads the series as one block: the domain holds the temporal collection alone (no static
+    ``mesh`` grid drawn over the animation), and every step holds its geometry and topology."""
+    import xml.etree.ElementTree as ET
+
+    domain = ET.parse(xdmf).getroot().find("Domain")
+    grids = domain.findall("Grid")
+    assert [g.get("GridType") for g in grids] == ["Collection"] and grids[0].get("CollectionType") == "Temporal"
+    assert len(grids[0].findall("Grid")) == steps
+    for step in grids[0].findall("Grid"):
+        assert step.find("Geometry") is not None and step.find("Topology") is not None and step.find("Time") is not None
+        assert not [e for e in step if "include" in e.tag]
+
+
+def test_single_block_xdmf_rewrites_meshios_series_once(tmp_path):
+    """meshio's own series (a static mesh grid beside the collection) becomes one block that meshio reads back
+    unchanged; a second pass leaves it as it is; a file that is no time series is refused by name."""
+    points = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    with working_directory(tmp_path):
+        with meshio.xdmf.TimeSeriesWriter("s.xdmf") as w:
+            w.write_points_cells(points, [("triangle", np.array([[0, 1, 2]]))])
+            for t in range(3):
+                w.write_data(0.5 * t, point_data={"displacement": np.full((3, 3), float(t))})
+        assert len(_domain_grids(tmp_path / "s.xdmf")) == 2  # meshio's: the static mesh and the collection
+        assert paraview.single_block_xdmf("s.xdmf") == 3
+        assert_one_block(tmp_path / "s.xdmf", 3)
+        once = (tmp_path / "s.xdmf").read_text()
+        assert paraview.single_block_xdmf("s.xdmf") == 3 and (tmp_path / "s.xdmf").read_text() == once
+        with meshio.xdmf.TimeSeriesReader("s.xdmf") as rd:
+            p, cells = rd.read_points_cells()
+            np.testing.assert_array_equal(p, points)
+            np.testing.assert_array_equal(cells[0].data, [[0, 1, 2]])
+            t, pd_, _ = rd.read_data(2)
+            assert t == 1.0 and (pd_["displacement"] == 2.0).all()
+        meshio.write("m.xdmf", meshio.Mesh(points, [("triangle", np.array([[0, 1, 2]]))]))
+        with pytest.raises(ValueError, match="m.xdmf: expected one temporal collection"):
+            paraview.single_block_xdmf("m.xdmf")
+
+
+def _domain_grids(path):
+    import xml.etree.ElementTree as ET
+
+    return ET.parse(path).getroot().find("Domain").findall("Grid")
 
 
 def test_write_xdmf_series_divergence_and_guards(example, tmp_path):
