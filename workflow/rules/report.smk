@@ -3,13 +3,6 @@
 # so editing a page never reruns a computation.
 
 
-# The pages (rule all's input): one per Markdown target, which its page job names, and the sweep choices.
-def report_pages():
-    md = [t for t in all_targets() + neural_modes_targets() if t.endswith(".md")]
-    pages = [t.removesuffix(".md") + ".html" for t in md]
-    return pages + [c.removesuffix(".csv") + ".html" for c in sweep_choices().values()]
-
-
 # The evaluation's tables: the glance (and the grid the landing page shows), Li et al. Tables 1-2,
 # stability, model sizes, and the whole summary on one page.
 rule report_summary_pages:
