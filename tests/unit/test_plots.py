@@ -14,6 +14,7 @@ from PIL import Image
 
 from latentsim.report import metrics, paraview, plots, render
 from latentsim.io import ArtefactError
+from latentsim.neural_modes.figures import grid_wrap
 from latentsim.utils import working_directory
 
 # --------------------------------------------------------------------------- Pareto front
@@ -331,6 +332,19 @@ def test_render_frames(example, tmp_path):
     panels = img.shape[0] * 0.8  # above the colour bar
     w = img.shape[1]
     assert yellow[: int(panels), w // 2 :].sum() > 3 and yellow[: int(panels), : w // 2].sum() == 0
+
+
+def test_render_frames_wrap_lays_many_frames_out_as_a_grid(example, tmp_path):
+    """Seven frames of two motions, four to a line: two lines of two panel rows, four panels wide (not a
+    strip of seven rows); the status keeps one row per frame."""
+    out = tmp_path / "grid.png"
+    r = render.render_frames(example["gt"], {"self": example["ok"]}, "seq", list(range(7)), out, panel_size=1.0, dpi=20, wrap=4)
+    assert r["status"].shape == (7, 2) and (r["status"] == "ok").all()
+    assert Image.open(out).size == (4 * 20, round((2 * 2 * 1.0 + 0.9) * 20))
+    with pytest.raises(ValueError, match="wrap must be a positive"):
+        render.render_frames(example["gt"], {}, "seq", [0], tmp_path / "w.png", wrap=0)
+    # the keyframes' strip (7 steps x 2 columns) becomes this 4 x 4 grid; short strips stay as they are
+    assert grid_wrap(7, 2) == 4 and grid_wrap(9, 2) == 5 and grid_wrap(4, 2) is None and grid_wrap(3, 8) is None
 
 
 def test_render_frames_row_bounds(tmp_path):
