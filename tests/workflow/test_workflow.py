@@ -370,7 +370,7 @@ def test_editing_one_scenes_integrator_reruns_only_its_downstream_jobs(tiny_run,
     methods = ("self_supervised", "supervised", "small")
     assert sorted(jobs, key=str) == sorted(
         [(stage, "tiny_rods") for stage in ("train_integrator", "rollout") for _ in methods]
-        + [("evaluate", "tiny_rods"), ("render", "tiny_rods"), ("summary", None), ("all", None)],
+        + [("evaluate", "tiny_rods"), ("render", "tiny_rods"), ("summary", None), ("report_summary_pages", None), ("all", None)],
         key=str,
     )
 
@@ -466,15 +466,18 @@ def test_editing_one_study_reruns_only_that_study(tiny_run, tmp_path):
         sc["nm_study"]["sheet"]["epochs"] += 1
         sc["nm_study"]["energy"]["ae_epochs"] += 1
 
-    assert jobs_after(studies) == sorted([("nm_sheet_study", "tiny_nm"), ("nm_sheet_tables", "tiny_nm"), ("nm_energy_table", "tiny_nm"), ("all", None)], key=str)
-    assert jobs_after(lambda sc: sc["nm_study"]["aspect"].update(epochs=4)) == sorted([("nm_aspect_ratio", "tiny_nm"), ("all", None)], key=str)
+    # and the report's pages of the tables they rewrite
+    assert jobs_after(studies) == sorted([(r, "tiny_nm") for r in ("nm_sheet_study", "nm_sheet_tables", "nm_energy_table", "report_nm_sheet_pages", "report_nm_energy_page")]
+                                         + [("all", None)], key=str)  # fmt: skip
+    assert jobs_after(lambda sc: sc["nm_study"]["aspect"].update(epochs=4)) == sorted([("nm_aspect_ratio", "tiny_nm"), ("report_nm_aspect_page", "tiny_nm"), ("all", None)], key=str)
     # the model also serves tiny_nm's neural_modes_reduced baseline: that rollout and what reads it rerun too
     assert jobs_after(lambda sc: sc["neural_modes"].update(epochs=sc["neural_modes"]["epochs"] + 1)) == sorted(
-        [(r, "tiny_nm") for r in ("nm_train", "nm_energy_table", "nm_dynamics", "nm_keyframes", "reduced_rollout", "evaluate", "render")]
-        + [("nm_summary", None), ("summary", None), ("all", None)], key=str
-    )
+        [(r, "tiny_nm") for r in ("nm_train", "nm_energy_table", "nm_dynamics", "nm_keyframes", "reduced_rollout", "evaluate", "render", "report_nm_energy_page",
+                                   "report_nm_dynamics_page")]
+        + [("nm_summary", None), ("summary", None), ("report_nm_summary_page", None), ("report_summary_pages", None), ("all", None)], key=str
+    )  # fmt: skip
     assert jobs_after(lambda sc: sc["nm_study"]["sheet"].update(test_grid=4)) == sorted(
-        [(r, "tiny_nm") for r in ("nm_ground_truth", "nm_sheet_study", "nm_sheet_tables")] + [("all", None)], key=str
+        [(r, "tiny_nm") for r in ("nm_ground_truth", "nm_sheet_study", "nm_sheet_tables", "report_nm_sheet_pages")] + [("all", None)], key=str
     )
 
 
@@ -487,7 +490,7 @@ def test_editing_a_variant_reruns_only_that_methods_jobs(tiny_run, tmp_path):
     jobs = planned_jobs(snakemake("-n", "all", "--configfile", str(edited), "--directory", str(work)).stdout, methods=True)
     assert sorted(jobs, key=str) == sorted(
         [("train_integrator", "tiny_rods", "supervised"), ("rollout", "tiny_rods", "supervised"), ("evaluate", "tiny_rods", None),
-         ("render", "tiny_rods", None), ("summary", None, None), ("all", None, None)],
+         ("render", "tiny_rods", None), ("summary", None, None), ("report_summary_pages", None, None), ("all", None, None)],
         key=str,
     )  # fmt: skip
 
