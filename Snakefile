@@ -22,14 +22,17 @@ include: "workflow/rules/baselines.smk"
 include: "workflow/rules/sweep.smk"
 include: "workflow/rules/evaluate.smk"
 include: "workflow/rules/neural_modes.smk"
+include: "workflow/rules/report.smk"
 
 
+# The report's landing page: snakemake --report report.html (docs/report.md).
 report: "workflow/report/workflow.rst"
 
 
-# Default target: every stage of every configured scene, and the summary tables.
+# Default target: every stage of every configured scene, the summary tables and their report pages.
 rule all:
     default_target: True
     input:
         all_targets(),
         neural_modes_targets(),
+        report_pages(),

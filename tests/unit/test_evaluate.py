@@ -2,12 +2,16 @@
 summary's tables (report.tables): one row per scene and method, and the grid of the compared methods."""
 
 import h5py
+import html
+import re
+
 import numpy as np
 import pandas as pd
+import pytest
 
 from latentsim.report.metrics import bbox_diagonal, kinetic_energy, rollout_metrics, vertex_errors
 from latentsim.report.plots import rollout_curves, speed_accuracy_chart
-from latentsim.report.tables import glance_grid, glance_table, speed_accuracy_rows, table1, table2
+from latentsim.report.tables import glance_grid, glance_table, speed_accuracy_rows, table1, table2, write_glance_html, write_table_html
 from latentsim.stages.evaluate import evaluate_scene, summarise
 
 
@@ -177,6 +181,66 @@ def test_summary_markdown_opens_with_the_glance(tmp_path):
     assert "| a | self_supervised | 0.1 | 110 | 0.02 | 0.06 | 0.9 | 2/2 | 3/3 | False |" in text
     g = pd.read_csv(tmp_path / "glance.csv", keep_default_na=False)
     assert len(g) == 7 and set(g["method"]) == {"full_space", "self_supervised", "no_noise", "pca_reduced", "supervised_5x256"}
+
+
+def _html_tables(text: str) -> list:
+    """[(header cells, body rows)] of the tables of a page as write_table_html writes them (cells unescaped)."""
+    out = []
+    for table in re.findall(r"<table>(.*?)</table>", text, re.S):
+        rows = [[html.unescape(c) for c in re.findall(r"<t[hd][^>]*>(.*?)</t[hd]>", tr, re.S)] for tr in re.findall(r"<tr>(.*?)</tr>", table, re.S)]
+        out.append((rows[0], rows[1:]))
+    return out
+
+
+def test_table_pages_show_every_table_every_row(tmp_path):
+    """The report's pages: a CSV's every column and row (4 significant digits, the full value in the tooltip),
+    every table of the summary's Markdown under its heading, the glance grid above the glance table and alone
+    in the landing page's fragment."""
+    df = _metrics()
+    df.to_csv(tmp_path / "m.csv", index=False)
+    _stress().to_csv(tmp_path / "st.csv", index=False)
+    summarise([tmp_path / "m.csv"], tmp_path / "s.csv", tmp_path / "s.md", tmp_path / "s.png", table1_path=tmp_path / "t1.csv",
+              stress=[tmp_path / "st.csv"], stress_paths=(tmp_path / "stress.csv", tmp_path / "stress.png"),
+              glance_path=tmp_path / "glance.csv")  # fmt: skip
+    t1 = pd.read_csv(tmp_path / "t1.csv")
+    assert write_table_html(tmp_path / "t1.csv", tmp_path / "t1.html", title="Table 1") == 1
+    text = (tmp_path / "t1.html").read_text()
+    assert "<title>Table 1</title>" in text and "t1.csv: 2 rows x" in text
+    [(head, rows)] = _html_tables(text)
+    assert head == list(t1.columns) and len(rows) == len(t1)
+    assert rows[0][head.index("speedup")] == f"{t1['speedup'][0]:.4g}" and rows[0][0] == "a"
+    v = float(t1["integrate_ms"][0])  # 0.1 / 3, to the CSV's 6 digits: 4 shown, all in the tooltip
+    assert rows[0][head.index("integrate_ms")] == "0.03333" and f'title="{v!r}"' in text
+    md = (tmp_path / "s.md").read_text()
+    assert write_table_html(tmp_path / "s.md", tmp_path / "s.html") == md.count("## ") - md.count("(no rows)")  # a table per heading, but empty ones
+    tables = _html_tables((tmp_path / "s.html").read_text())
+    assert tables[0][1][0] == ["a", "0 (11) *", "0.001 (2) *", "0.02 (0.1) *", "0.005 (0.05)"]  # the glance grid
+    assert tables[-1][0] == list(df.columns) and len(tables[-1][1]) == len(df)  # every method and test sequence
+    grid = write_glance_html(tmp_path / "glance.csv", tmp_path / "glance.html", tmp_path / "grid.html")
+    page = _html_tables((tmp_path / "glance.html").read_text())
+    assert [r[0] for r in page[0][1]] == list(grid["scene"]) == ["a", "b"] and len(page[1][1]) == 7
+    fragment = (tmp_path / "grid.html").read_text()
+    assert fragment.startswith('<div class="latentsim-glance">') and _html_tables(fragment)[0] == page[0]
+    assert "<html" not in fragment
+
+
+def test_table_pages_of_tabulate_markdown_and_bad_input(tmp_path):
+    """pandas' Markdown (tabulate) may hold a bar inside a cell: its columns are cut where the separator's
+    bars are; cells are escaped; a file that is not a table is refused by name."""
+    df = pd.DataFrame({"ratio": [1.0, 1.5], "max |cos(l, y)|": [3.8e-16, 2.8e-16], "split": ["train", "<held out>"]})
+    (tmp_path / "a.md").write_text("# Aspect\n\nText with `code`.\n\n## Per ratio\n\n" + df.to_markdown(index=False, floatfmt=".4g") + "\n")
+    assert write_table_html(tmp_path / "a.md", tmp_path / "a.html") == 1
+    text = (tmp_path / "a.html").read_text()
+    assert "<h1>Aspect</h1>" in text and "<code>code</code>" in text and "<h2>Per ratio</h2>" in text and "&lt;held out&gt;" in text
+    [(head, rows)] = _html_tables(text)
+    assert head == list(df.columns) and rows == [["1", "3.8e-16", "train"], ["1.5", "2.8e-16", "<held out>"]]
+    (tmp_path / "x.txt").write_text("")
+    with pytest.raises(ValueError, match="x.txt: expected a .csv or .md"):
+        write_table_html(tmp_path / "x.txt", tmp_path / "x.html")
+    (tmp_path / "b.md").write_text("| a | b |\n| 1 | 2 |\n")
+    with pytest.raises(ValueError, match="no separator line"):
+        write_table_html(tmp_path / "b.md", tmp_path / "b.html")
+    assert not (tmp_path / "b.html").exists()
 
 
 def test_tables_1_and_2_give_a_variant_of_another_size_a_row_of_its_own():

@@ -14,6 +14,7 @@ from PIL import Image
 
 from latentsim.report import metrics, paraview, plots, render
 from latentsim.io import ArtefactError
+from latentsim.neural_modes.figures import grid_wrap
 from latentsim.utils import working_directory
 
 # --------------------------------------------------------------------------- Pareto front
@@ -333,6 +334,19 @@ def test_render_frames(example, tmp_path):
     assert yellow[: int(panels), w // 2 :].sum() > 3 and yellow[: int(panels), : w // 2].sum() == 0
 
 
+def test_render_frames_wrap_lays_many_frames_out_as_a_grid(example, tmp_path):
+    """Seven frames of two motions, four to a line: two lines of two panel rows, four panels wide (not a
+    strip of seven rows); the status keeps one row per frame."""
+    out = tmp_path / "grid.png"
+    r = render.render_frames(example["gt"], {"self": example["ok"]}, "seq", list(range(7)), out, panel_size=1.0, dpi=20, wrap=4)
+    assert r["status"].shape == (7, 2) and (r["status"] == "ok").all()
+    assert Image.open(out).size == (4 * 20, round((2 * 2 * 1.0 + 0.9) * 20))
+    with pytest.raises(ValueError, match="wrap must be a positive"):
+        render.render_frames(example["gt"], {}, "seq", [0], tmp_path / "w.png", wrap=0)
+    # the keyframes' strip (7 steps x 2 columns) becomes this 4 x 4 grid; short strips stay as they are
+    assert grid_wrap(7, 2) == 4 and grid_wrap(9, 2) == 5 and grid_wrap(4, 2) is None and grid_wrap(3, 8) is None
+
+
 def test_render_frames_row_bounds(tmp_path):
     model, rest, cells, D = _rods()
     truth = _swing(rest, 6, amp=0.5)
@@ -448,6 +462,52 @@ def test_write_xdmf_series_reads_back(example, tmp_path):
         np.testing.assert_allclose(pd_["displacement"], example["good"][7] - example["rest"])
         np.testing.assert_allclose(pd_["error"], np.sqrt(3) * 0.002)
         np.testing.assert_array_equal(np.flatnonzero(pd_["dirichlet"]), example["D"])
+    assert_one_block(out, T)
+
+
+def assert_one_block(xdmf, steps):
+    """ParaView reads the series as one block: the domain holds the temporal collection alone (no static
+    ``mesh`` grid drawn over the animation), and every step holds its geometry and topology."""
+    import xml.etree.ElementTree as ET
+
+    domain = ET.parse(xdmf).getroot().find("Domain")
+    grids = domain.findall("Grid")
+    assert [g.get("GridType") for g in grids] == ["Collection"] and grids[0].get("CollectionType") == "Temporal"
+    assert len(grids[0].findall("Grid")) == steps
+    for step in grids[0].findall("Grid"):
+        assert step.find("Geometry") is not None and step.find("Topology") is not None and step.find("Time") is not None
+        assert not [e for e in step if "include" in e.tag]
+
+
+def test_single_block_xdmf_rewrites_meshios_series_once(tmp_path):
+    """meshio's own series (a static mesh grid beside the collection) becomes one block that meshio reads back
+    unchanged; a second pass leaves it as it is; a file that is no time series is refused by name."""
+    points = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    with working_directory(tmp_path):
+        with meshio.xdmf.TimeSeriesWriter("s.xdmf") as w:
+            w.write_points_cells(points, [("triangle", np.array([[0, 1, 2]]))])
+            for t in range(3):
+                w.write_data(0.5 * t, point_data={"displacement": np.full((3, 3), float(t))})
+        assert len(_domain_grids(tmp_path / "s.xdmf")) == 2  # meshio's: the static mesh and the collection
+        assert paraview.single_block_xdmf("s.xdmf") == 3
+        assert_one_block(tmp_path / "s.xdmf", 3)
+        once = (tmp_path / "s.xdmf").read_text()
+        assert paraview.single_block_xdmf("s.xdmf") == 3 and (tmp_path / "s.xdmf").read_text() == once
+        with meshio.xdmf.TimeSeriesReader("s.xdmf") as rd:
+            p, cells = rd.read_points_cells()
+            np.testing.assert_array_equal(p, points)
+            np.testing.assert_array_equal(cells[0].data, [[0, 1, 2]])
+            t, pd_, _ = rd.read_data(2)
+            assert t == 1.0 and (pd_["displacement"] == 2.0).all()
+        meshio.write("m.xdmf", meshio.Mesh(points, [("triangle", np.array([[0, 1, 2]]))]))
+        with pytest.raises(ValueError, match="m.xdmf: expected one temporal collection"):
+            paraview.single_block_xdmf("m.xdmf")
+
+
+def _domain_grids(path):
+    import xml.etree.ElementTree as ET
+
+    return ET.parse(path).getroot().find("Domain").findall("Grid")
 
 
 def test_write_xdmf_series_divergence_and_guards(example, tmp_path):

@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import time
+from html.parser import HTMLParser
 from pathlib import Path
 
 import h5py
@@ -216,7 +217,8 @@ def test_tiny_cloth_swings_out_of_its_plane(tiny_run):
 
 
 def test_paraview_series_reads_back(tiny_run):
-    """The XDMF time series holds every frame's displacement, equal to the stored positions."""
+    """The XDMF time series holds every frame's displacement, equal to the stored positions; every series of
+    the run is one block (the animation) for ParaView."""
     import meshio
 
     work, _ = tiny_run
@@ -231,21 +233,98 @@ def test_paraview_series_reads_back(tiny_run):
             t, point_data, _ = r.read_data(len(pos) - 1)
     assert np.allclose(points, pos[0])
     assert np.allclose(points + point_data["displacement"], pos[-1])
+    # ParaView reads each series as one block, the animation: no static copy of the mesh beside it
+    import xml.etree.ElementTree as ET
+
+    series = sorted((work / "results").rglob("*.xdmf"))
+    assert {p.parts[len(work.parts) + 1] for p in series} == {"sim", "evaluation", "neural_modes"}
+    for path in series:
+        grids = ET.parse(path).getroot().find("Domain").findall("Grid")
+        assert [g.get("CollectionType") for g in grids] == ["Temporal"], path
 
 
-def test_report_holds_tables_and_figures(tiny_run, tmp_path):
-    work, _ = tiny_run
-    report = tmp_path / "report.zip"
-    snakemake("--report", str(report), "--configfile", str(TINY), "--directory", str(work))
+# Every table the tiny run writes (CSV), which the report must show as an HTML page: evaluation, sizing
+# sweep, Neural Modes summary and studies.
+REPORT_TABLES = (
+    ["evaluation/" + t for t in ("glance.csv", "table1.csv", "table2.csv", "stability.csv", "sizes.csv", "summary.csv")]
+    + ["sweep/tiny_cloth/choice.csv", "neural_modes/summary.csv"]
+    + ["neural_modes/tiny_nm/sheet/" + t for t in ("table2.csv", "table3.csv", "table4.csv", "tableA1.csv", "correlation.csv", "structure.csv")]
+    + ["neural_modes/tiny_nm/" + t for t in ("energy/table5.csv", "dynamics/dynamics.csv", "aspect/aspect.csv")]
+)
+
+
+class _Tables(HTMLParser):
+    """The tables of an HTML page: [(header cells, body rows of cells)]."""
+
+    def __init__(self, text):
+        super().__init__()
+        self.tables, self._row, self._cell = [], [], None
+        self.feed(text)
+
+    def handle_starttag(self, tag, attrs):
+        if tag == "table":
+            self.tables.append(([], []))
+        elif tag == "tr" and self.tables:
+            self._row = []
+        elif tag in ("th", "td"):
+            self._cell = []
+
+    def handle_data(self, data):
+        if self._cell is not None:
+            self._cell.append(data)
+
+    def handle_endtag(self, tag):
+        if tag in ("th", "td") and self._cell is not None:
+            self._row.append(("".join(self._cell).strip(), tag))
+            self._cell = None
+        elif tag == "tr" and self.tables:
+            head, body = self.tables[-1]
+            if all(kind == "th" for _, kind in self._row):
+                head.extend(text for text, _ in self._row)
+            else:
+                body.append([text for text, _ in self._row])
+
+
+def _same_cell(value, text: str) -> bool:
+    """A CSV value as a page shows it: numbers to 4 significant digits, NaN blank, the rest verbatim."""
+    if isinstance(value, (int, float, np.number)) and not isinstance(value, bool):
+        return text == "" if np.isnan(value) else bool(text) and float(text) == pytest.approx(float(value), rel=1e-3, abs=1e-300)
+    return text == str(value)
+
+
+def test_report_shows_every_table_as_html_and_names_both_papers(tiny_run, tmp_path):
+    """snakemake --report after the tiny run, as report.zip and report.html: every CSV table is an HTML page
+    in it (every column, every row), the figures are in it, and the landing page names both papers and
+    shows the glance grid."""
+    import base64
     import zipfile
 
-    names = zipfile.ZipFile(report).namelist()
-    assert any(n.endswith("summary.csv") for n in names)
-    assert any(n.endswith("speed_accuracy.png") for n in names)
-    assert any(n.endswith("errors.png") for n in names)
-    for name in ("table2.csv", "table3.csv", "learning_curves.png", "latent_walk.png", "correlation.png", "table5.csv", "dynamics.csv", "keyframes.png", "aspect.csv",
-                 "aspect_ratio.png"):  # fmt: skip
+    import pandas as pd
+
+    work, _ = tiny_run
+    snakemake("--report", str(tmp_path / "report.zip"), "--configfile", str(TINY), "--directory", str(work))
+    snakemake("--report", str(tmp_path / "report.html"), "--configfile", str(TINY), "--directory", str(work))
+    with zipfile.ZipFile(tmp_path / "report.zip") as z:
+        names = z.namelist()
+        zip_pages = [(Path(n).name, _Tables(z.read(n).decode()).tables) for n in names if n.endswith(".html") and "/data/raw/" in n]
+    for name in ("speed_accuracy.png", "errors.png", "learning_curves.png", "latent_walk.png", "correlation.png", "keyframes.png", "aspect_ratio.png",
+                 "sweep.png", "stress_map.png", "tables.html"):  # fmt: skip
         assert any(n.endswith(name) for n in names), name
+    text = (tmp_path / "report.html").read_text()
+    embedded = re.findall(r"data:text/html;charset=utf8;filename=([^;]+);base64,([A-Za-z0-9+/=]+)", text)
+    html_pages = [(name, _Tables(base64.b64decode(b).decode()).tables) for name, b in embedded]
+    for pages, where in ((zip_pages, "report.zip"), (html_pages, "report.html")):
+        for rel in REPORT_TABLES:
+            df = pd.read_csv(work / "results" / rel)
+            page = Path(rel).stem + ".html"  # its own page, beside it in results/ (several scenes' pages share a name)
+            shown = [t for name, tables in pages if name == page for t in tables]
+            match = [body for head, body in shown if head == list(df.columns) and len(body) == len(df)]
+            assert match, f"{where}: no page {page} with a table of the columns and {len(df)} rows of {rel}"
+            assert any(all(map(_same_cell, df.iloc[:, 0], [r[0] for r in body])) for body in match), f"{where}: {rel}: first column"
+    desc = json.loads(re.search(r"var workflow_desc = (\".*?(?<!\\)\");", text, re.S).group(1))
+    assert "Li et al. 2025" in desc and "Wang et al. 2024" in desc
+    grid = _Tables(desc).tables
+    assert grid and grid[0][0][0] == "scene" and sorted(r[0] for r in grid[0][1]) == SCENES_TINY  # the glance grid, one row per scene
 
 
 def test_artefacts_record_config_version_and_seed(tiny_run):
@@ -271,7 +350,7 @@ def test_editing_one_scenes_integrator_reruns_only_its_downstream_jobs(tiny_run,
     methods = ("self_supervised", "supervised", "small")
     assert sorted(jobs, key=str) == sorted(
         [(stage, "tiny_rods") for stage in ("train_integrator", "rollout") for _ in methods]
-        + [("evaluate", "tiny_rods"), ("render", "tiny_rods"), ("summary", None), ("all", None)],
+        + [("evaluate", "tiny_rods"), ("render", "tiny_rods"), ("summary", None), ("report_summary_pages", None), ("all", None)],
         key=str,
     )
 
@@ -367,15 +446,18 @@ def test_editing_one_study_reruns_only_that_study(tiny_run, tmp_path):
         sc["nm_study"]["sheet"]["epochs"] += 1
         sc["nm_study"]["energy"]["ae_epochs"] += 1
 
-    assert jobs_after(studies) == sorted([("nm_sheet_study", "tiny_nm"), ("nm_sheet_tables", "tiny_nm"), ("nm_energy_table", "tiny_nm"), ("all", None)], key=str)
-    assert jobs_after(lambda sc: sc["nm_study"]["aspect"].update(epochs=4)) == sorted([("nm_aspect_ratio", "tiny_nm"), ("all", None)], key=str)
+    # and the report's pages of the tables they rewrite
+    assert jobs_after(studies) == sorted([(r, "tiny_nm") for r in ("nm_sheet_study", "nm_sheet_tables", "nm_energy_table", "report_nm_sheet_pages", "report_nm_energy_page")]
+                                         + [("all", None)], key=str)  # fmt: skip
+    assert jobs_after(lambda sc: sc["nm_study"]["aspect"].update(epochs=4)) == sorted([("nm_aspect_ratio", "tiny_nm"), ("report_nm_aspect_page", "tiny_nm"), ("all", None)], key=str)
     # the model also serves tiny_nm's neural_modes_reduced baseline: that rollout and what reads it rerun too
     assert jobs_after(lambda sc: sc["neural_modes"].update(epochs=sc["neural_modes"]["epochs"] + 1)) == sorted(
-        [(r, "tiny_nm") for r in ("nm_train", "nm_energy_table", "nm_dynamics", "nm_keyframes", "reduced_rollout", "evaluate", "render")]
-        + [("nm_summary", None), ("summary", None), ("all", None)], key=str
-    )
+        [(r, "tiny_nm") for r in ("nm_train", "nm_energy_table", "nm_dynamics", "nm_keyframes", "reduced_rollout", "evaluate", "render", "report_nm_energy_page",
+                                   "report_nm_dynamics_page")]
+        + [("nm_summary", None), ("summary", None), ("report_nm_summary_page", None), ("report_summary_pages", None), ("all", None)], key=str
+    )  # fmt: skip
     assert jobs_after(lambda sc: sc["nm_study"]["sheet"].update(test_grid=4)) == sorted(
-        [(r, "tiny_nm") for r in ("nm_ground_truth", "nm_sheet_study", "nm_sheet_tables")] + [("all", None)], key=str
+        [(r, "tiny_nm") for r in ("nm_ground_truth", "nm_sheet_study", "nm_sheet_tables", "report_nm_sheet_pages")] + [("all", None)], key=str
     )
 
 
@@ -388,7 +470,7 @@ def test_editing_a_variant_reruns_only_that_methods_jobs(tiny_run, tmp_path):
     jobs = planned_jobs(snakemake("-n", "all", "--configfile", str(edited), "--directory", str(work)).stdout, methods=True)
     assert sorted(jobs, key=str) == sorted(
         [("train_integrator", "tiny_rods", "supervised"), ("rollout", "tiny_rods", "supervised"), ("evaluate", "tiny_rods", None),
-         ("render", "tiny_rods", None), ("summary", None, None), ("all", None, None)],
+         ("render", "tiny_rods", None), ("summary", None, None), ("report_summary_pages", None, None), ("all", None, None)],
         key=str,
     )  # fmt: skip
 
@@ -611,8 +693,12 @@ def test_report_captions_are_valid_restructuredtext(caption):
     reference that is never defined (an error in the report), so norms must be literals."""
     from docutils.core import publish_doctree
     from docutils.utils import Reporter
+    from jinja2 import Environment
 
-    doctree = publish_doctree(caption.read_text(), settings_overrides={"report_level": Reporter.SEVERE_LEVEL + 1, "halt_level": 5})
+    # Snakemake renders a caption as a Jinja template first (the landing page includes the glance grid only
+    # when the report holds the glance page: here it holds nothing)
+    text = Environment(trim_blocks=True, lstrip_blocks=True).from_string(caption.read_text()).render(snakemake=None, categories={}, files=[])
+    doctree = publish_doctree(text, settings_overrides={"report_level": Reporter.SEVERE_LEVEL + 1, "halt_level": 5})
     found = [n for n in doctree.findall() if n.tagname == "system_message"] + list(doctree.transform_messages)
     messages = [m.astext() for m in found if int(m["level"]) >= Reporter.ERROR_LEVEL]
     assert not messages, messages

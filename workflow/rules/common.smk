@@ -207,6 +207,15 @@ def all_targets():
     return out
 
 
+def report_pages():
+    """The HTML pages of the report's tables (see report.smk), the input of the default target: one per
+    Markdown target (its page job names it) and one per sweep choice.
+    """
+    md = [t for t in all_targets() + neural_modes_targets() if t.endswith(".md")]
+    pages = [t.removesuffix(".md") + ".html" for t in md]
+    return pages + [c.removesuffix(".csv") + ".html" for c in sweep_choices().values()]
+
+
 # --- Neural Modes (workflow/rules/neural_modes.smk) ---
 def nm_modes_params(wildcards):
     """Input function: what the linear modes depend on (model, material, modes, boundary, normalization)."""

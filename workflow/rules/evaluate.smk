@@ -76,38 +76,14 @@ rule summary:
         stress=expand("results/evaluation/{scene}/stress.csv", scene=SCENES),
         sweeps=list(sweep_choices().values()),
     output:
-        csv=report(
-            "results/evaluation/summary.csv",
-            caption="../report/summary.rst",
-            category="Summary",
-        ),
+        csv="results/evaluation/summary.csv",
         markdown="results/evaluation/summary.md",
-        glance=report(
-            "results/evaluation/glance.csv",
-            caption="../report/glance.rst",
-            category="Summary",
-        ),
-        table1=report(
-            "results/evaluation/table1.csv",
-            caption="../report/table1.rst",
-            category="Summary",
-        ),
-        table2=report(
-            "results/evaluation/table2.csv",
-            caption="../report/table2.rst",
-            category="Summary",
-        ),
-        stability=report(
-            "results/evaluation/stability.csv",
-            caption="../report/stability.rst",
-            category="Summary",
-        ),
+        glance="results/evaluation/glance.csv",
+        table1="results/evaluation/table1.csv",
+        table2="results/evaluation/table2.csv",
+        stability="results/evaluation/stability.csv",
         stress="results/evaluation/stress.csv",
-        sizes=report(
-            "results/evaluation/sizes.csv",
-            caption="../report/sizes.rst",
-            category="Summary",
-        ),
+        sizes="results/evaluation/sizes.csv",
         stress_map=report(
             "results/evaluation/stress_map.png",
             caption="../report/stress_map.rst",

@@ -62,11 +62,7 @@ rule nm_summary:
     input:
         histories=expand("results/neural_modes/{scene}/history.h5", scene=NM_SCENES),
     output:
-        csv=report(
-            "results/neural_modes/summary.csv",
-            caption="../report/nm_summary.rst",
-            category="Neural Modes",
-        ),
+        csv="results/neural_modes/summary.csv",
         markdown="results/neural_modes/summary.md",
     log:
         "logs/neural_modes/summary.log",
@@ -137,42 +133,12 @@ rule nm_sheet_tables:
         study="results/neural_modes/{scene}/sheet/study.h5",
     output:
         markdown="results/neural_modes/{scene}/sheet/tables.md",
-        table2=report(
-            "results/neural_modes/{scene}/sheet/table2.csv",
-            caption="../report/nm_table2.rst",
-            category="Neural Modes",
-            subcategory="{scene}",
-        ),
-        table3=report(
-            "results/neural_modes/{scene}/sheet/table3.csv",
-            caption="../report/nm_table3.rst",
-            category="Neural Modes",
-            subcategory="{scene}",
-        ),
-        table4=report(
-            "results/neural_modes/{scene}/sheet/table4.csv",
-            caption="../report/nm_table4.rst",
-            category="Neural Modes",
-            subcategory="{scene}",
-        ),
-        tableA1=report(
-            "results/neural_modes/{scene}/sheet/tableA1.csv",
-            caption="../report/nm_tableA1.rst",
-            category="Neural Modes",
-            subcategory="{scene}",
-        ),
-        correlation=report(
-            "results/neural_modes/{scene}/sheet/correlation.csv",
-            caption="../report/nm_correlation.rst",
-            category="Neural Modes",
-            subcategory="{scene}",
-        ),
-        structure=report(
-            "results/neural_modes/{scene}/sheet/structure.csv",
-            caption="../report/nm_structure.rst",
-            category="Neural Modes",
-            subcategory="{scene}",
-        ),
+        table2="results/neural_modes/{scene}/sheet/table2.csv",
+        table3="results/neural_modes/{scene}/sheet/table3.csv",
+        table4="results/neural_modes/{scene}/sheet/table4.csv",
+        tableA1="results/neural_modes/{scene}/sheet/tableA1.csv",
+        correlation="results/neural_modes/{scene}/sheet/correlation.csv",
+        structure="results/neural_modes/{scene}/sheet/structure.csv",
         learning_curves=report(
             "results/neural_modes/{scene}/sheet/learning_curves.png",
             caption="../report/nm_learning_curves.rst",
@@ -209,12 +175,7 @@ rule nm_energy_table:
         ground_truth="results/neural_modes/{scene}/energy/ground_truth.h5",
         model="results/neural_modes/{scene}/neural_modes.pt",
     output:
-        csv=report(
-            "results/neural_modes/{scene}/energy/table5.csv",
-            caption="../report/nm_table5.rst",
-            category="Neural Modes",
-            subcategory="{scene}",
-        ),
+        csv="results/neural_modes/{scene}/energy/table5.csv",
         markdown="results/neural_modes/{scene}/energy/table5.md",
         history="results/neural_modes/{scene}/energy/history.h5",
     log:
@@ -243,12 +204,7 @@ rule nm_dynamics:
             slug: f"results/neural_modes/{{scene}}/dynamics/{slug}.h5"
             for slug in DYNAMICS_METHODS
         },
-        csv=report(
-            "results/neural_modes/{scene}/dynamics/dynamics.csv",
-            caption="../report/nm_dynamics.rst",
-            category="Neural Modes",
-            subcategory="{scene}",
-        ),
+        csv="results/neural_modes/{scene}/dynamics/dynamics.csv",
         markdown="results/neural_modes/{scene}/dynamics/dynamics.md",
         paraview=directory("results/neural_modes/{scene}/dynamics/paraview"),
     log:
@@ -301,12 +257,7 @@ rule nm_aspect_ratio:
     output:
         model="results/neural_modes/{scene}/aspect/neural_modes.pt",
         family="results/neural_modes/{scene}/aspect/family.h5",
-        csv=report(
-            "results/neural_modes/{scene}/aspect/aspect.csv",
-            caption="../report/nm_aspect.rst",
-            category="Neural Modes",
-            subcategory="{scene}",
-        ),
+        csv="results/neural_modes/{scene}/aspect/aspect.csv",
         markdown="results/neural_modes/{scene}/aspect/aspect.md",
         figure=report(
             "results/neural_modes/{scene}/aspect/aspect_ratio.png",

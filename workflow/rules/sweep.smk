@@ -26,12 +26,7 @@ rule sweep_summary:
     input:
         points=sweep_results,
     output:
-        choice=report(
-            "results/sweep/{scene}/choice.csv",
-            caption="../report/sweep.rst",
-            category="Sizing",
-            subcategory="{scene}",
-        ),
+        choice="results/sweep/{scene}/choice.csv",
         chart=report(
             "results/sweep/{scene}/sweep.png",
             caption="../report/sweep.rst",

@@ -5,25 +5,71 @@
 triangles, tetrahedra), one time step per frame, with the point fields
 ``displacement`` (positions minus rest; ParaView: *Warp By Vector*),
 ``dirichlet`` (1 on prescribed vertices) and, against a reference file, the
-per-vertex ``error``.
+per-vertex ``error``.  :func:`single_block_xdmf` makes any of meshio's XDMF time series hold the
+animation alone (meshio adds a static copy of the mesh, which ParaView draws over the animation).
 """
 
 from __future__ import annotations
 
 import os
 import shutil
+import copy
 import tempfile
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import h5py
 import meshio
 import numpy as np
 
-from latentsim.io import ArtefactError, require
+from latentsim.io import ArtefactError, atomic_path, require
 from latentsim.report.motion import load_motion, model_of
 from latentsim.utils import working_directory
 
-__all__ = ["write_xdmf_series"]
+__all__ = ["single_block_xdmf", "write_xdmf_series"]
+
+
+def single_block_xdmf(path) -> int:
+    """Rewrite a meshio XDMF time series in place so that ParaView reads one block: the animation.
+
+    meshio's ``TimeSeriesWriter`` stores the mesh once, as a static grid named ``mesh`` beside the temporal
+    collection, and each time step includes that grid's geometry and topology by XPointer.  ParaView reads
+    the static grid as a block of its own, drawn over the animation at rest.  Here every time step holds
+    the geometry and topology itself (the same HDF5 datasets: a few lines of XML a step, no data copied) and
+    the static grid is removed.  meshio's ``TimeSeriesReader`` reads the result (it takes the mesh from the
+    first step).  Returns the number of time steps.
+
+    Raises ``ValueError`` naming the file when it is not such a series (no temporal collection, or no mesh
+    grid to take the geometry and topology from); a file already rewritten is left as it is.
+    """
+    path = Path(path)
+    tree = ET.parse(path)
+    domain = tree.getroot().find("Domain")
+    grids = [] if domain is None else domain.findall("Grid")
+    series = [g for g in grids if g.get("GridType") == "Collection" and g.get("CollectionType") == "Temporal"]
+    static = [g for g in grids if g.get("GridType", "Uniform") == "Uniform"]
+    if len(series) != 1:
+        raise ValueError(f"{path}: expected one temporal collection in the XDMF domain, found {len(series)}")
+    steps = series[0].findall("Grid")
+    if not static:
+        if steps and all(s.find("Geometry") is not None for s in steps):
+            return len(steps)  # already one block
+        raise ValueError(f"{path}: no static mesh grid to take the geometry and topology from")
+    if len(static) != 1:
+        raise ValueError(f"{path}: expected one static mesh grid, found {len(static)}")
+    shared = [copy.deepcopy(e) for e in static[0] if e.tag in ("Topology", "Geometry")]
+    for k, step in enumerate(steps):
+        for inc in [e for e in step if e.tag.endswith("}include")]:
+            step.remove(inc)
+        step.set("Name", f"step_{k}")
+        step.set("GridType", "Uniform")
+        for i, e in enumerate(shared):
+            step.insert(i, copy.deepcopy(e))
+    domain.remove(static[0])
+    ET.indent(tree)
+    with atomic_path(path) as tmp:
+        tree.write(tmp, encoding="utf-8", xml_declaration=True)
+    return len(steps)
 
 
 def _cells(h5, model: str, h5_path):
@@ -36,7 +82,8 @@ def write_xdmf_series(h5_path, sequence: str, out, reference=None, *, stop_at_di
     """XDMF + HDF5 time series of one sequence of any trajectory-layout file, for ParaView.
 
     The mesh is the rest shape (``rest_positions``) with the model's cells
-    (rod edges as lines, shell triangles, tetrahedra); each time step carries
+    (rod edges as lines, shell triangles, tetrahedra), held by every time step
+    (one block in ParaView: :func:`single_block_xdmf`); each time step carries
     the point fields
 
     - ``displacement`` (n,3) [m]: positions minus rest (ParaView: *Warp By Vector*);
@@ -110,6 +157,7 @@ def write_xdmf_series(h5_path, sequence: str, out, reference=None, *, stop_at_di
                         np.linalg.norm(pos[t] - ref[t], axis=1) if t < len(ref) else np.full(len(rest), np.nan)
                     )
                 w.write_data(t * dt, point_data=pd)
+        single_block_xdmf(tmpdir / out.name)
         os.replace(tmpdir / data_file.name, data_file)
         os.replace(tmpdir / out.name, out)
     finally:

@@ -106,8 +106,13 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, error: str, colours: dict, annot
     emax = pts["max_error"].to_numpy(float) if "max_error" in pts.columns else np.full(len(pts), np.nan)
     top = np.concatenate([e[positive], emax[np.isfinite(emax) & (emax > 0)]])
     ceil = top.max() * 3 if len(top) else 1.0
-    # exact (zero-error) rows sit on the bottom edge, failed (NaN) rows on the top edge
-    y = np.where(positive, e, np.where(e == 0, floor, ceil))
+    # exact (zero-error) rows sit in a shaded band at the bottom (a log axis has no 0), wholly inside the
+    # axes; failed (NaN) rows on the top edge
+    bottom = floor / 4
+    y = np.where(positive, e, np.where(e == 0, floor / 2, ceil))
+    if (e == 0).any():
+        ax.axhspan(bottom, floor, color="0.9", zorder=0)
+        ax.text(0.01, np.sqrt(bottom * floor), "error 0 (exact)", transform=ax.get_yaxis_transform(), fontsize=7, va="center", color="0.35")
     placed = []  # (log10 ms, log10 error) of the labels so far: a label near one moves up a line
     for i, r in enumerate(pts.itertuples(index=False)):
         c = colours[str(r.method)]
@@ -139,7 +144,7 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, error: str, colours: dict, annot
         ax.step(ft, fy, where="post", color="k", lw=1.0, ls="--", zorder=1, label="Pareto front")
     ax.set_xscale("log")
     ax.set_yscale("log")
-    ax.set_ylim(floor, ceil)
+    ax.set_ylim(bottom, ceil)
     # whole decades: at least two labelled major ticks, and no labels on the minor ones (on a range
     # under two decades matplotlib labels its minor ticks, which overlap)
     ms = t[np.isfinite(t) & (t > 0)]
@@ -158,10 +163,11 @@ def speed_accuracy_chart(df: pd.DataFrame, path, scene=None, error="mean_error",
     - ``scene`` (str), ``method`` (str);
     - ``ms_per_frame`` (float > 0): wall time of one step [ms];
     - ``mean_error`` (float): error relative to the bounding-box diagonal
-      (0 for the ground truth itself, drawn as a down triangle on the bottom
-      edge; NaN when not measurable, drawn as a cross on the top edge), or any
-      column named by ``error`` (e.g. ``max_error``);
-    - ``max_error`` (float, optional): drawn as a whisker above the point;
+      (0 for the ground truth itself, drawn as a down triangle in a shaded
+      band "error 0" at the bottom; NaN when not measurable, drawn as a cross
+      on the top edge), or any column named by ``error`` (e.g. ``max_error``);
+    - ``max_error`` (float, optional): drawn as a whisker from the point up to
+      it (the largest vertex error of any frame);
     - ``diverged_frame`` (int, optional): first diverged frame, -1 when stable.
       Diverged methods are drawn hollow, labelled with the frame, and kept off
       the Pareto front (their error covers only the frames before divergence);
@@ -219,6 +225,7 @@ def speed_accuracy_chart(df: pd.DataFrame, path, scene=None, error="mean_error",
         ax.set_visible(False)
     handles = [Line2D([], [], marker="o", ls="", color=c, label=m) for m, c in colours.items() if m in set(pts["method"])]
     handles += [
+        Line2D([0, 0], [0, 1], color="0.4", marker="_", ms=8, label="vertical whisker: up to the max vertex error"),
         Line2D([], [], marker="o", ls="", mfc="none", mec="k", ms=11, label="on the Pareto front"),
         Line2D([], [], marker="o", ls="", mfc="none", mec="grey", label="diverged (hollow)"),
         Line2D([], [], color="k", ls="--", label="Pareto front"),

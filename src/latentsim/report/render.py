@@ -216,10 +216,12 @@ def render_frames(
     title=None,
     color_by_error=False,
     error_max=None,
+    wrap=None,
 ) -> dict:
     """Ground truth against each method, side by side, at chosen frames.
 
-    Rows are frames, columns ground truth then the methods in the order given.
+    Rows are frames, columns ground truth then the methods in the order given
+    (or, with ``wrap``, a grid of frames, each a column of the motions).
     Every panel has the same axis limits and aspect, so positions compare.
 
     Parameters
@@ -242,6 +244,10 @@ def render_frames(
         figure, colour bar at the bottom) instead of a flat colour.
     error_max : float or None
         Top of that scale [m]; default the largest error shown.
+    wrap : int or None
+        Lay many frames out as a grid: the frames run left to right, ``wrap``
+        to a line, each frame a column of the motions (ground truth on top),
+        the lines one under the other.  None: one row per frame.
 
     Returns
     -------
@@ -268,20 +274,26 @@ def render_frames(
         limits = np.repeat(_limits(motions, frames, bounds)[None], len(frames), axis=0)
     R, C = len(frames), len(motions)
     per_vertex, errors = _vertex_errors(motions, frames)
+    if wrap is not None and int(wrap) < 1:
+        raise ValueError(f"render_frames: wrap must be a positive number of frames, got {wrap}")
+    per_line = None if wrap is None else min(int(wrap), R)
+    # grid of panels: (rows, columns), and the place of frame i, motion j in it
+    shape = (R, C) if per_line is None else (-(-R // per_line) * C, per_line)
+    place = (lambda i, j: i * C + j + 1) if per_line is None else (lambda i, j: ((i // per_line) * C + j) * per_line + i % per_line + 1)
     header, footer = 0.9, (0.8 if color_by_error else 0.0)  # inches for the title and the colour bar
-    height = panel_size * R + header + footer
-    fig = plt.figure(figsize=(panel_size * C, height))
+    height = panel_size * shape[0] + header + footer
+    fig = plt.figure(figsize=(panel_size * shape[1], height))
     colours = _colours(C)
     status = np.empty((R, C), dtype=object)
     top = _error_scale(errors, error_max)
     for i, fr in enumerate(frames):
         for j, m in enumerate(motions):
-            ax = fig.add_subplot(R, C, i * C + j + 1, projection="3d")
+            ax = fig.add_subplot(shape[0], shape[1], place(i, j), projection="3d")
             values = _error_values(per_vertex, i, j, top) if color_by_error else None
             status[i, j] = _draw_panel(ax, m, fr, limits[i], m.vertical, elev, azim, colours[j], values=values, cmap=_ERROR_CMAP)
     fig.suptitle(title or f"{sequence}: ground truth vs methods (red: Dirichlet vertices)", fontsize=10)
     fig.subplots_adjust(
-        left=0.01, right=0.99, bottom=(footer + 0.05) / height, top=1 - header / height, wspace=0.02, hspace=0.2
+        left=0.01, right=0.99, bottom=(footer + 0.05) / height, top=1 - header / height, wspace=0.02, hspace=0.2 if per_line is None else 0.3
     )
     if color_by_error:
         _error_colorbar(fig, top, 0.45 / height, 0.12 / height)
@@ -315,6 +327,7 @@ def render_clip(
     title=None,
     color_by_error=False,
     error_max=None,
+    wrap=None,
 ) -> dict:
     """Animated clip of ground truth and methods side by side (GIF, or MP4 with ffmpeg).
 

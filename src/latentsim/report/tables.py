@@ -13,10 +13,17 @@ sequence, as :func:`latentsim.stages.evaluate.evaluate_scene` writes them; colum
 - :func:`sizes_table`: model size per scene, the paper's and the sizing sweep's choice;
 - :func:`speed_accuracy_rows`, :func:`glance_table`, :func:`glance_grid`: the speed-accuracy
   comparison of every method, as the chart's points and as the summary's opening tables;
-- :func:`markdown`: any of them as a Markdown table.
+- :func:`markdown`: any of them as a Markdown table;
+- :func:`write_table_html`: a table file (CSV, or this package's Markdown) as an HTML page, which the
+  Snakemake report shows inline (it offers a CSV only for download); :func:`html_table` one table;
+  :func:`write_glance_html` the glance page and the grid the report's landing page shows.
 """
 
 from __future__ import annotations
+
+import html
+import re
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -30,6 +37,7 @@ __all__ = [
     "GLANCE_METHODS",
     "glance_grid",
     "glance_table",
+    "html_table",
     "layers_text",
     "markdown",
     "reconstruction_table",
@@ -40,6 +48,8 @@ __all__ = [
     "table1",
     "table2",
     "write_table",
+    "write_glance_html",
+    "write_table_html",
 ]
 
 
@@ -285,3 +295,180 @@ def markdown(df: pd.DataFrame) -> str:
         lines.append("| " + " | ".join(f"{r[c]:.4g}" if isinstance(r[c], float) else str(r[c]) for c in cols) + " |")
     return "\n".join(lines)
 
+
+
+# --------------------------------------------------------------------------- HTML pages of the tables
+
+_PAGE_STYLE = """
+body { font: 14px/1.45 system-ui, -apple-system, "Segoe UI", sans-serif; color: #222; margin: 1em 1.2em; }
+h1 { font-size: 1.25em; margin: 0 0 .3em; } h2 { font-size: 1.05em; margin: 1.4em 0 .4em; }
+p { max-width: 60em; } p.source { color: #666; font-size: .9em; margin-top: 0; }
+.scroll { overflow-x: auto; margin-bottom: 1em; }
+table { border-collapse: collapse; font-size: 13px; }
+th, td { border: 1px solid #d0d0d0; padding: 3px 8px; white-space: nowrap; }
+th { background: #eef1f5; position: sticky; top: 0; text-align: left; }
+td.num { text-align: right; font-variant-numeric: tabular-nums; }
+tbody tr:nth-child(even) td { background: #f8f9fa; }
+code { background: #f3f3f3; padding: 0 .2em; }
+"""
+
+
+def _cell(value) -> tuple[str, bool, str]:
+    """(text, numeric, full value) of a table cell: floats to 4 significant digits (as :func:`markdown`), NaN blank."""
+    if isinstance(value, (bool, np.bool_)) or value is None:
+        return ("" if value is None else str(value)), False, ""
+    if isinstance(value, (int, np.integer)):
+        return str(value), True, ""
+    if isinstance(value, (float, np.floating)):
+        if not np.isfinite(value):
+            return ("" if np.isnan(value) else str(value)), True, ""
+        return f"{value:.4g}", True, repr(float(value))
+    text = str(value)
+    try:
+        float(text)
+        return text, True, ""
+    except ValueError:
+        return text, False, ""
+
+
+def html_table(df: pd.DataFrame, align=None) -> str:
+    """``df`` as an HTML ``<table>`` (in a horizontally scrolling ``div``), cells escaped.
+
+    Floats show 4 significant digits (the full value in the cell's tooltip), NaN as a blank cell, numbers
+    right-aligned.  ``align``: optional list of ``"left"``/``"right"``/``None`` per column (a Markdown
+    table's own alignment), overriding the number test.
+    """
+    cols = list(df.columns)
+    head = "".join(f"<th>{html.escape(str(c))}</th>" for c in cols)
+    rows = []
+    for values in df.itertuples(index=False, name=None):
+        cells = []
+        for j, v in enumerate(values):
+            text, numeric, full = _cell(v)
+            if align is not None and align[j] is not None:
+                numeric = align[j] == "right"
+            attrs = (' class="num"' if numeric else "") + (f' title="{full}"' if full and full != text else "")
+            cells.append(f"<td{attrs}>{html.escape(text)}</td>")
+        rows.append("<tr>" + "".join(cells) + "</tr>")
+    if not rows:
+        rows.append(f'<tr><td colspan="{max(len(cols), 1)}">(no rows)</td></tr>')
+    return f'<div class="scroll"><table>\n<thead><tr>{head}</tr></thead>\n<tbody>\n' + "\n".join(rows) + "\n</tbody></table></div>"
+
+
+_SEPARATOR = re.compile(r"^\|(\s*:?-+:?\s*\|)+$")
+
+
+def _markdown_table(lines: list[str]) -> str:
+    """A pipe table of this package's Markdown as HTML.
+
+    Two writers make them: :func:`markdown` (``| a | b |`` rows, ``|---|---|``) and pandas' ``to_markdown``
+    (tabulate: every row padded to the separator's column widths).  A cell may hold a ``|`` itself (``max
+    |cos(l, y)|``), so where every row has its bars where the separator has them, those positions cut the
+    cells; otherwise rows split at `` | ``.
+    """
+    if len(lines) < 2 or not _SEPARATOR.match(lines[1].strip()):
+        raise ValueError(f"not a Markdown pipe table (no separator line under the header): {lines[:2]}")
+    sep = lines[1].rstrip()
+    bars = [i for i, ch in enumerate(sep) if ch == "|"]
+    rows = [lines[0]] + lines[2:]
+    if all(len(r.rstrip()) == len(sep) and all(r[i] == "|" for i in bars) for r in rows):
+        cut = [[r[a + 1 : b].strip() for a, b in zip(bars, bars[1:])] for r in rows]
+    else:
+        cut = [[c.strip() for c in r.strip()[1:-1].split(" | ")] for r in rows]
+    specs = [s.strip() for s in sep.strip()[1:-1].split("|")]
+    align = [("right" if s.endswith(":") and not s.startswith(":") else "left" if s.startswith(":") else None) for s in specs]
+    width = len(cut[0])
+    if any(len(r) != width for r in cut) or len(align) != width:
+        raise ValueError(f"Markdown table rows of unequal width: header {cut[0]}")
+    return html_table(pd.DataFrame(cut[1:], columns=cut[0], dtype=object), align=align)
+
+
+def _inline(text: str) -> str:
+    """Escape ``text``; Markdown ``code`` spans become ``<code>``."""
+    parts = text.split("`")
+    return "".join(f"<code>{html.escape(p)}</code>" if i % 2 else html.escape(p) for i, p in enumerate(parts))
+
+
+def _markdown_html(text: str) -> tuple[str, int, str | None]:
+    """(HTML, number of tables, first level-1 heading) of this package's Markdown: ``#`` headings,
+    paragraphs and pipe tables, blocks separated by blank lines (what :func:`markdown`, the summary and the
+    Neural Modes stages write)."""
+    out, tables, title = [], 0, None
+    for block in re.split(r"\n\s*\n", text.strip()):
+        lines = [ln for ln in block.splitlines() if ln.strip()]
+        while lines and lines[0].lstrip().startswith("#"):
+            head = lines.pop(0).strip()
+            level = len(head) - len(head.lstrip("#"))
+            content = head[level:].strip()
+            if level == 1 and title is None:
+                title = content
+                continue
+            out.append(f"<h{min(level, 6)}>{_inline(content)}</h{min(level, 6)}>")
+        if not lines:
+            continue
+        if all(ln.lstrip().startswith("|") for ln in lines):
+            out.append(_markdown_table([ln.strip() for ln in lines]))
+            tables += 1
+        else:
+            out.append(f"<p>{_inline(' '.join(ln.strip() for ln in lines))}</p>")
+    return "\n".join(out), tables, title
+
+
+def html_page(title: str, body: str, source: str = "") -> str:
+    """A standalone HTML page (inline style, no scripts or external files) around ``body``."""
+    note = f'<p class="source">{html.escape(source)}</p>\n' if source else ""
+    return (f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n<title>{html.escape(title)}</title>\n'
+            f"<style>{_PAGE_STYLE}</style>\n</head>\n<body>\n<h1>{html.escape(title)}</h1>\n{note}{body}\n</body>\n</html>\n")  # fmt: skip
+
+
+def write_table_html(source, path, title: str | None = None, before: str = "") -> int:
+    """Write a table file as an HTML page, atomically; returns the number of tables on it.
+
+    Parameters
+    ----------
+    source : a ``.csv`` (one table, every column; its page says where the CSV is) or a ``.md`` as this
+        package writes them (``#`` headings, paragraphs, pipe tables: ``summary.md``, the Neural Modes
+        studies' ``tables.md``, ``table5.md`` ...; its first level-1 heading is the default title).
+    path : the ``.html`` to write.
+    title : the page's heading; default the Markdown's title, else the file's name.
+    before : HTML put above the table (e.g. :func:`html_table` of a digest of it).
+    """
+    source = Path(source)
+    if source.suffix == ".csv":
+        df = pd.read_csv(source)
+        body, tables, found = html_table(df), 1, None
+        note = f"{source.name}: {len(df)} rows x {len(df.columns)} columns (beside this page in results/)"
+    elif source.suffix == ".md":
+        body, tables, found = _markdown_html(source.read_text())
+        note = f"{source.name}, as a page"
+    else:
+        raise ValueError(f"write_table_html: {source}: expected a .csv or .md table file")
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text(html_page(title or found or source.name, before + body, note), encoding="utf-8")
+    return tables
+
+
+GLANCE_GRID_NOTE = ("Mean vertex error / bounding-box diagonal (ms per frame) of each compared method, median over the "
+                    "scene's test sequences; * marks the methods on the scene's speed-accuracy Pareto front (a method "
+                    "that diverged on a test sequence never is), - a method the scene did not run.")  # fmt: skip
+
+
+def write_glance_html(glance_csv, path, fragment, title: str = "At a glance: every method on every scene") -> pd.DataFrame:
+    """The glance page and the landing page's grid, atomically; returns the grid.
+
+    ``path``: a page with :func:`glance_grid` (scenes x the comparison's methods, built from ``glance_csv``,
+    :func:`glance_table`'s CSV) above the whole glance table.  ``fragment``: the grid alone as an HTML
+    fragment (a ``div`` with its own scoped style) for the report's landing page to include.
+    """
+    glance = pd.read_csv(glance_csv)
+    grid = glance_grid(glance)
+    note = f"<p>{html.escape(GLANCE_GRID_NOTE)}</p>"
+    before = f"<h2>Scenes x compared methods</h2>\n{note}\n{html_table(grid)}\n<h2>Every method per scene (variants too)</h2>\n"
+    write_table_html(glance_csv, path, title, before=before)
+    style = ("<style>.latentsim-glance table{border-collapse:collapse;font-size:13px;margin:.4em 0}"
+             ".latentsim-glance th,.latentsim-glance td{border:1px solid #ccc;padding:2px 7px;white-space:nowrap}"
+             ".latentsim-glance th{background:#eef1f5;text-align:left}.latentsim-glance td.num{text-align:right}"
+             ".latentsim-glance .scroll{overflow-x:auto}.latentsim-glance p{font-size:.9em;color:#555}</style>")  # fmt: skip
+    with atomic_path(fragment) as tmp:
+        Path(tmp).write_text(f'<div class="latentsim-glance">{style}\n{html_table(grid)}\n{note}\n</div>\n', encoding="utf-8")
+    return grid

@@ -21,6 +21,7 @@ import meshio
 import numpy as np
 
 from latentsim.io import atomic_h5, atomic_path, write_dataset
+from latentsim.report.paraview import single_block_xdmf
 from latentsim.stages.mesh import cells_for
 from latentsim.scene import bc_parameters, build_potential, dirichlet_trajectory
 from latentsim.solve.implicit_euler import ImplicitEuler, NewtonFailed, NewtonSettings, StepInfo
@@ -126,8 +127,8 @@ def _write_sequence(grp, name, data, split):
 def write_paraview(folder, model, arrays, sequences: dict, dt: float):
     """One XDMF time series per sequence (ParaView opens ``<name>.xdmf``).
 
-    The mesh is stored once at rest; each frame carries the point field
-    ``displacement`` (apply ParaView's *Warp By Vector* to see the motion).
+    The rest mesh is held by every frame (one block in ParaView: ``single_block_xdmf``); each frame carries the
+    point field ``displacement`` (apply ParaView's *Warp By Vector* to see the motion).
     """
     folder = Path(folder)
     with atomic_path(folder) as tmp:
@@ -139,5 +140,6 @@ def write_paraview(folder, model, arrays, sequences: dict, dt: float):
                     w.write_points_cells(pos[0], cells_for(model, arrays))
                     for t in range(len(pos)):
                         w.write_data(t * dt, point_data={"displacement": pos[t] - pos[0]})
+                single_block_xdmf(f"{name}.xdmf")
         if folder.exists():
             shutil.rmtree(folder)
