@@ -201,8 +201,9 @@ def _check_latent_dims(config: dict) -> None:
             continue
         points = [(f"scenes.{name}.autoencoder.latent_dim", "self_supervised", None)]
         for m in scene.get("variants", []):
-            if own_autoencoder(config, m) and "latent_dim" in config["integrator_variants"][m]["autoencoder"]:
-                points.append((f"integrator_variants.{m}.autoencoder.latent_dim", m, None))
+            if own_autoencoder(config, m):
+                block = config["integrator_variants"][m]["autoencoder"]
+                points.append((f"integrator_variants.{m}.autoencoder.{'pca_samples' if 'latent_dim' not in block else 'latent_dim'}", m, None))
         sweep = scene.get("sweep", {})
         for r in sweep.get("latent_dims", []):
             points.append((f"scenes.{name}.sweep.latent_dims", sweep.get("method", "self_supervised"), r))
