@@ -4,12 +4,19 @@
 ``ConfigError`` at the first problem with a message that names the key (as a
 dotted path), the offending value and what is allowed.  The Snakefile calls it
 on load, so a malformed config stops the run before any job starts.
+
+Beyond the schema it rejects what the schema cannot say: a NaN or infinite number anywhere
+(JSON-schema bounds compare false for NaN, and inf passes ``> 0``; no key takes an infinite
+value), two sequences of a scene stored under one name, a scene without a training or a test
+sequence, and a latent dimension above the number of independent directions the scene's
+training frames can have.
 """
 
 from __future__ import annotations
 
 import copy
 import functools
+import math
 from pathlib import Path
 
 import jsonschema
@@ -59,6 +66,7 @@ def _describe(error: jsonschema.ValidationError) -> str:
 
 def validate_config(config: dict, schema_path=SCHEMA) -> dict:
     """Validate ``config`` in place (filling defaults) and return it."""
+    _check_finite(config)
     with open(schema_path) as fh:
         schema = yaml.safe_load(fh)
     validator = _Validator(schema)
@@ -68,8 +76,24 @@ def validate_config(config: dict, schema_path=SCHEMA) -> dict:
         error = max(errors, key=lambda e: len(list(e.absolute_path)))
         raise ConfigError(_describe(error))
     _check_variants(config)
+    _check_sequences(config)
     _check_nm_study(config)
+    _check_latent_dims(config)
     return config
+
+
+def _check_finite(value, path: str = "") -> None:
+    """Every number in ``value`` (nested dicts and lists) must be finite: YAML reads ``.nan`` and
+    ``.inf``, and ``--config key=nan`` gives a float NaN, all of which the schema's bounds let
+    through.  No key of the schema takes an infinite value."""
+    if isinstance(value, dict):
+        for k, v in value.items():
+            _check_finite(v, f"{path}.{k}" if path else str(k))
+    elif isinstance(value, (list, tuple)):
+        for i, v in enumerate(value):
+            _check_finite(v, f"{path}.{i}" if path else str(i))
+    elif isinstance(value, float) and not math.isfinite(value):
+        raise ConfigError(f"config key '{path or '<top level>'}': {value!r} is not a finite number")
 
 
 def schema_defaults(definition: str, schema_path=SCHEMA) -> dict:
@@ -123,6 +147,79 @@ def _check_variants(config: dict) -> None:
         method = scene.get("sweep", {}).get("method", "self_supervised")
         if method != "self_supervised" and method not in scene.get("variants", []):
             raise ConfigError(f"config key 'scenes.{name}.sweep.method': {method!r} is not one of the scene's methods: {['self_supervised', *scene.get('variants', [])]}")
+
+
+def _check_sequences(config: dict) -> None:
+    """A scene's sequences: one name each (the trajectories file stores them by name, and a
+    sequence with ``train_frames`` also as ``<name>_train``), ``train_frames`` within ``frames``,
+    and at least one training and one test sequence (the autoencoder and integrator train on the
+    first, the rollout and the evaluation step the second)."""
+    for name, scene in config.get("scenes", {}).items():
+        key = f"scenes.{name}.sequences"
+        stored: dict[str, str] = {}  # name in the trajectories file -> what stores it
+        for i, q in enumerate(scene.get("sequences", [])):
+            names = {q["name"]: f"sequence {i} {q['name']!r}"}
+            if q.get("train_frames"):
+                if q["train_frames"] > q["frames"]:
+                    raise ConfigError(f"config key '{key}.{i}.train_frames': {q['train_frames']} is more than the sequence's {q['frames']} frames")
+                names[f"{q['name']}_train"] = f"sequence {i} {q['name']!r} (its first train_frames frames)"
+            for n, what in names.items():
+                if n in stored:
+                    raise ConfigError(
+                        f"config key '{key}.{i}.name': scene {name} stores {what} as {n!r}, as it does {stored[n]}; "
+                        "one name holds one sequence in the trajectories file: give each sequence its own name"
+                    )
+                stored[n] = what
+        splits = {q.get("split", "train") for q in scene.get("sequences", [])}
+        if any(q.get("train_frames") for q in scene.get("sequences", [])):
+            splits.add("train")
+        for split, use in (("train", "the autoencoder and integrator train on"), ("test", "the rollout and the evaluation step")):
+            if split not in splits:
+                raise ConfigError(
+                    f"config key '{key}': scene {name} has no sequence of split {split} ({use} them); "
+                    f"its sequences: {[(q['name'], q.get('split', 'train')) for q in scene.get('sequences', [])]}"
+                    + ("; a test sequence with train_frames also trains on its first frames" if split == "train" else "")
+                )
+
+
+def _train_frames(scene: dict) -> list[int]:
+    """Frames of each training sequence of a scene: those of split train, and the first
+    ``train_frames`` of each sequence that sets it."""
+    out = [int(q["frames"]) for q in scene.get("sequences", []) if q.get("split", "train") == "train"]
+    return out + [int(q["train_frames"]) for q in scene.get("sequences", []) if q.get("train_frames")]
+
+
+def _check_latent_dims(config: dict) -> None:
+    """No latent dimension above the rank the scene's training frames can have.
+
+    Every sequence starts at the rest state, so T frames in s sequences are at most T - s + 1
+    distinct rows, and their centred PCA has at most T - s directions (at most ``pca_samples`` - 1
+    when the PCA sees a subset).  The autoencoder stage checks the data's actual rank."""
+    for name, scene in config.get("scenes", {}).items():
+        frames = _train_frames(scene)
+        if not frames:
+            continue
+        points = [(f"scenes.{name}.autoencoder.latent_dim", "self_supervised", None)]
+        for m in scene.get("variants", []):
+            if own_autoencoder(config, m):
+                block = config["integrator_variants"][m]["autoencoder"]
+                points.append((f"integrator_variants.{m}.autoencoder.{'pca_samples' if 'latent_dim' not in block else 'latent_dim'}", m, None))
+        sweep = scene.get("sweep", {})
+        for r in sweep.get("latent_dims", []):
+            points.append((f"scenes.{name}.sweep.latent_dims", sweep.get("method", "self_supervised"), r))
+        for key, method, r in points:
+            ae = autoencoder_settings(config, name, method)
+            r = int(ae["latent_dim"] if r is None else r)
+            bound = sum(frames) - len(frames)
+            why = f"{sum(frames)} training frames in {len(frames)} sequence(s) of {frames} frames, each starting at the rest state"
+            if ae.get("pca_samples") is not None and ae["pca_samples"] - 1 < bound:
+                bound = ae["pca_samples"] - 1
+                why += f", of which the PCA sees pca_samples = {ae['pca_samples']}"
+            if r > bound:
+                raise ConfigError(
+                    f"config key '{key}': latent_dim {r} of scene {name} is above the rank of its training data: "
+                    f"{why}, give at most {bound} independent directions; use latent_dim <= {bound} or add training frames"
+                )
 
 
 def _check_nm_study(config: dict) -> None:

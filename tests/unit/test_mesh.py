@@ -113,12 +113,12 @@ def test_read_mesh_meshio_nan_range_and_orientation(tmp_path):
     import meshio
 
     p = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1.0]])
-    tets = np.array([[0, 1, 2, 3], [1, 2, 4, 3]])  # second one negative
-    assert M.tet_volumes(p, tets)[1] < 0
+    tets = np.array([[0, 1, 3, 2], [1, 2, 4, 3]])  # both negative: the opposite convention
+    assert (M.tet_volumes(p, tets) < 0).all()
     path = tmp_path / "two.vtu"
     meshio.write(path, meshio.Mesh(p, [("tetra", tets)]))
     m = M.read_mesh(path)
-    assert m.flipped == 1 and (M.tet_volumes(m.vertices, m.tets) > 0).all()
+    assert m.flipped == 2 and (M.tet_volumes(m.vertices, m.tets) > 0).all()
     assert M.read_mesh(path, orient=False).flipped == 0
 
     bad = p.copy()
@@ -129,6 +129,59 @@ def test_read_mesh_meshio_nan_range_and_orientation(tmp_path):
     meshio.write(tmp_path / "range.vtu", meshio.Mesh(p, [("tetra", np.array([[0, 1, 2, 9]]))]))
     with pytest.raises(MeshError, match=r"range\.vtu: tet 0 has vertex index out of range"):
         M.read_mesh(tmp_path / "range.vtu")
+
+
+def _write_beam(path, tets=None, vertices=None):
+    """A 3x2x2-cell tet beam (72 positive tets) as a VTU, its tets or vertices replaced when given."""
+    import meshio
+
+    v, t = M.beam_tets(3, 2, 2, 0.3, 0.1, 0.1)
+    meshio.write(path, meshio.Mesh(v if vertices is None else vertices, [("tetra", t if tets is None else tets)]))
+    return v, t
+
+
+def test_wholly_flipped_file_is_reoriented_and_counted(tmp_path, caplog):
+    v, t = M.beam_tets(3, 2, 2, 0.3, 0.1, 0.1)
+    path = tmp_path / "flipped.vtu"
+    _write_beam(path, tets=t[:, [0, 1, 3, 2]])
+    with caplog.at_level(logging.WARNING, logger="latentsim.mesh.readers"):
+        m = M.read_mesh(path)
+    assert m.flipped == len(t) == 72
+    np.testing.assert_allclose(M.tet_volumes(m.vertices, m.tets), M.tet_volumes(v, t), rtol=1e-12)
+    assert "flipped.vtu: all 72 tets with a volume are negatively oriented; reoriented them" in caplog.text
+    assert m.check()["n_inverted"] == 0
+
+
+def test_a_minority_of_negative_tets_is_a_tangled_mesh(tmp_path):
+    """Three of 72 tets against the rest (vertex order swapped, as a tangle reads in the file): an
+    error naming the file and the counts, not a silent reorientation recorded as 0 inverted."""
+    v, t = M.beam_tets(3, 2, 2, 0.3, 0.1, 0.1)
+    bad = t.copy()
+    bad[[5, 17, 40]] = bad[[5, 17, 40]][:, [0, 1, 3, 2]]
+    path = tmp_path / "tangled.vtu"
+    _write_beam(path, tets=bad)
+    with pytest.raises(MeshError, match=r"tangled\.vtu: 3 of 72 tets are negatively oriented and 69 positively "
+                       r"\(first of the 3 against the rest: tet 5 .*volume -.*tangled"):
+        M.read_mesh(path)
+    # the same the other way round: a wholly flipped file with three tets the right way
+    _write_beam(path, tets=bad[:, [0, 1, 3, 2]])
+    with pytest.raises(MeshError, match=r"tangled\.vtu: 69 of 72 tets are negatively oriented and 3 positively "
+                       r"\(first of the 3 against the rest: tet 5 "):
+        M.read_mesh(path)
+
+
+def test_a_vertex_pushed_through_its_tets_is_a_tangled_mesh(tmp_path):
+    """A geometric tangle: one interior vertex moved past the opposite faces of some of its tets."""
+    v, t = M.beam_tets(3, 2, 2, 0.3, 0.1, 0.1)
+    inner = int(np.argmin(np.linalg.norm(v - [0.1, 0.0, 0.0], axis=1)))  # an interior vertex
+    moved = v.copy()
+    moved[inner, 1] += 0.08  # past its neighbours a cell (0.05) above: tets around it turn inside out
+    n_neg = int((M.tet_volumes(moved, t) < 0).sum())
+    assert 0 < n_neg < len(t) / 2
+    path = tmp_path / "pushed.vtu"
+    _write_beam(path, vertices=moved)
+    with pytest.raises(MeshError, match=rf"pushed\.vtu: {n_neg} of 72 tets are negatively oriented"):
+        M.read_mesh(path)
 
 
 # ---------------------------------------------------------------------------

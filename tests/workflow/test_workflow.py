@@ -121,6 +121,14 @@ def test_slurm_profile_dry_run(tmp_path):
         (lambda c: c["scenes"]["tiny_rods"]["material"].update(youngs_modulus=-5.0), "scenes.tiny_rods.material.youngs_modulus"),
         (lambda c: c["scenes"]["tiny_cloth"]["material"].update(density="heavy"), "scenes.tiny_cloth.material.density"),
         (lambda c: c["scenes"]["tiny_cloth"].update(variants=["nonexistent"]), "scenes.tiny_cloth.variants"),
+        # non-finite numbers (YAML .nan, .inf), which the schema's bounds let through
+        (lambda c: c["scenes"]["tiny_rods"]["material"].update(youngs_modulus=float("nan")), "scenes.tiny_rods.material.youngs_modulus': nan is not a finite number"),
+        (lambda c: c["scenes"]["tiny_cloth"].update(gravity=[0.0, float("-inf"), 0.0]), "scenes.tiny_cloth.gravity.1': -inf is not a finite number"),
+        (lambda c: c["scenes"]["tiny_rods"]["integrator"].update(lr=float("inf")), "scenes.tiny_rods.integrator.lr': inf is not a finite number"),
+        # what the config alone shows would go wrong after jobs have run
+        (lambda c: c["scenes"]["tiny_rods"]["sequences"][1].update(name="train_slow"), "scenes.tiny_rods.sequences.1.name': scene tiny_rods stores sequence 1 'train_slow' as 'train_slow', as it does sequence 0"),
+        (lambda c: c["scenes"]["tiny_rods"]["sequences"].pop(), "scenes.tiny_rods.sequences': scene tiny_rods has no sequence of split test"),
+        (lambda c: c["scenes"]["tiny_nm"]["autoencoder"].update(latent_dim=16), "scenes.tiny_nm.autoencoder.latent_dim': latent_dim 16 of scene tiny_nm is above the rank of its training data: 16 training frames"),
     ],
 )
 def test_malformed_config_stops_before_any_job(tmp_path, edit, key):
@@ -130,7 +138,16 @@ def test_malformed_config_stops_before_any_job(tmp_path, edit, key):
     bad.write_text(yaml.safe_dump(cfg))
     proc = snakemake("all", "--cores", "1", "--configfile", str(bad), "--directory", str(tmp_path), check=False)
     assert proc.returncode != 0
-    assert f"config key '{key}'" in proc.stdout + proc.stderr
+    assert f"config key '{key}" in proc.stdout + proc.stderr
+    assert not (tmp_path / "results").exists()
+
+
+def test_a_non_finite_number_on_the_command_line_stops_before_any_job(tmp_path):
+    """``--config key=nan`` reaches the config as a float NaN (YAML files give ``.nan``)."""
+    for value in ("nan", "inf"):
+        proc = snakemake("all", "--cores", "1", "--configfile", str(TINY), "--config", f"seed={value}", "--directory", str(tmp_path), check=False)
+        assert proc.returncode != 0
+        assert f"config key 'seed': {value} is not a finite number" in proc.stdout + proc.stderr
     assert not (tmp_path / "results").exists()
 
 

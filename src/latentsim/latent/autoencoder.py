@@ -24,6 +24,14 @@ from latentsim.latent.base import TrainingDiverged, minibatches, resolve_device
 from latentsim.latent.coordinates import RelativeCoordinates
 
 
+# a PCA direction counts when its std exceeds this fraction of the first's (eigenvalue 1e-12)
+RANK_TOL = 1e-6
+
+
+class LatentRankError(ValueError):
+    """The training data have fewer independent directions than the latent dimension."""
+
+
 def pca_basis(U: torch.Tensor, p: int, max_samples: int | None = None, seed: int = 0):
     """Top-p principal directions of the rows of U.
 
@@ -146,8 +154,12 @@ class Autoencoder(nn.Module):
 
     @torch.no_grad()
     def init_pca(self, U: torch.Tensor, max_samples: int | None = 4000, seed: int = 0) -> dict:
-        """Initialise the outer layers from PCA of U (N, d); returns PCA stats."""
+        """Initialise the outer layers from PCA of U (N, d); returns PCA stats: ``scale`` s,
+        ``explained_std`` (pca_dim,), ``rank`` (directions whose std exceeds ``RANK_TOL`` of the
+        first's, the cut of :func:`pca_basis`) and ``frames`` (the rows the PCA saw)."""
         mean, V, std = pca_basis(U, self.pca_dim, max_samples=max_samples, seed=seed)
+        rank = int((std > RANK_TOL * std[0]).sum()) if float(std[0]) > 0 else 0
+        frames = U.shape[0] if max_samples is None else min(U.shape[0], max_samples)
         s = float(std[0]) if float(std[0]) > 0 else 1.0
         W = V / s
         dev, dt = self.pca_in.weight.device, self.pca_in.weight.dtype
@@ -155,7 +167,7 @@ class Autoencoder(nn.Module):
         self.pca_in.bias.copy_((-(W @ mean)).to(dev, dt))
         self.pca_out.weight.copy_((V.T * s).to(dev, dt))
         self.pca_out.bias.copy_(mean.to(dev, dt))
-        return {"scale": s, "explained_std": std.tolist()}
+        return {"scale": s, "explained_std": std.tolist(), "rank": rank, "frames": frames}
 
     def _flat(self, a: torch.Tensor, dim: int):
         return a.reshape(-1, dim), a.shape[:-1]
@@ -203,6 +215,12 @@ def fit_autoencoder(U: torch.Tensor, config: dict | None = None, seed: int = 0, 
         the PCA initialisation, whose weights are then returned), ``pca_scale``
         s, ``pca_dim``, ``epochs``; with ``snapshots``, ``snapshots`` {epoch: {"state"
         (state dict, on the CPU), "mse", "kept", "seconds" (training time so far)}}.
+
+    Raises
+    ------
+    LatentRankError
+        U has fewer independent directions (PCA std above ``RANK_TOL`` of the first) than
+        ``latent_dim``: the message gives the frames, the rank and the PCA spectrum.
     """
     cfg = with_defaults("autoencoder", config, "fit_autoencoder")
     device = resolve_device(device)
@@ -242,12 +260,23 @@ def fit_autoencoder(U: torch.Tensor, config: dict | None = None, seed: int = 0, 
 
 def _pca_initialised(U: torch.Tensor, cfg: dict, seed: int, device: torch.device) -> tuple[Autoencoder, float]:
     """The untrained autoencoder of settings ``cfg`` (weights seeded by ``seed``), its outer layers
-    set from PCA of U (N, d) and trainable iff ``train_pca``; and the PCA scale s."""
+    set from PCA of U (N, d) and trainable iff ``train_pca``; and the PCA scale s.  Raises
+    :class:`LatentRankError` when U has fewer independent directions than ``latent_dim``."""
     fork = [device.index or 0] if device.type == "cuda" else []
     with torch.random.fork_rng(devices=fork):
         torch.manual_seed(seed)
         model = Autoencoder(U.shape[1], int(cfg["latent_dim"]), cfg["widths"], cfg["pca_dim"] or None)
         stats = model.init_pca(U, max_samples=cfg["pca_samples"], seed=seed)
+    if stats["rank"] < model.latent_dim:
+        # the latent coordinates beyond the data's directions would carry nothing, and an
+        # integrator trained on them nothing to learn
+        n, r = stats["frames"], model.latent_dim
+        seen = f"{n} training frames" + (f" (a random {n} of {U.shape[0]}, pca_samples)" if n < U.shape[0] else "")
+        ratios = [float(f"{x / stats['explained_std'][0]:.2g}") if stats["explained_std"][0] > 0 else 0.0 for x in stats["explained_std"][:r]]
+        raise LatentRankError(
+            f"latent_dim {r} is above the rank of the training data: its {seen} have {stats['rank']} independent "
+            f"directions (PCA std / the first: {ratios}); use latent_dim <= {stats['rank']}, or train on more frames or more varied motion"
+        )
     model = model.to(device)
     for prm in list(model.pca_in.parameters()) + list(model.pca_out.parameters()):
         prm.requires_grad_(bool(cfg["train_pca"]))

@@ -27,7 +27,8 @@ Conventions
   ``det[b - a, c - a, d - a] > 0``, i.e. its signed volume
   ``dot(cross(b - a, c - a), d - a) / 6`` is positive.  Every generator and
   :func:`tetrahedralize` return positively oriented tets; :func:`read_mesh`
-  reorients negative ones (and counts them in ``Mesh.flipped``).
+  reorients a file whose tets are all negative (and counts them in
+  ``Mesh.flipped``) and rejects one with tets of both orientations (tangled).
 * A closed surface triangle ``(a, b, c)`` is oriented with its normal
   ``cross(b - a, c - a)`` pointing out of the enclosed volume;
   :func:`surface_of` returns boundary faces oriented that way.

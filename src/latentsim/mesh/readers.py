@@ -3,8 +3,9 @@
 ``.obj`` is parsed here (:func:`read_obj`: 1-based and negative indices,
 polygons fan-triangulated); ``.vtu``, ``.mesh`` (MEDIT), ``.msh``, ``.vtk`` ...
 go through meshio.  Every reader checks coordinates (finite) and indices (in
-range) and names the file (and line) of a problem; :func:`read_mesh` turns
-negatively oriented tets positive (``det[b - a, c - a, d - a] > 0``).
+range) and names the file (and line) of a problem; :func:`read_mesh` turns a
+file whose tets are all negatively oriented positive (``det[b - a, c - a, d - a] > 0``)
+and rejects one whose tets are of both orientations (tangled).
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ class Mesh:
         Usually the file name.
     flipped : int
         How many tets the reader reoriented (swapped two vertices) because
-        they had negative volume in the file.
+        they had negative volume in the file: 0, or all of them.
     """
 
     vertices: np.ndarray
@@ -254,8 +255,10 @@ def read_mesh(path: str | os.PathLike, orient: bool = True) -> Mesh:
     ----------
     path : path
     orient : bool
-        Reorient negatively oriented tets by swapping their last two vertices
-        (counted in ``Mesh.flipped`` and logged).  All five pinned meshes are
+        Check the tets' orientation: a file whose tets are all negatively
+        oriented (the opposite convention) is reoriented by swapping their last
+        two vertices (counted in ``Mesh.flipped`` and logged); a file with tets
+        of both orientations is tangled and raises.  All five pinned meshes are
         already positively oriented (``flipped == 0``).
 
     Returns
@@ -266,7 +269,8 @@ def read_mesh(path: str | os.PathLike, orient: bool = True) -> Mesh:
     ------
     MeshError
         Missing file, unreadable content, no usable cells, non-finite
-        coordinates or out-of-range indices; the message names the file.
+        coordinates, out-of-range indices or (``orient``) tets of both
+        orientations; the message names the file (and the counts).
     """
     path = Path(path)
     if not path.is_file():
@@ -282,11 +286,21 @@ def read_mesh(path: str | os.PathLike, orient: bool = True) -> Mesh:
             as_cells(cells, k, f"{path}: {label}", len(vertices))
     flipped = 0
     if tets is not None and orient:
-        neg = tet_volumes(vertices, tets) < 0
+        vol = tet_volumes(vertices, tets)
+        neg, n_pos = vol < 0, int((vol > 0).sum())
         flipped = int(neg.sum())
-        if flipped:
+        if flipped and not n_pos:  # the opposite convention (zero volumes are check_mesh's)
             tets = reorient(tets, neg)
-            logger.warning("%s: reoriented %d of %d negatively oriented tets",
-                           path, flipped, len(tets))
+            logger.warning("%s: all %d tets with a volume are negatively oriented; reoriented them",
+                           path, flipped)
+        elif flipped:
+            # one orientation for the file with tets against it: those are inverted (tangled)
+            # elements, which a vertex swap would hide, not fix
+            i = int(np.flatnonzero(neg if flipped <= n_pos else vol > 0)[0])
+            raise MeshError(
+                f"{path}: {flipped} of {len(tets)} tets are negatively oriented and {n_pos} "
+                f"positively (first of the {min(flipped, n_pos)} against the rest: tet {i} {tets[i].tolist()}, volume "
+                f"{vol[i]:.6g}): the mesh is tangled (inverted elements); repair it in the mesher "
+                f"that wrote it")
     return Mesh(vertices=vertices, triangles=triangles, tets=tets, name=path.name,
                 flipped=flipped)

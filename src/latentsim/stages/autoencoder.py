@@ -14,7 +14,7 @@ import torch
 
 from latentsim.config import with_defaults
 from latentsim.io import atomic_h5, write_dataset
-from latentsim.latent.autoencoder import decode_latents, encode_positions, fit_autoencoder
+from latentsim.latent.autoencoder import LatentRankError, decode_latents, encode_positions, fit_autoencoder
 from latentsim.latent.coordinates import coordinates_for
 from latentsim.latent.data import load_sequences
 from latentsim.latent.serialization import save_module
@@ -46,9 +46,13 @@ def train_autoencoder(trajectories, settings: dict, seed: int, device: str, out_
         train = load_sequences(f, "train")
         every = load_sequences(f)
         diag = bbox_diagonal(f["rest_positions"][()])
+        scene = f.attrs.get("scene", "?")
     U = torch.cat([coords.encode(torch.as_tensor(s["positions"]), torch.as_tensor(s["dirichlet_positions"])) for s in train.values()])
     t0 = time.perf_counter()
-    ae, history = fit_autoencoder(U.to(torch.float32), cfg, seed=seed, device=device, progress=progress)
+    try:
+        ae, history = fit_autoencoder(U.to(torch.float32), cfg, seed=seed, device=device, progress=progress)
+    except LatentRankError as e:
+        raise LatentRankError(f"scene {scene} ({trajectories}, training sequences {sorted(train)}): {e}") from None
     seconds = time.perf_counter() - t0
     ae = ae.cpu()
     log.info(

@@ -1,0 +1,186 @@
+"""Bad input named before it costs a run: non-finite config numbers, sequences that collide or are
+missing, a latent dimension the training data cannot fill (in the config and in the data)."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from latentsim.config import ConfigError, load_config, validate_config
+from latentsim.latent.autoencoder import LatentRankError, fit_autoencoder
+from latentsim.stages.autoencoder import train_autoencoder
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture
+def tiny():
+    return yaml.safe_load((ROOT / "config" / "tiny.yaml").read_text())
+
+
+def _numbers(value, path=()):
+    """(path, number) of every int or float leaf (not bool) of a nested config."""
+    if isinstance(value, dict):
+        for k, v in value.items():
+            yield from _numbers(v, path + (k,))
+    elif isinstance(value, list):
+        for i, v in enumerate(value):
+            yield from _numbers(v, path + (i,))
+    elif isinstance(value, (int, float)) and not isinstance(value, bool):
+        yield path, value
+
+
+def _set(cfg, path, value):
+    for k in path[:-1]:
+        cfg = cfg[k]
+    cfg[path[-1]] = value
+
+
+# --- non-finite numbers ----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), float("-inf")])
+def test_a_non_finite_value_in_any_numeric_key_is_named(tiny, bad):
+    """Every number of the tiny config with its defaults filled (the schema's bounds let NaN, and inf
+    where only a lower bound is given, through)."""
+    full = validate_config(copy.deepcopy(tiny))
+    leaves = list(_numbers(full))
+    assert len(leaves) > 300  # every scene's material, dt, gravity, solver, training, study settings
+    for path, _ in leaves:
+        cfg = copy.deepcopy(full)
+        _set(cfg, path, bad)
+        key = ".".join(map(str, path))
+        with pytest.raises(ConfigError, match=rf"^config key '{key}': {bad!r} is not a finite number$"):
+            validate_config(cfg)
+
+
+def test_yaml_nan_and_inf_are_named_with_the_file(tiny, tmp_path):
+    text = (ROOT / "config" / "tiny.yaml").read_text()
+    for yaml_value, shown in ((".nan", "nan"), (".inf", "inf"), ("-.inf", "-inf")):
+        path = tmp_path / "bad.yaml"
+        path.write_text(text.replace("youngs_modulus: 1.0e+7", f"youngs_modulus: {yaml_value}", 1))
+        with pytest.raises(ConfigError, match=rf"bad\.yaml: config key 'scenes\.tiny_rods\.material\.youngs_modulus': {shown} is not a finite number"):
+            load_config(path)
+    # YAML's bare nan is a string: the schema's type check names it
+    path.write_text(text.replace("youngs_modulus: 1.0e+7", "youngs_modulus: nan", 1))
+    with pytest.raises(ConfigError, match=r"'scenes\.tiny_rods\.material\.youngs_modulus': 'nan' is a str, expected number"):
+        load_config(path)
+
+
+# --- sequences --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda c: c["scenes"]["tiny_rods"]["sequences"][1].update(name="train_slow"),
+         r"'scenes\.tiny_rods\.sequences\.1\.name': scene tiny_rods stores sequence 1 'train_slow' as 'train_slow', as it does sequence 0 'train_slow'"),
+        # a sequence with train_frames is also stored as <name>_train
+        (lambda c: c["scenes"]["tiny_cloth"]["sequences"].append({"name": "line_train", "split": "train", "frames": 10}),
+         r"'scenes\.tiny_cloth\.sequences\.1\.name': scene tiny_cloth stores sequence 1 'line_train' as 'line_train', as it does sequence 0 'line' \(its first train_frames frames\)"),
+        (lambda c: c["scenes"]["tiny_rods"]["sequences"].pop(),
+         r"'scenes\.tiny_rods\.sequences': scene tiny_rods has no sequence of split test .*\[\('train_slow', 'train'\), \('train_fast', 'train'\)\]"),
+        (lambda c: c["scenes"]["tiny_rods"]["sequences"].__delitem__(slice(0, 2)),
+         r"'scenes\.tiny_rods\.sequences': scene tiny_rods has no sequence of split train .*\[\('test_mid', 'test'\)\]"),
+        (lambda c: c["scenes"]["tiny_cloth"]["sequences"][0].pop("train_frames"),
+         r"'scenes\.tiny_cloth\.sequences': scene tiny_cloth has no sequence of split train"),
+        # the schema's default sequences are one training sequence: a scene must list its own
+        (lambda c: c["scenes"]["tiny_cloth"].pop("sequences"),
+         r"'scenes\.tiny_cloth\.sequences': scene tiny_cloth has no sequence of split test .*\[\('rest', 'train'\)\]"),
+        (lambda c: c["scenes"]["tiny_cloth"]["sequences"][0].update(train_frames=61),
+         r"'scenes\.tiny_cloth\.sequences\.0\.train_frames': 61 is more than the sequence's 60 frames"),
+    ],
+)
+def test_sequences_that_collide_or_are_missing_are_named(tiny, edit, message):
+    edit(tiny)
+    with pytest.raises(ConfigError, match=message):
+        validate_config(tiny)
+
+
+# --- latent dimension above the rank of the training data -----------------------------------------
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        # tiny_nm trains on bounce_train alone: 16 frames from the rest state, 15 directions at most
+        (lambda c: c["scenes"]["tiny_nm"]["autoencoder"].update(latent_dim=16),
+         r"'scenes\.tiny_nm\.autoencoder\.latent_dim': latent_dim 16 of scene tiny_nm is above the rank of its training data: "
+         r"16 training frames in 1 sequence\(s\) of \[16\] frames.* at most 15 independent directions; use latent_dim <= 15"),
+        # tiny_rods: 2 x 40 frames, each from the rest state: 78
+        (lambda c: c["integrator_variants"]["small"]["autoencoder"].update(latent_dim=79),
+         r"'integrator_variants\.small\.autoencoder\.latent_dim': latent_dim 79 of scene tiny_rods .*80 training frames in 2 sequence\(s\) of \[40, 40\].*at most 78"),
+        (lambda c: c["scenes"]["tiny_cloth"]["sweep"].update(latent_dims=[2, 40]),
+         r"'scenes\.tiny_cloth\.sweep\.latent_dims': latent_dim 40 of scene tiny_cloth .*at most 39"),
+        (lambda c: c["scenes"]["tiny_cloth"]["autoencoder"].update(pca_samples=4),
+         r"'scenes\.tiny_cloth\.autoencoder\.latent_dim': latent_dim 4 .*the PCA sees pca_samples = 4, give at most 3"),
+    ],
+)
+def test_a_latent_dim_above_the_training_frames_is_named(tiny, edit, message):
+    edit(tiny)
+    with pytest.raises(ConfigError, match=message):
+        validate_config(tiny)
+
+
+def test_a_latent_dim_the_training_frames_can_fill_passes(tiny):
+    tiny["scenes"]["tiny_nm"]["autoencoder"]["latent_dim"] = 15
+    tiny["scenes"]["tiny_cloth"]["autoencoder"]["pca_samples"] = 5
+    validate_config(tiny)
+
+
+def _low_rank(n_frames, dim, rank, seed=0):
+    """(n_frames, dim) float32 rows in a rank-``rank`` affine subspace (spread 1 to 0.1)."""
+    g = torch.Generator().manual_seed(seed)
+    basis = torch.linalg.qr(torch.randn(dim, rank, generator=g, dtype=torch.float64))[0].T
+    coeff = torch.randn(n_frames, rank, generator=g, dtype=torch.float64) * torch.logspace(0, -1, rank, dtype=torch.float64)
+    return (coeff @ basis + torch.randn(dim, generator=g, dtype=torch.float64)).float()
+
+
+@pytest.mark.parametrize("n_frames, dim, rank", [(6, 30, 5), (50, 12, 3)])  # fewer frames than dims, and more
+def test_fit_autoencoder_stops_at_a_latent_dim_above_the_data_rank(n_frames, dim, rank):
+    U = _low_rank(n_frames, dim, rank)
+    cfg = {"latent_dim": rank + 1, "widths": [8], "epochs": 1, "batch_size": 8}
+    with pytest.raises(LatentRankError, match=rf"latent_dim {rank + 1} is above the rank of the training data: its {n_frames} training frames "
+                                              rf"have {rank} independent directions .*use latent_dim <= {rank}"):
+        fit_autoencoder(U, cfg)
+    fit_autoencoder(U, {**cfg, "latent_dim": rank})  # as many as there are: trains
+
+
+def test_the_rank_is_that_of_the_frames_the_pca_sees():
+    U = _low_rank(40, 30, 20)
+    with pytest.raises(LatentRankError, match=r"its 6 training frames \(a random 6 of 40, pca_samples\) have 5 independent directions"):
+        fit_autoencoder(U, {"latent_dim": 6, "widths": [8], "epochs": 1, "batch_size": 8, "pca_samples": 6})
+
+
+def _trajectories(path, frames=8):
+    """A scene's trajectories.h5 as far as the autoencoder stage reads it: 5 vertices, one prescribed."""
+    g = np.random.default_rng(0)
+    rest = g.normal(size=(5, 3))
+    with h5py.File(path, "w") as f:
+        f.attrs["model"], f.attrs["scene"] = "shell", "little"
+        f["rest_positions"], f["dirichlet"] = rest, np.array([0])
+        for name, split in (("walk", "train"), ("run", "test")):
+            s = f.create_group(f"sequences/{name}")
+            s.attrs["split"] = split
+            x = rest + 0.01 * g.normal(size=(frames, 5, 3))
+            x[0] = rest
+            s["positions"], s["dirichlet_positions"], s["bc"] = x, x[:, :1], np.zeros((frames, 6))
+    return path
+
+
+def test_the_autoencoder_stage_names_scene_file_and_rank_and_writes_nothing(tmp_path):
+    traj = _trajectories(tmp_path / "trajectories.h5")
+    model, latents = tmp_path / "autoencoder.pt", tmp_path / "latents.h5"
+    settings = {"latent_dim": 8, "widths": [16], "epochs": 1, "batch_size": 4}
+    with pytest.raises(LatentRankError, match=rf"scene little \({traj}, training sequences \['walk'\]\): latent_dim 8 is above the rank "
+                                              r"of the training data: its 8 training frames have 7 independent directions"):
+        train_autoencoder(traj, settings, 0, "cpu", model, latents)
+    assert not model.exists() and not latents.exists()
+    train_autoencoder(traj, {**settings, "latent_dim": 7}, 0, "cpu", model, latents)
+    assert model.exists() and latents.exists()
