@@ -531,6 +531,134 @@ def test_nan_raises_training_diverged_and_keeps_checkpoint(chain_setup, tmp_path
 
 
 # ---------------------------------------------------------------------------
+# training health: a training that blows up without a NaN stops, by name
+# ---------------------------------------------------------------------------
+HEALTH_CFG = dict(widths=[16], epochs=5, lr=1e-3, batch_size=40)  # 114 triplets -> 3 batches
+
+
+def test_a_blown_up_training_stops_in_its_first_epoch_naming_label_epoch_and_loss(chain_setup, tmp_path):
+    """Learning rate 1e3: the loss is 1e14 after the first epoch, finite; the integrator used to be
+    written as complete.  Now TrainingDiverged names what trained, the epoch, the loss and the bound,
+    and no checkpoint is written for the diverged epoch."""
+    ch, seqs, coords, ae = chain_setup
+    path = tmp_path / "ckpt.pt"
+    with pytest.raises(TrainingDiverged) as exc:
+        fit_integrator(ae, coords, ch.pot, seqs, {**HEALTH_CFG, "lr": 1e3}, seed=0, checkpoint_path=path, checkpoint_every=1, label="scene chain, method self_supervised")
+    e = exc.value
+    assert e.epoch == 1 and e.label == "scene chain, method self_supervised" and math.isfinite(e.value) and e.value > 1e3
+    message = str(e)
+    assert message.startswith("scene chain, method self_supervised: training diverged in epoch 1: loss ")
+    assert f"{e.value:.4g}" in message and "far above its start" in message and "integrator.divergence_factor = 100" in message
+    assert not path.exists() and not os.path.exists(str(path) + ".tmp")
+
+
+def test_a_ramped_learning_rate_diverges_later_and_the_last_good_checkpoint_stays(chain_setup, tmp_path):
+    """The learning rate ramped (cosine) from 1e-3 up to 10: healthy for some epochs, then far above
+    the start.  The checkpoint on disk is the epoch before, with finite weights and losses within the
+    bound; the history it holds starts from the same first-minibatch loss as a healthy run's."""
+    ch, seqs, coords, ae = chain_setup
+    cfg = {**HEALTH_CFG, "epochs": 30, "lr_final": 10.0}
+    path = tmp_path / "ckpt.pt"
+    with pytest.raises(TrainingDiverged, match=r"training diverged in epoch \d+: loss .* far above its start") as exc:
+        fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=0, checkpoint_path=path, checkpoint_every=1)
+    k = exc.value.epoch
+    assert 2 < k < 30
+    state = torch.load(path, weights_only=True)
+    assert state["epoch"] == k - 1 and all(torch.isfinite(v).all() for v in state["model"].values())
+    h = state["history"]
+    bound = h["loss_start"] + 100 * h["loss_scale"]
+    assert len(h["loss"]) == k - 1 and max(h["loss"]) <= bound < exc.value.value
+    _, healthy = fit_integrator(ae, coords, ch.pot, seqs, HEALTH_CFG, seed=0)
+    assert healthy["loss_start"] == h["loss_start"] and healthy["loss_scale"] == h["loss_scale"]
+    assert max(healthy["loss"]) <= healthy["loss_start"] + 0.5 * healthy["loss_scale"]  # far inside the bound
+
+
+def test_a_configured_loss_bound_stops_the_training(chain_setup):
+    ch, seqs, coords, ae = chain_setup
+    _, healthy = fit_integrator(ae, coords, ch.pot, seqs, HEALTH_CFG, seed=0)
+    bound = min(healthy["loss"]) - abs(min(healthy["loss"])) - 1.0  # below every epoch's loss
+    with pytest.raises(TrainingDiverged, match=r"^chain: training diverged in epoch 1: loss \S+ above integrator.max_loss = ") as exc:
+        fit_integrator(ae, coords, ch.pot, seqs, {**HEALTH_CFG, "max_loss": bound}, seed=0, label="chain")
+    assert exc.value.value == healthy["loss"][0]
+
+
+def test_latents_leaving_the_training_range_stop_the_training(chain_setup):
+    """One-step predictions from ground-truth inputs stay within about the radius R of the training
+    latents (the healthy run: at most 1.1 R); a blow-up whose loss rule is switched off is caught
+    by the latent range alone, and a factor below 1 trips even on a healthy training."""
+    ch, seqs, coords, ae = chain_setup
+    _, healthy = fit_integrator(ae, coords, ch.pot, seqs, HEALTH_CFG, seed=0)
+    assert 0.5 * healthy["latent_radius"] < max(healthy["latent_distance"]) < 2 * healthy["latent_radius"]
+    with pytest.raises(TrainingDiverged, match=r"epoch 1: the predicted latents leave the training range: .* times their radius") as exc:
+        fit_integrator(ae, coords, ch.pot, seqs, {**HEALTH_CFG, "lr": 1e3, "divergence_factor": 1e30}, seed=0)
+    assert exc.value.value > 10 * healthy["latent_radius"]
+    with pytest.raises(TrainingDiverged, match=r"latent_range_factor = 0.5"):
+        fit_integrator(ae, coords, ch.pot, seqs, {**HEALTH_CFG, "latent_range_factor": 0.5}, seed=0)
+
+
+class _Killed(Exception):
+    pass
+
+
+class _Clock:
+    """Wraps a potential: every evaluation (one per minibatch) advances a clock by one second, and
+    the evaluation after ``kill_after`` raises (a kill -9 mid-epoch)."""
+
+    def __init__(self, pot, start=0.0, kill_after=None):
+        self.pot, self.now, self.kill_after, self.calls = pot, float(start), kill_after, 0
+
+    def __getattr__(self, name):
+        return getattr(self.pot, name)
+
+    def __call__(self, *a, **k):
+        self.calls += 1
+        if self.kill_after is not None and self.calls > self.kill_after:
+            raise _Killed
+        self.now += 1.0
+        return self.pot(*a, **k)
+
+
+def test_a_resumed_training_records_the_sum_of_its_parts(chain_setup, tmp_path, monkeypatch):
+    """On a clock that ticks once per minibatch (3 per epoch): the uninterrupted 6 epochs take 18 s;
+    a run killed in epoch 5 leaves the checkpoint of epoch 4 with its 12 s, and the resumed run adds
+    its own 6 s: 18 s, with the uninterrupted run's weights (the killed run's lost part, after
+    its checkpoint, is redone and counted once)."""
+    from types import SimpleNamespace
+
+    from latentsim.latent import training
+
+    ch, seqs, coords, ae = chain_setup
+    cfg = {**HEALTH_CFG, "epochs": 6}
+
+    def run(clock, path=None):
+        monkeypatch.setattr(training, "time", SimpleNamespace(perf_counter=lambda: clock.now))
+        return fit_integrator(ae, coords, clock, seqs, cfg, seed=3, checkpoint_path=path, checkpoint_every=2)
+
+    full, hf = run(_Clock(ch.pot, start=100.0))
+    assert hf["train_seconds"] == 18.0
+    path = tmp_path / "ckpt.pt"
+    with pytest.raises(_Killed):
+        run(_Clock(ch.pot, kill_after=13), path)
+    state = torch.load(path, weights_only=True)
+    assert state["epoch"] == 4 and state["train_seconds"] == 12.0
+    resumed, hr = run(_Clock(ch.pot, start=5000.0), path)
+    assert hr["start_epoch"] == 4 and hr["train_seconds"] == 18.0
+    assert hr["loss"] == hf["loss"] and all(torch.equal(a, b) for a, b in zip(full.state_dict().values(), resumed.state_dict().values()))
+
+
+def test_a_blown_up_autoencoder_training_stops_naming_label_epoch_and_loss():
+    U = torch.as_tensor(_arc_family(), dtype=torch.float32)
+    cfg = dict(latent_dim=2, widths=[16], epochs=4, batch_size=32)
+    _, healthy = fit_autoencoder(U, {**cfg, "lr": 1e-3}, seed=0)
+    assert max(healthy["loss"]) < healthy["loss_start"] + 1.0  # within the bound (the scale's floor 0.01 x 100)
+    with pytest.raises(TrainingDiverged, match=r"^scene arc: training diverged in epoch 1: loss \S+ far above its start .*autoencoder.divergence_factor") as exc:
+        fit_autoencoder(U, {**cfg, "lr": 1e3}, seed=0, label="scene arc")
+    assert exc.value.value > 1.0
+    with pytest.raises(TrainingDiverged, match=r"above autoencoder.max_loss = 1e-12"):
+        fit_autoencoder(U, {**cfg, "lr": 1e-3, "max_loss": 1e-12}, seed=0)
+
+
+# ---------------------------------------------------------------------------
 # rollout
 # ---------------------------------------------------------------------------
 class _Scaling(torch.nn.Module):

@@ -15,6 +15,7 @@ def main(smk):
         smk.output.history,
         checkpoint=smk.params.checkpoint,
         progress=progress_enabled(smk.config.get("progress", True)),
+        label=f"scene {smk.wildcards.scene}, method {smk.wildcards.method}",
     )
 
 

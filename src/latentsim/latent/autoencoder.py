@@ -20,7 +20,7 @@ from torch import nn
 from tqdm import tqdm
 
 from latentsim.config import with_defaults
-from latentsim.latent.base import TrainingDiverged, minibatches, resolve_device
+from latentsim.latent.base import LossHealth, TrainingDiverged, minibatches, resolve_device
 from latentsim.latent.coordinates import RelativeCoordinates
 
 
@@ -190,20 +190,22 @@ class Autoencoder(nn.Module):
         return self.decode(self.encode(u))
 
 
-def fit_autoencoder(U: torch.Tensor, config: dict | None = None, seed: int = 0, device="cpu", progress: bool = False, snapshots=()):
+def fit_autoencoder(U: torch.Tensor, config: dict | None = None, seed: int = 0, device="cpu", progress: bool = False, snapshots=(), label: str = ""):
     """Train an :class:`Autoencoder` on encoded frames (paper Eq. 2).
 
     Parameters
     ----------
     U : (N, d) encoded training frames (output of :meth:`RelativeCoordinates.encode`).
     config : settings of the config schema's ``autoencoder`` (latent_dim, widths, pca_dim (0: the
-        first width), epochs, lr, batch_size, train_pca, pca_samples); those absent take the
+        first width), epochs, lr, batch_size, train_pca, pca_samples, and the health rule's
+        divergence_factor and max_loss); those absent take the
         schema's defaults (:func:`latentsim.config.with_defaults`); ``coordinates`` is not read here.
     seed : seeds weight init and minibatch order (bitwise reproducible on CPU).
     device : anything :func:`resolve_device` accepts.
     progress : show a tqdm bar over epochs.
     snapshots : epochs (0 = the PCA initialisation) after which to keep the weights this call
         would have returned had it stopped there (learning curves, early stopping).
+    label : what trains, for messages (e.g. "scene tiny_rods").
 
     Returns
     -------
@@ -214,13 +216,19 @@ def fit_autoencoder(U: torch.Tensor, config: dict | None = None, seed: int = 0, 
         returned), ``kept`` ('trained', or 'pca' when training ended worse than
         the PCA initialisation, whose weights are then returned), ``pca_scale``
         s, ``pca_dim``, ``epochs``; with ``snapshots``, ``snapshots`` {epoch: {"state"
-        (state dict, on the CPU), "mse", "kept", "seconds" (training time so far)}}.
+        (state dict, on the CPU), "mse", "kept", "seconds" (training time so far)}};
+        ``loss_start``, ``loss_scale`` (:class:`~latentsim.latent.base.LossHealth`).
 
     Raises
     ------
     LatentRankError
         U has fewer independent directions (PCA std above ``RANK_TOL`` of the first) than
         ``latent_dim``: the message gives the frames, the rank and the PCA spectrum.
+    TrainingDiverged
+        Naming ``label``, the epoch and the loss, when a loss is not finite or an epoch's mean
+        loss is far above the PCA start's (:class:`~latentsim.latent.base.LossHealth` with a least
+        scale of 0.01, the normalised loss being dimensionless) or above ``max_loss``. A milder
+        worsening is no divergence: the PCA start is then returned (``kept``).
     """
     cfg = with_defaults("autoencoder", config, "fit_autoencoder")
     device = resolve_device(device)
@@ -240,12 +248,20 @@ def fit_autoencoder(U: torch.Tensor, config: dict | None = None, seed: int = 0, 
     t_start = time.perf_counter()
     if 0 in wanted:
         _snapshot(model, Ud, history, pca_state, 0, t_start)
+    health = LossHealth(cfg["divergence_factor"], cfg["max_loss"], floor=0.01, key="autoencoder")
     bar = tqdm(range(epochs), desc="autoencoder", disable=not progress, leave=False)
     for epoch in bar:
-        history["loss"].append(_autoencoder_epoch(model, opt, Ud, s, int(cfg["batch_size"]), gen, epoch))
+        try:
+            loss = _autoencoder_epoch(model, opt, Ud, s, int(cfg["batch_size"]), gen, epoch, health)
+            health.check(epoch, loss)
+        except TrainingDiverged as e:
+            e.label = e.label or label
+            raise
+        history["loss"].append(loss)
         bar.set_postfix(loss=f"{history['loss'][-1]:.3e}")
         if epoch + 1 in wanted:
             _snapshot(model, Ud, history, pca_state, epoch + 1, t_start)
+    history.update(health.state())
     history["mse_final"] = reconstruction_mse(model, Ud)
     # Never return a model worse than its own PCA initialisation (small data sets whose PCA is
     # already near exact can get worse under SGD noise): keep the PCA start instead, and say so.
@@ -296,16 +312,20 @@ def reconstruction_mse(model: Autoencoder, U: torch.Tensor, chunk: int = 4096) -
     return err / (N * d)
 
 
-def _autoencoder_epoch(model: Autoencoder, opt, U: torch.Tensor, s: float, batch_size: int, gen: torch.Generator, epoch: int) -> float:
-    """One epoch of Adam on the normalised MSE ``|(AE(u) - u) / s|^2`` (Eq. 2); its mean loss."""
+def _autoencoder_epoch(model: Autoencoder, opt, U: torch.Tensor, s: float, batch_size: int, gen: torch.Generator, epoch: int, health: LossHealth | None = None) -> float:
+    """One epoch of Adam on the normalised MSE ``|(AE(u) - u) / s|^2`` (Eq. 2); its mean loss.  The
+    first minibatch of a training sets ``health``'s start and scale."""
     model.train()
     tot, cnt = 0.0, 0
     for idx in minibatches(U.shape[0], batch_size, gen, min_size=2):
         idx = idx.to(U.device)
         ub = U[idx]
-        loss = (((model(ub) - ub) / s) ** 2).mean()
+        r2 = ((model(ub) - ub) / s) ** 2
+        loss = r2.mean()
         if not torch.isfinite(loss):
             raise TrainingDiverged(epoch + 1)
+        if health is not None:
+            health.first_batch(float(loss.detach()), r2.detach().mean(-1))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

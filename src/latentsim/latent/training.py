@@ -15,6 +15,7 @@ import json
 import logging
 import math
 import os
+import time
 from typing import Any, Sequence
 
 import torch
@@ -23,7 +24,7 @@ from tqdm import tqdm
 
 from latentsim.config import with_defaults
 from latentsim.latent.autoencoder import Autoencoder
-from latentsim.latent.base import TrainingDiverged, minibatches, potential_on, resolve_device
+from latentsim.latent.base import LossHealth, TrainingDiverged, minibatches, potential_on, resolve_device
 from latentsim.latent.coordinates import RelativeCoordinates
 from latentsim.latent.data import build_triplets
 from latentsim.latent.integrator import LatentIntegrator
@@ -59,6 +60,7 @@ def fit_integrator(
     checkpoint_path: str | os.PathLike | None = None,
     checkpoint_every: int = 10,
     compiled: bool = True,
+    label: str = "",
 ):
     """Train a :class:`LatentIntegrator` on ground-truth triplets.
 
@@ -71,7 +73,8 @@ def fit_integrator(
     config : settings of the config schema's ``integrator`` (widths, epochs, lr, lr_final (cosine
         decay of the learning rate to it; None: constant), batch_size, mode ('self_supervised' |
         'supervised'), noise_scale, supervised_weight, balancing, balancing_eps, use_penalty,
-        residual); those absent take the schema's defaults (:func:`latentsim.config.with_defaults`).
+        residual, and the health rule's divergence_factor, max_loss, latent_range_factor); those
+        absent take the schema's defaults (:func:`latentsim.config.with_defaults`).
     seed : seeds weight init, minibatch order and the training noise.
     checkpoint_path : when set, the integrator, optimiser, RNG state and history are saved every
         ``checkpoint_every`` epochs (and after the last) via a temp file and ``os.replace``; if
@@ -79,24 +82,40 @@ def fit_integrator(
         same settings, seed, architecture, training triplets and autoencoder; a run with more
         epochs may extend a shorter one at a constant learning rate), training resumes from it,
         else it starts over (logged) and overwrites it.  On CPU a resumed run is bitwise
-        identical to an uninterrupted one.
+        identical to an uninterrupted one.  The checkpoint also holds the training time so far,
+        which the resumed run adds to its own (``history["train_seconds"]``).
     compiled : on the CPU, the loss's elastic energy runs the simulator's compiled
         kernels (``physics.kernels.with_compiled_elastic``: the same formulas, 5-8x
         faster than the batched PyTorch energy under autograd); False: the terms'
         PyTorch energies.
+    label : what trains, for messages (e.g. "scene tiny_rods, method self_supervised").
 
     Returns
     -------
     integrator : trained, eval mode, on ``device``.
     history : ``loss`` (per-epoch mean weighted training loss), ``latent_mse``
         (per-epoch mean |z_pred - z_t|^2 / r on the clean half of each
-        batch), ``start_epoch`` (0, or the epoch resumed from), ``n_triplets``.
+        batch), ``start_epoch`` (0, or the epoch resumed from), ``n_triplets``,
+        ``loss_start``, ``loss_scale`` (:class:`~latentsim.latent.base.LossHealth`),
+        ``latent_radius`` R and ``latent_distance`` (per epoch, the largest |z_pred - c|, see
+        below), ``train_seconds`` (this call's time from its start, setup included, plus that
+        of the run a checkpoint resumed, up to that checkpoint; time spent after the last
+        checkpoint of a killed run is lost with its epochs).
 
     Raises
     ------
-    TrainingDiverged : a non-finite loss or gradient; the checkpoint on disk
-        (if any) is the last good one.
+    TrainingDiverged : naming ``label``, the epoch and the value, when a loss or gradient is not
+        finite, or after an epoch that breaks the health rule:
+
+        - its mean loss is far above the loss at the start or above ``max_loss``
+          (:class:`~latentsim.latent.base.LossHealth`, ``divergence_factor``);
+        - the latents leave the training range: some one-step prediction z_pred (from a clean,
+          ground-truth input) lies farther than ``latent_range_factor`` R from the centre c of
+          the training latents, where c is their mean and R the largest |z - c| over them.
+
+        The epoch's checkpoint is then not written: the one on disk (if any) is the last good one.
     """
+    t_start = time.perf_counter()
     cfg = with_defaults("integrator", config, "fit_integrator")
     if cfg["mode"] not in ("self_supervised", "supervised"):
         raise ValueError(f"mode must be 'self_supervised' or 'supervised', got {cfg['mode']!r}")
@@ -105,23 +124,55 @@ def fit_integrator(
     integ = _new_integrator(data, cfg, seed, device)
     opt = torch.optim.Adam(integ.parameters(), lr=float(cfg["lr"]))
     gen = torch.Generator().manual_seed(seed)
-    history: dict[str, Any] = {"loss": [], "latent_mse": [], "start_epoch": 0, "n_triplets": data["z"].shape[0]}
+    health = LossHealth(cfg["divergence_factor"], cfg["max_loss"], key="integrator")
+    centre, radius = _latent_range(data["z"])
+    history: dict[str, Any] = {"loss": [], "latent_mse": [], "latent_distance": [], "start_epoch": 0, "n_triplets": data["z"].shape[0], "latent_radius": radius}
     epochs, every = int(cfg["epochs"]), max(1, int(checkpoint_every))
-    start, fingerprint = 0, None
+    start, fingerprint, seconds_before = 0, None, 0.0
     if checkpoint_path is not None:
         fingerprint = training_fingerprint(cfg, seed, integ.hparams, data, ae_f)
-        start = _resume(checkpoint_path, fingerprint, epochs, integ, opt, gen, history)
+        start, seconds_before = _resume(checkpoint_path, fingerprint, epochs, integ, opt, gen, history, health)
     bar = tqdm(range(start, epochs), desc="integrator", disable=not progress, leave=False)
-    for epoch in bar:
-        _set_learning_rate(opt, cfg, epoch, epochs)
-        loss, mse = _integrator_epoch(integ, opt, ae_f, coords, pot, data, cfg, gen, epoch)
-        history["loss"].append(loss)
-        history["latent_mse"].append(mse)
-        bar.set_postfix(loss=f"{history['loss'][-1]:.4e}")
-        if checkpoint_path is not None and ((epoch + 1) % every == 0 or epoch + 1 == epochs):
-            _save_checkpoint(checkpoint_path, fingerprint, seed, epoch + 1, integ, opt, gen, history)
+    try:
+        for epoch in bar:
+            _set_learning_rate(opt, cfg, epoch, epochs)
+            loss, mse, distance = _integrator_epoch(integ, opt, ae_f, coords, pot, data, cfg, gen, epoch, health, centre)
+            health.check(epoch, loss)
+            _check_latent_range(epoch, distance, radius, float(cfg["latent_range_factor"]))
+            history["loss"].append(loss)
+            history["latent_mse"].append(mse)
+            history["latent_distance"].append(distance)
+            bar.set_postfix(loss=f"{history['loss'][-1]:.4e}")
+            if checkpoint_path is not None and ((epoch + 1) % every == 0 or epoch + 1 == epochs):
+                history.update(health.state())
+                seconds = seconds_before + time.perf_counter() - t_start
+                _save_checkpoint(checkpoint_path, fingerprint, seed, epoch + 1, integ, opt, gen, history, seconds)
+    except TrainingDiverged as e:
+        e.label = e.label or label
+        raise
+    history.update(health.state())
+    history["train_seconds"] = seconds_before + time.perf_counter() - t_start
     integ.eval()
     return integ, history
+
+
+def _latent_range(z: torch.Tensor) -> tuple[torch.Tensor, float]:
+    """The centre c (r,) of the training latents z (N, r), their mean, and the radius R of the range,
+    the largest |z - c|."""
+    centre = z.mean(0)
+    return centre, float((z - centre).norm(dim=-1).max()) if z.shape[0] else 0.0
+
+
+def _check_latent_range(epoch: int, distance: float, radius: float, factor: float) -> None:
+    """Raise TrainingDiverged when the 0-based ``epoch``'s largest |z_pred - c| exceeds
+    ``factor`` times the training range's radius R (a range of radius 0, a single latent, is not
+    checked)."""
+    if radius > 0 and not distance <= factor * radius:
+        raise TrainingDiverged(
+            epoch + 1, value=distance,
+            detail=(f"the predicted latents leave the training range: a one-step prediction lies {distance:.4g} from the training "
+                    f"latents' centre, {distance / radius:.3g} times their radius {radius:.4g} (integrator.latent_range_factor = {factor:g})"),
+        )  # fmt: skip
 
 
 def _training_setup(ae: Autoencoder, coords: RelativeCoordinates, potential, sequences: Sequence[dict], device: torch.device, compiled: bool):
@@ -156,11 +207,15 @@ def _set_learning_rate(opt, cfg: dict, epoch: int, epochs: int) -> None:
             group["lr"] = lr1 + 0.5 * (lr0 - lr1) * (1.0 + math.cos(math.pi * epoch / epochs))
 
 
-def _integrator_epoch(integ: LatentIntegrator, opt, ae: Autoencoder, coords: RelativeCoordinates, pot, data: dict, cfg: dict, gen: torch.Generator, epoch: int):
-    """One epoch of Adam over the triplets ``data`` in minibatches; the mean weighted loss and the
-    mean latent MSE on the clean samples."""
+def _integrator_epoch(
+    integ: LatentIntegrator, opt, ae: Autoencoder, coords: RelativeCoordinates, pot, data: dict, cfg: dict, gen: torch.Generator, epoch: int,
+    health: LossHealth, centre: torch.Tensor,
+):  # fmt: skip
+    """One epoch of Adam over the triplets ``data`` in minibatches; the mean weighted loss, the
+    mean latent MSE on the clean samples, and the largest distance |z_pred - centre| of a clean
+    sample's prediction.  The first minibatch of a training sets ``health``'s start and scale."""
     integ.train()
-    tot, mse, cnt = 0.0, 0.0, 0
+    tot, mse, cnt, distance = 0.0, 0.0, 0, 0.0
     for b, idx in enumerate(minibatches(data["z"].shape[0], int(cfg["batch_size"]), gen)):
         idx = idx.to(data["z"].device)
         batch = {key: val[idx] for key, val in data.items()}
@@ -172,6 +227,7 @@ def _integrator_epoch(integ: LatentIntegrator, opt, ae: Autoencoder, coords: Rel
         )  # fmt: skip
         if not torch.isfinite(loss):
             raise TrainingDiverged(epoch + 1, b)
+        health.first_batch(float(loss.detach()), info["per_sample"] * info["weights"])
         opt.zero_grad(set_to_none=True)
         loss.backward()
         if any(q.grad is not None and not torch.isfinite(q.grad).all() for q in integ.parameters()):
@@ -180,32 +236,37 @@ def _integrator_epoch(integ: LatentIntegrator, opt, ae: Autoencoder, coords: Rel
         nb = idx.numel()
         tot += float(loss.detach()) * nb
         mse += float(((info["prediction"][:nb] - batch["z"]) ** 2).mean()) * nb
+        distance = max(distance, float((info["prediction"][:nb] - centre).norm(dim=-1).max()))
         cnt += nb
-    return tot / cnt, mse / cnt
+    return tot / cnt, mse / cnt, distance
 
 
-def _resume(path, fingerprint: str, epochs: int, integ: LatentIntegrator, opt, gen: torch.Generator, history: dict) -> int:
-    """Load the checkpoint at ``path`` into the integrator, optimiser, generator and history when
-    it belongs to this training (same fingerprint, no more than ``epochs`` done); the epoch to
-    start from (0 when there is none or it belongs to another training)."""
+def _resume(path, fingerprint: str, epochs: int, integ: LatentIntegrator, opt, gen: torch.Generator, history: dict, health: LossHealth) -> tuple[int, float]:
+    """Load the checkpoint at ``path`` into the integrator, optimiser, generator, history and health
+    rule when it belongs to this training (same fingerprint, no more than ``epochs`` done); the
+    epoch to start from and the training time it records (0, 0.0 when there is none or it belongs
+    to another training)."""
     if not os.path.exists(path):
-        return 0
+        return 0, 0.0
     state = torch.load(os.fspath(path), map_location="cpu", weights_only=True)
     if state.get("fingerprint") != fingerprint or int(state["epoch"]) > epochs:
         log.warning("checkpoint %s belongs to another training (settings, seed, architecture, data or a longer run): starting over", path)
-        return 0
+        return 0, 0.0
     integ.load_state_dict(state["model"])
     opt.load_state_dict(state["optimizer"])
     gen.set_state(state["generator"])
     history["loss"] = list(state["history"]["loss"])
     history["latent_mse"] = list(state["history"]["latent_mse"])
+    history["latent_distance"] = list(state["history"]["latent_distance"])
+    health.load(state["history"])
     history["start_epoch"] = int(state["epoch"])
-    return history["start_epoch"]
+    log.info("resuming %s at epoch %d (%.1f s of training so far)", path, history["start_epoch"], float(state["train_seconds"]))
+    return history["start_epoch"], float(state["train_seconds"])
 
 
-def _save_checkpoint(path, fingerprint: str, seed: int, epoch_done: int, integ: LatentIntegrator, opt, gen: torch.Generator, history: dict) -> None:
-    """Write the state after ``epoch_done`` epochs atomically (the last good one stays on disk
-    until the new one is complete)."""
+def _save_checkpoint(path, fingerprint: str, seed: int, epoch_done: int, integ: LatentIntegrator, opt, gen: torch.Generator, history: dict, seconds: float) -> None:
+    """Write the state after ``epoch_done`` epochs, and the training time so far ``seconds``,
+    atomically (the last good one stays on disk until the new one is complete)."""
     atomic_save(
         {
             "epoch": epoch_done,
@@ -215,7 +276,8 @@ def _save_checkpoint(path, fingerprint: str, seed: int, epoch_done: int, integ: 
             "model": integ.state_dict(),
             "optimizer": opt.state_dict(),
             "generator": gen.get_state(),
-            "history": {"loss": history["loss"], "latent_mse": history["latent_mse"]},
+            "history": {k: history[k] for k in ("loss", "latent_mse", "latent_distance", "loss_start", "loss_scale")},
+            "train_seconds": float(seconds),
         },
         path,
     )

@@ -85,6 +85,42 @@ def _dot(a, b) -> float:
     return float(np.einsum("i,i->", a, b))
 
 
+def _non_finite(name: str, a) -> str | None:
+    """None when every entry of the array ``a`` is finite; else a description naming ``name``, the
+    count of non-finite entries and the first one (its index and value)."""
+    a = np.asarray(a, dtype=np.float64)
+    bad = ~np.isfinite(a)
+    if not bad.any():
+        return None
+    first = np.unravel_index(int(np.argmax(bad)), a.shape) if a.ndim else ()
+    where = f" (first at index {tuple(int(i) for i in first)}: {a[first]})" if a.ndim else f" ({float(a)})"
+    return f"{name} has {int(bad.sum())} non-finite of {a.size} entries{where}"
+
+
+def check_finite_potential(potential: IncrementalPotential) -> None:
+    """Raise ValueError naming the quantity when the time step, the masses, gravity, or a material
+    constant of one of the potential's terms (any floating tensor or number among its attributes:
+    stiffnesses, Lame parameters, rest lengths, ...) is NaN or infinite; a non-finite value there
+    would otherwise surface deep inside the compiled kernels (a numba TypingError, or an SVD that
+    does not converge)."""
+    problems = [
+        _non_finite("the time step dt", float(potential.dt)),
+        _non_finite("the masses", potential.masses.detach().cpu().numpy()),
+        _non_finite("gravity g", potential.g.detach().cpu().numpy()),
+    ]
+    for term in potential.terms:
+        for key, value in vars(term).items():
+            if torch.is_tensor(value) and value.is_floating_point():
+                problems.append(_non_finite(f"term {term.name!r}: {key}", value.detach().cpu().numpy()))
+            elif isinstance(value, float):
+                problems.append(_non_finite(f"term {term.name!r}: {key}", value))
+    problems = [q for q in problems if q]
+    if problems:
+        raise ValueError("the incremental potential is not finite (check the material constants, dt and gravity): " + "; ".join(problems))
+    if not float(potential.dt) > 0:
+        raise ValueError(f"the incremental potential's time step dt must be > 0, got {float(potential.dt)}")
+
+
 def rigidly_carried(x, D, targets):
     """x (n,3) moved by the rigid motion best mapping x[D] onto targets (Kabsch; translation if m < 3)."""
     src = x[D]
@@ -111,6 +147,7 @@ class ImplicitEuler:
     """
 
     def __init__(self, potential: IncrementalPotential, settings: NewtonSettings | None = None, threads: int | None = None):
+        check_finite_potential(potential)
         self.potential = potential
         self.settings = settings or NewtonSettings()
         n = potential.n_vertices
@@ -200,15 +237,31 @@ class ImplicitEuler:
         """The lowest-energy of the constant-velocity predictor, x_{t-1}, and x_{t-1} carried by
         the rigid motion that best maps its Dirichlet vertices onto their targets (when the
         boundary jumps, e.g. reverses, the other two stretch the elements at the boundary);
-        each with x_D = x*_D(t).  Returns x (n,3)."""
+        each with x_D = x*_D(t).  Returns x (n,3).
+
+        Raises NewtonFailed when an input is not finite, or when every candidate's energy is
+        (the message names the inputs' first non-finite entry, or the candidates' energies).
+        """
+        problems = [_non_finite(k, v) for k, v in (("x_{t-1}", x_prev), ("x_{t-2}", x_prev2), ("the Dirichlet targets", dirichlet_targets))]
+        problems = [q for q in problems if q]
+        if problems:
+            raise NewtonFailed("non-finite input to the step: " + "; ".join(problems))
         D = self.dirichlet
         candidates = [2 * x_prev - x_prev2, x_prev.copy(), rigidly_carried(x_prev, D, dirichlet_targets)]
-        best, e_best = None, np.inf
+        best, e_best, energies = None, np.inf, []
         for c in candidates:
             c[D] = dirichlet_targets
             e = self.energy(c, x_prev, x_prev2)
-            if e < e_best:
+            energies.append(e)
+            if np.isfinite(e) and e < e_best:
                 best, e_best = c, e
+        if best is None:
+            names = ("constant velocity", "x_{t-1}", "rigidly carried")
+            raise NewtonFailed(
+                "every initial guess has a non-finite energy ("
+                + ", ".join(f"{k}: {e:.3e}" for k, e in zip(names, energies))
+                + "): the state or the potential is not finite"
+            )
         return best
 
     def step(self, x_prev, x_prev2, dirichlet_targets):
@@ -222,7 +275,11 @@ class ImplicitEuler:
         Returns
         -------
         x : (n,3), info : StepInfo
-        Raises NewtonFailed when the gradient test is not met in max_iterations.
+
+        Raises
+        ------
+        NewtonFailed : the gradient test is not met in max_iterations; an input is not finite;
+            every initial guess has a non-finite energy; the gradient becomes non-finite.
         """
         s = self.settings
         info = StepInfo()
@@ -267,7 +324,7 @@ class _StepProblem:
         gnorm = float(np.sqrt(_dot(gf, gf)))
         info.gradient_norm = gnorm
         if not np.isfinite(gnorm):
-            raise NewtonFailed(f"non-finite gradient at iteration {it}", gnorm, it)
+            raise NewtonFailed(f"non-finite gradient at iteration {it} (gradient norm {gnorm})", gnorm, it)
         return gnorm <= self.tol
 
     def direction(self, x, it):

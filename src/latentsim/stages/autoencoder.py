@@ -34,11 +34,13 @@ def reconstruction_errors(ae, coords, seq: dict, diag: float) -> tuple[float, fl
     return float(d.mean()), float(d.max())
 
 
-def train_autoencoder(trajectories, settings: dict, seed: int, device: str, out_model, out_latents, progress=False):
+def train_autoencoder(trajectories, settings: dict, seed: int, device: str, out_model, out_latents, progress=False, label=""):
     """Fit the autoencoder on every training frame; encode every sequence.
 
     ``settings``: the scene's ``autoencoder`` block (keys absent take the schema's defaults), which
-    ``out_latents`` records as its config.
+    ``out_latents`` records as its config.  ``label`` names the training in messages (the scene,
+    and the method of a variant's own autoencoder).  A training that diverges raises
+    :class:`~latentsim.latent.base.TrainingDiverged` and writes neither output.
     """
     cfg = with_defaults("autoencoder", settings, "train_autoencoder")
     with h5py.File(trajectories, "r") as f:
@@ -50,7 +52,7 @@ def train_autoencoder(trajectories, settings: dict, seed: int, device: str, out_
     U = torch.cat([coords.encode(torch.as_tensor(s["positions"]), torch.as_tensor(s["dirichlet_positions"])) for s in train.values()])
     t0 = time.perf_counter()
     try:
-        ae, history = fit_autoencoder(U.to(torch.float32), cfg, seed=seed, device=device, progress=progress)
+        ae, history = fit_autoencoder(U.to(torch.float32), cfg, seed=seed, device=device, progress=progress, label=label)
     except LatentRankError as e:
         raise LatentRankError(f"scene {scene} ({trajectories}, training sequences {sorted(train)}): {e}") from None
     seconds = time.perf_counter() - t0

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import logging
 import os
-import time
 
 import h5py
 import numpy as np
@@ -23,11 +22,15 @@ from latentsim.scene import potential_from_artefact
 log = logging.getLogger(__name__)
 
 
-def train_integrator(trajectories, ae_path, settings: dict, seed: int, device: str, out_model, out_history, checkpoint=None, progress=False):
+def train_integrator(trajectories, ae_path, settings: dict, seed: int, device: str, out_model, out_history, checkpoint=None, progress=False, label=""):
     """Fit the latent integrator (self-supervised or supervised) on the training sequences.
 
     ``settings``: the method's ``integrator`` block (keys absent take the schema's defaults), which
-    ``out_history`` records as its config.
+    ``out_history`` records as its config.  ``label`` names the training in messages (scene and
+    method).  The recorded ``train_seconds`` is the training's whole time, a killed run's part up
+    to its checkpoint included.  A training that diverges raises
+    :class:`~latentsim.latent.base.TrainingDiverged` and writes neither output (the checkpoint
+    keeps the last good epoch).
     """
     cfg = with_defaults("integrator", settings, "train_integrator")
     with h5py.File(trajectories, "r") as f:
@@ -35,9 +38,10 @@ def train_integrator(trajectories, ae_path, settings: dict, seed: int, device: s
         train = load_sequences(f, "train")
         potential = potential_from_artefact(f)
     ae = load_autoencoder(ae_path)
-    t0 = time.perf_counter()
-    integ, history = fit_integrator(ae, coords, potential, list(train.values()), cfg, seed=seed, device=device, progress=progress, checkpoint_path=checkpoint)
-    seconds = time.perf_counter() - t0
+    integ, history = fit_integrator(
+        ae, coords, potential, list(train.values()), cfg, seed=seed, device=device, progress=progress, checkpoint_path=checkpoint, label=label
+    )
+    seconds = history["train_seconds"]
     log.info("integrator (%s): %d triplets, %.1f s, final loss %.4e", cfg["mode"], history["n_triplets"], seconds, history["loss"][-1])
     save_module(out_model, integ.cpu(), extra={"mode": cfg["mode"], "train_seconds": seconds})
     with atomic_h5(out_history, config=settings, seed=seed) as g:
