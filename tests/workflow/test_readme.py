@@ -36,6 +36,8 @@ RUN = [
     "snakemake --report report.html --configfile config/tiny.yaml",
     "snakemake -n all",
     "python tools/readme_glance.py",
+    "snakemake -n all --configfile config/tiny.yaml --config seed=nan",
+    "snakemake --unlock",
     "python examples/step_trained_model.py",
     "python config/examples/make_mesh.py",
     "cp config/examples/ring.yaml config/my_part.yaml",
@@ -73,7 +75,11 @@ def test_readme_quick_commands_run_as_written(tiny_run):
                    shell=True, cwd=work, check=True, capture_output=True)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=work, capture_output=True, text=True).stdout.strip()
     for command in RUN[1:]:
-        out = shell(command, work)
+        fails = "seed=nan" in command  # shown as an example of the error
+        out = shell(command, work, check=not fails)
+        if fails:
+            assert out.returncode != 0 and "config key 'seed': nan is not a finite number" in out.stdout + out.stderr
+            assert "Job stats" not in out.stdout + out.stderr  # stopped before planning any job
         if "--report" in command:
             html = (work / "report.html").read_text(errors="replace")
             assert len(html) > 100_000 and "tiny_cloth" in html
@@ -87,6 +93,8 @@ def test_readme_quick_commands_run_as_written(tiny_run):
             assert shell("python tools/readme_glance.py --check", work).returncode == 0
         elif "make_mesh" in command:
             assert shell("git diff --quiet -- config/examples/ring.stl", work).returncode == 0  # the same bytes
+        elif command == "snakemake --unlock":
+            assert "Unlocked working directory" in out.stdout + out.stderr
         elif command.startswith("grep quality"):
             assert "vertices" in out.stdout
         elif "step_trained_model" in command:
