@@ -238,8 +238,10 @@ def glance_table(df: pd.DataFrame, pts: pd.DataFrame, stress: pd.DataFrame | Non
     Columns: ``scene``, ``method``, ``ms_per_frame`` (median over test sequences), ``speedup`` (full-space
     over latent or reduced ms, both means timed in the method's own job, as Table 1), ``mean_error``
     (mean), ``max_error`` (max; both infinite where a test sequence diverged: the frames from the divergence
-    on count as failed, see :mod:`latentsim.report.metrics`), ``kinetic_ratio`` (mean; 1 for the full space, NaN where a test sequence diverged), ``test_survived`` (test sequences stable to the end, ``k/N``), ``stress_survived``
-    (stress conditions survived, ``k/N``, empty where none ran), ``on_front`` (the chart's Pareto front).
+    on count as failed, see :mod:`latentsim.report.metrics`), ``kinetic_ratio`` (mean; 1 for the full space,
+    NaN where a test sequence diverged), ``test_survived`` (test sequences stable to the end, ``k/N``),
+    ``stress_survived`` (stress conditions survived, ``k/N``, empty where none ran), ``on_front`` (the chart's
+    Pareto front; never a method that diverged).
     Sorted by scene, then ms per frame.
     """
     g = pts.copy()
