@@ -98,7 +98,7 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, error: str, colours: dict, annot
     t = pts["ms_per_frame"].to_numpy(float)
     e = pts[error].to_numpy(float)
     diverged = pts["diverged_frame"].to_numpy() >= 0
-    # a diverged method's error covers only its frames before divergence: not comparable
+    # a diverged method is never on the front, whatever its error (infinite from rollout_metrics)
     eligible_e = np.where(diverged, np.nan, e)
     pts["on_front"] = pareto_front(t, eligible_e)
     positive = np.isfinite(e) & (e > 0)
@@ -106,7 +106,7 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, error: str, colours: dict, annot
     emax = pts["max_error"].to_numpy(float) if "max_error" in pts.columns else np.full(len(pts), np.nan)
     top = np.concatenate([e[positive], emax[np.isfinite(emax) & (emax > 0)]])
     ceil = top.max() * 3 if len(top) else 1.0
-    # exact (zero-error) rows sit on the bottom edge, failed (NaN) rows on the top edge
+    # exact (zero-error) rows sit on the bottom edge, failed (NaN, or infinite: diverged) rows on the top edge
     y = np.where(positive, e, np.where(e == 0, floor, ceil))
     placed = []  # (log10 ms, log10 error) of the labels so far: a label near one moves up a line
     for i, r in enumerate(pts.itertuples(index=False)):
@@ -159,12 +159,13 @@ def speed_accuracy_chart(df: pd.DataFrame, path, scene=None, error="mean_error",
     - ``ms_per_frame`` (float > 0): wall time of one step [ms];
     - ``mean_error`` (float): error relative to the bounding-box diagonal
       (0 for the ground truth itself, drawn as a down triangle on the bottom
-      edge; NaN when not measurable, drawn as a cross on the top edge), or any
+      edge; NaN when not measurable or infinite for a method that diverged
+      (:mod:`latentsim.report.metrics`), drawn as a cross on the top edge), or any
       column named by ``error`` (e.g. ``max_error``);
     - ``max_error`` (float, optional): drawn as a whisker above the point;
     - ``diverged_frame`` (int, optional): first diverged frame, -1 when stable.
       Diverged methods are drawn hollow, labelled with the frame, and kept off
-      the Pareto front (their error covers only the frames before divergence);
+      the Pareto front (whatever their error column says);
     - ``sequence`` (str, optional).
 
     Several rows of one (scene, method) are aggregated: median ms per frame,
