@@ -52,6 +52,7 @@ def test_rollout_metrics_of_a_shifted_and_a_diverged_rollout():
     diag, D = bbox_diagonal(rest), np.array([0])
     shifted = x + np.array([0.0, 0.0, 0.01])
     m, c = rollout_metrics(shifted, x, x[:, D], D, np.ones(len(rest)), 0.01, diag, -1)
+    m1 = m
     assert list(m) == ["frames", "diverged_frame", "mean_error", "max_error", "dirichlet_error", "kinetic_ratio", "end_error",
                        "end_motion", "end_motion_truth"]  # fmt: skip
     assert m["frames"] == 20 and m["diverged_frame"] == -1
@@ -63,8 +64,12 @@ def test_rollout_metrics_of_a_shifted_and_a_diverged_rollout():
     diverged = shifted.copy()
     diverged[12:] = np.nan
     m, c = rollout_metrics(diverged, x, x[:, D], D, np.ones(len(rest)), 0.01, diag, 12)
-    assert np.isclose(m["mean_error"], 0.01 / diag) and np.isnan(m["end_error"]) and np.isnan(m["end_motion"])
+    # frames 12-19 failed: infinite errors over the whole sequence; the curves keep the 12 frames survived
+    for k in ("mean_error", "max_error", "dirichlet_error", "end_error"):
+        assert m[k] == np.inf, k
+    assert np.isnan(m["kinetic_ratio"]) and np.isnan(m["end_motion"]) and np.isclose(m["end_motion_truth"], m1["end_motion_truth"])
     assert len(c["mean_error"]) == len(c["ke_pred"]) == 12 and c["frames"] == 20 and c["diverged_frame"] == 12
+    np.testing.assert_allclose(c["mean_error"], 0.01 / diag)
 
 
 def _write(path, rest, sequences, method=None):
@@ -97,6 +102,7 @@ def test_evaluate_scene_one_row_per_method_and_sequence(tmp_path):
     r = df.set_index(["method", "sequence"])
     assert np.isclose(r.loc[("self_supervised", "s0"), "mean_error"], 0.01 / bbox_diagonal(rest))
     assert r.loc[("self_supervised", "s1"), "mean_error"] == 0.0 and r.loc[("supervised_5x256", "s1"), "diverged_frame"] == 8
+    assert r.loc[("supervised_5x256", "s1"), "mean_error"] == np.inf  # exact for 8 frames, then failed
     # the simulator's median frame time over one latent step
     assert np.isclose(r.loc[("self_supervised", "s0"), "speedup"], 8.0) and (r["dof"] == rest.size).all() and (r["latent_dim"] == 3).all()
     assert set(curves) == {"self_supervised", "supervised_5x256"} and len(curves["supervised_5x256"]["s1"]["mean_error"]) == 8
@@ -106,13 +112,15 @@ def test_evaluate_scene_one_row_per_method_and_sequence(tmp_path):
 
 def _metrics():
     """Two scenes. On 'a', no_noise (a variant) is a hair faster and more accurate than self_supervised;
-    supervised diverges on one of two sequences. 'b' runs self_supervised alone."""
+    supervised diverges on one of two sequences (there its errors are infinite, as rollout_metrics
+    reports them). 'b' runs self_supervised alone."""
     rows = []
 
     def add(scene, method, seq, err, ms, full, ke, div=-1):
+        err, ke, bc = (np.inf, np.nan, np.inf) if div >= 0 else (err, ke, 0.0)
         rows.append(dict(scene=scene, method=method, sequence=seq, mean_error=err, max_error=3 * err, diverged_frame=div,
                          kinetic_ratio=ke, full_ms=full, latent_ms=ms, integrate_ms=ms / 3, decode_ms=2 * ms / 3,
-                         jvp_torch_ms=1.0, jvp_forward_ms=0.01, dof=30, latent_dim=2, frames=100, dirichlet_error=0.0,
+                         jvp_torch_ms=1.0, jvp_forward_ms=0.01, dof=30, latent_dim=2, frames=100, dirichlet_error=bc,
                          end_error=err, end_motion=0.1, end_motion_truth=0.1))  # fmt: skip
 
     for seq, full in (("s0", 10.0), ("s1", 12.0)):
@@ -163,7 +171,7 @@ def test_glance_grid_front_of_the_compared_methods(tmp_path):
     # columns: the comparison's methods present, in the comparison's order; variants left out
     assert list(grid.columns) == ["full_space", "pca_reduced", "self_supervised", "supervised_5x256"]
     assert grid.loc["a", "self_supervised"] == "0.02 (0.1) *"  # no_noise is not in the grid's front
-    assert grid.loc["a", "supervised_5x256"] == "0.005 (0.05)"  # diverged: no star
+    assert grid.loc["a", "supervised_5x256"] == "diverged 1/2 (0.05)"  # diverged: no error, no star
     assert grid.loc["a", "pca_reduced"].endswith("*") and grid.loc["a", "full_space"].endswith("*")
     assert grid.loc["b", "pca_reduced"] == "-"
 
@@ -177,7 +185,8 @@ def test_summary_markdown_opens_with_the_glance(tmp_path):
               glance_path=tmp_path / "glance.csv")  # fmt: skip
     text = (tmp_path / "s.md").read_text()
     assert text.startswith("## At a glance")
-    assert "| a | 0 (11) * | 0.001 (2) * | 0.02 (0.1) * | 0.005 (0.05) |" in text
+    assert "| a | 0 (11) * | 0.001 (2) * | 0.02 (0.1) * | diverged 1/2 (0.05) |" in text
+    assert "| a | supervised_5x256 | 0.05 | 220 | inf | inf | nan | 1/2 | 1/3 | False |" in text
     assert "| a | self_supervised | 0.1 | 110 | 0.02 | 0.06 | 0.9 | 2/2 | 3/3 | False |" in text
     g = pd.read_csv(tmp_path / "glance.csv", keep_default_na=False)
     assert len(g) == 7 and set(g["method"]) == {"full_space", "self_supervised", "no_noise", "pca_reduced", "supervised_5x256"}
@@ -214,7 +223,7 @@ def test_table_pages_show_every_table_every_row(tmp_path):
     md = (tmp_path / "s.md").read_text()
     assert write_table_html(tmp_path / "s.md", tmp_path / "s.html") == md.count("## ") - md.count("(no rows)")  # a table per heading, but empty ones
     tables = _html_tables((tmp_path / "s.html").read_text())
-    assert tables[0][1][0] == ["a", "0 (11) *", "0.001 (2) *", "0.02 (0.1) *", "0.005 (0.05)"]  # the glance grid
+    assert tables[0][1][0] == ["a", "0 (11) *", "0.001 (2) *", "0.02 (0.1) *", "diverged 1/2 (0.05)"]  # the glance grid
     assert tables[-1][0] == list(df.columns) and len(tables[-1][1]) == len(df)  # every method and test sequence
     grid = write_glance_html(tmp_path / "glance.csv", tmp_path / "glance.html", tmp_path / "grid.html")
     page = _html_tables((tmp_path / "glance.html").read_text())

@@ -492,6 +492,49 @@ def test_editing_a_variant_reruns_only_that_methods_jobs(tiny_run, tmp_path):
     )  # fmt: skip
 
 
+def test_a_rollout_that_diverges_at_frame_0_is_scored_as_failed_and_the_scene_still_evaluated(tiny_run, tmp_path):
+    """``rollout.max_extent: 0.1`` (legal, and below the rest shape's own extent) on tiny_cloth, in a copy of
+    the tiny run: its self-supervised rollout and every stress condition diverge at frame 0.  The scene's
+    evaluation keeps its four baselines' metrics as they were; the diverged method's row says diverged at
+    frame 0 with infinite errors, and it is off every front (glance, grid), named in Table 1."""
+    import shutil
+
+    import pandas as pd
+
+    work = tmp_path / "latentsim"
+    shutil.copytree(tiny_run[0], work, symlinks=True)
+    shared = ROOT.parent / "shared"
+    if shared.is_dir():  # the tiny config's meshes, relative to the copy, as in the tiny run
+        (tmp_path / "shared").symlink_to(shared.resolve(), target_is_directory=True)
+    cfg = yaml.safe_load(TINY.read_text())
+    cfg["scenes"]["tiny_cloth"]["rollout"] = {"max_extent": 0.1}
+    edited = tmp_path / "edited.yaml"
+    edited.write_text(yaml.safe_dump(cfg))
+    snakemake("--cores", "2", "all", "--configfile", str(edited), "--directory", str(work))
+    with h5py.File(work / "results/rollout/tiny_cloth/self_supervised/rollout.h5") as f:
+        assert f["sequences/line"].attrs["diverged_frame"] == 0
+    before = pd.read_csv(tiny_run[0] / "results/evaluation/tiny_cloth/metrics.csv").set_index("method")
+    after = pd.read_csv(work / "results/evaluation/tiny_cloth/metrics.csv").set_index("method")
+    assert sorted(after.index) == sorted(before.index)
+    scores = ["frames", "diverged_frame", "mean_error", "max_error", "dirichlet_error", "kinetic_ratio", "end_error", "end_motion",
+              "end_motion_truth", "dof", "latent_dim"]  # fmt: skip
+    baselines = [m for m in before.index if m != "self_supervised"]
+    assert len(baselines) == 4 and after.loc[baselines, scores].equals(before.loc[baselines, scores])
+    ss = after.loc["self_supervised"]
+    assert ss["diverged_frame"] == 0 and (ss[["mean_error", "max_error", "dirichlet_error", "end_error"]] == np.inf).all()
+    stress = pd.read_csv(work / "results/evaluation/tiny_cloth/stress.csv")
+    assert len(stress) == 8 and (stress["frames_survived"] == 0).all() and stress["diverged"].all()
+    glance = pd.read_csv(work / "results/evaluation/glance.csv", keep_default_na=False).set_index(["scene", "method"])
+    row = glance.loc[("tiny_cloth", "self_supervised")]
+    assert row["test_survived"] == "0/1" and row["stress_survived"] == "0/8" and row["on_front"] in (False, "False")
+    assert float(row["mean_error"]) == np.inf
+    summary = (work / "results/evaluation/summary.md").read_text()
+    assert re.search(r"\| tiny_cloth \|.*\| diverged 0/1 \([0-9.e-]+\) \|", summary)
+    t1 = pd.read_csv(work / "results/evaluation/table1.csv")
+    assert "self_supervised (diverged on 1/1 test sequences)" in set(t1.loc[t1["scene"] == "tiny_cloth", "method"])
+    assert "self_supervised" in set(t1.loc[t1["scene"] == "tiny_rods", "method"])  # the other scenes as before
+
+
 def test_a_variant_of_another_size_trains_and_decodes_with_its_own_autoencoder(tiny_run, tmp_path):
     """tiny_rods' ``small`` variant (latent 2, 16 wide) beside the scene's own model (latent 4, 32 wide)."""
     import pandas as pd

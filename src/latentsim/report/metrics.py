@@ -2,7 +2,7 @@
 
 Every length is relative to the rest shape's bounding-box diagonal ``diag``
 (:func:`bbox_diagonal`), so scenes of any size compare.  Per test sequence
-(:func:`rollout_metrics`), over the frames before divergence:
+(:func:`rollout_metrics`), over the whole sequence:
 
 - ``mean_error`` / ``max_error``: mean over frames of the mean vertex distance
   to the ground truth, and the largest vertex distance of any frame
@@ -14,7 +14,17 @@ Every length is relative to the rest shape's bounding-box diagonal ``diag``
 - ``end_error`` / ``end_motion`` / ``end_motion_truth``: the steady state
   (last 10% of the frames, Li et al. Fig. 10): mean error there, and the RMS
   vertex displacement per frame of the rollout and of the ground truth
-  (0 at rest); NaN for a rollout that diverged.
+  (0 at rest).
+
+Divergence (:data:`DIVERGED_ERROR`): the frames from a rollout's first diverged
+frame on count as failed, with an infinite error, so a rollout that diverged at
+any frame (frame 0 included) has infinite ``mean_error``, ``max_error``,
+``dirichlet_error`` and ``end_error``, and NaN ``kinetic_ratio`` and
+``end_motion`` (not measurable over the whole sequence); ``diverged_frame`` is
+the number of frames it survived.  Its errors over the frames it survived stay
+in the per-frame curves (the figure of errors over time).  A diverged method
+thus never has the best error and is never on a Pareto front
+(:func:`pareto_front` leaves non-finite points out).
 
 :func:`pareto_front` marks the non-dominated methods of a speed-accuracy
 comparison.  Plain NumPy: no plotting library is imported here.
@@ -24,7 +34,11 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["bbox_diagonal", "kinetic_energy", "pareto_front", "rollout_metrics", "vertex_errors"]
+__all__ = ["DIVERGED_ERROR", "bbox_diagonal", "kinetic_energy", "pareto_front", "rollout_metrics", "vertex_errors"]
+
+# the error of a failed frame (at and after a rollout's first diverged frame); a rollout with one
+# failed frame has this mean and max error, so it ranks behind every rollout that survived
+DIVERGED_ERROR = float("inf")
 
 
 def bbox_diagonal(x: np.ndarray) -> float:
@@ -43,8 +57,10 @@ def kinetic_energy(positions: np.ndarray, masses: np.ndarray, dt: float) -> np.n
 
     Returns
     -------
-    (T,) float [J]; frame 0 (no previous frame) is 0.
+    (T,) float [J]; frame 0 (no previous frame) is 0 (empty for T = 0).
     """
+    if len(positions) == 0:
+        return np.zeros(0)
     v = np.diff(positions, axis=0) / dt
     ke = 0.5 * np.einsum("n,tn->t", masses, (v * v).sum(-1))
     return np.concatenate([[0.0], ke])
@@ -65,16 +81,21 @@ def rollout_metrics(pred, truth, dirichlet_truth, dirichlet, masses, dt: float, 
     dirichlet_truth : (T,m,3) float, the prescribed positions of the Dirichlet vertices.
     dirichlet : (m,) int, the Dirichlet vertices.
     masses : (n,) float; dt : time step [s]; diag : the rest bounding-box diagonal.
-    diverged_frame : first diverged frame of the rollout, -1 when stable.
+    diverged_frame : first diverged frame of the rollout (0 <= . < T), -1 when stable.
 
     Returns
     -------
     metrics : dict ``frames``, ``diverged_frame``, ``mean_error``, ``max_error``, ``dirichlet_error``,
-        ``kinetic_ratio``, ``end_error``, ``end_motion``, ``end_motion_truth`` (in this order: a table's columns).
-    curves : dict of per-frame arrays over the frames before divergence, ``mean_error``,
-        ``dirichlet_error``, ``ke_truth``, ``ke_pred``, with ``dt``, ``frames`` and ``diverged_frame``.
+        ``kinetic_ratio``, ``end_error``, ``end_motion``, ``end_motion_truth`` (in this order: a table's
+        columns); the errors of a diverged rollout are :data:`DIVERGED_ERROR` (infinite), its
+        ``kinetic_ratio`` and ``end_motion`` NaN.
+    curves : dict of per-frame arrays over the frames before divergence (empty for a divergence at
+        frame 0), ``mean_error``, ``dirichlet_error``, ``ke_truth``, ``ke_pred``, with ``dt``,
+        ``frames`` and ``diverged_frame``.
     """
     T, div = len(truth), int(diverged_frame)
+    if not -1 <= div < T:
+        raise ValueError(f"rollout_metrics: diverged_frame {div} is outside -1 (stable) .. {T - 1} (a frame of the {T})")
     ok = slice(0, T if div < 0 else div)
     mean_e, max_e = vertex_errors(pred[ok], truth[ok], diag)
     bc_e = np.linalg.norm(pred[ok][:, dirichlet] - dirichlet_truth[ok], axis=-1).mean(-1) / diag
@@ -82,21 +103,18 @@ def rollout_metrics(pred, truth, dirichlet_truth, dirichlet, masses, dt: float, 
     # the end of the sequence (last 10% of frames; Li et al. Fig. 10's steady state): error and
     # residual motion (RMS vertex displacement per frame / diag; 0 at rest)
     tail = slice(max(1, T - max(T // 10, 2)), T)
-    end_ok = div < 0
-    end_error = float(mean_e[tail].mean()) if end_ok else np.nan
-    step = np.linalg.norm(np.diff(pred[tail.start - 1 : T], axis=0), axis=-1) if end_ok else np.full(1, np.nan)
     step_t = np.linalg.norm(np.diff(truth[tail.start - 1 : T], axis=0), axis=-1)
-    metrics = dict(
-        frames=T,
-        diverged_frame=div,
-        mean_error=float(mean_e.mean()),
-        max_error=float(max_e.max()),
-        dirichlet_error=float(bc_e.mean()),
-        kinetic_ratio=float(np.nanmean(ke_p) / max(np.nanmean(ke_t), 1e-300)),
-        end_error=end_error,
-        end_motion=float(np.sqrt((step**2).mean()) / diag),
-        end_motion_truth=float(np.sqrt((step_t**2).mean()) / diag),
-    )
+    if div < 0:
+        step = np.linalg.norm(np.diff(pred[tail.start - 1 : T], axis=0), axis=-1)
+        errors = dict(mean_error=float(mean_e.mean()), max_error=float(max_e.max()), dirichlet_error=float(bc_e.mean()),
+                      kinetic_ratio=float(np.nanmean(ke_p) / max(np.nanmean(ke_t), 1e-300)), end_error=float(mean_e[tail].mean()),
+                      end_motion=float(np.sqrt((step**2).mean()) / diag))  # fmt: skip
+    else:  # the frames from ``div`` on failed: infinite error over the whole sequence
+        errors = dict(mean_error=DIVERGED_ERROR, max_error=DIVERGED_ERROR, dirichlet_error=DIVERGED_ERROR, kinetic_ratio=np.nan,
+                      end_error=DIVERGED_ERROR, end_motion=np.nan)  # fmt: skip
+    metrics = dict(frames=T, diverged_frame=div, mean_error=errors["mean_error"], max_error=errors["max_error"],
+                   dirichlet_error=errors["dirichlet_error"], kinetic_ratio=errors["kinetic_ratio"], end_error=errors["end_error"],
+                   end_motion=errors["end_motion"], end_motion_truth=float(np.sqrt((step_t**2).mean()) / diag))  # fmt: skip
     curves = dict(mean_error=mean_e, dirichlet_error=bc_e, ke_truth=ke_t, ke_pred=ke_p, dt=dt, frames=T, diverged_frame=div)
     return metrics, curves
 

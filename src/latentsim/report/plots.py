@@ -98,7 +98,7 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, error: str, colours: dict, annot
     t = pts["ms_per_frame"].to_numpy(float)
     e = pts[error].to_numpy(float)
     diverged = pts["diverged_frame"].to_numpy() >= 0
-    # a diverged method's error covers only its frames before divergence: not comparable
+    # a diverged method is never on the front, whatever its error (infinite from rollout_metrics)
     eligible_e = np.where(diverged, np.nan, e)
     pts["on_front"] = pareto_front(t, eligible_e)
     positive = np.isfinite(e) & (e > 0)
@@ -107,7 +107,7 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, error: str, colours: dict, annot
     top = np.concatenate([e[positive], emax[np.isfinite(emax) & (emax > 0)]])
     ceil = top.max() * 3 if len(top) else 1.0
     # exact (zero-error) rows sit in a shaded band at the bottom (a log axis has no 0), wholly inside the
-    # axes; failed (NaN) rows on the top edge
+    # axes; failed (NaN, or infinite: diverged) rows on the top edge
     bottom = floor / 4
     y = np.where(positive, e, np.where(e == 0, floor / 2, ceil))
     if (e == 0).any():
@@ -164,13 +164,14 @@ def speed_accuracy_chart(df: pd.DataFrame, path, scene=None, error="mean_error",
     - ``ms_per_frame`` (float > 0): wall time of one step [ms];
     - ``mean_error`` (float): error relative to the bounding-box diagonal
       (0 for the ground truth itself, drawn as a down triangle in a shaded
-      band "error 0" at the bottom; NaN when not measurable, drawn as a cross
+      band "error 0" at the bottom; NaN when not measurable or infinite for a
+      method that diverged (:mod:`latentsim.report.metrics`), drawn as a cross
       on the top edge), or any column named by ``error`` (e.g. ``max_error``);
     - ``max_error`` (float, optional): drawn as a whisker from the point up to
       it (the largest vertex error of any frame);
     - ``diverged_frame`` (int, optional): first diverged frame, -1 when stable.
       Diverged methods are drawn hollow, labelled with the frame, and kept off
-      the Pareto front (their error covers only the frames before divergence);
+      the Pareto front (whatever their error column says);
     - ``sequence`` (str, optional).
 
     Several rows of one (scene, method) are aggregated: median ms per frame,

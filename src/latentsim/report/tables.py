@@ -120,8 +120,16 @@ def table1(df: pd.DataFrame, sized=()) -> pd.DataFrame:
         if paper is not None:
             row.update(paper_dof=paper[0], paper_latent=paper[1], paper_full_ms=paper[2], paper_integrate_ms=paper[3],
                        paper_decode_ms=paper[4], paper_total_ms=paper[5], paper_speedup=paper[2] / paper[5])  # fmt: skip
+        row["method"] = _with_divergence(method, g)
         rows.append(row)
     return pd.DataFrame(rows)
+
+
+def _with_divergence(method: str, own: pd.DataFrame) -> str:
+    """Tables 1-2's name of a method whose rows are ``own``: ``method``, or ``method (diverged on k/N test
+    sequences)`` where some rollout diverged (the table times a step whose rollout failed)."""
+    n = int((own["diverged_frame"] >= 0).sum()) if "diverged_frame" in own else 0
+    return method if n == 0 else f"{method} (diverged on {n}/{len(own)} test sequences)"
 
 
 def _own_models(df: pd.DataFrame, sized=()):
@@ -149,7 +157,7 @@ def table2(df: pd.DataFrame, layers: dict | None = None, sized=()) -> pd.DataFra
 
 def _table2_row(scene: str, method: str, g: pd.DataFrame, own: pd.DataFrame, layers) -> dict:
     """One row of :func:`table2`: ``own``, the method's rows of the scene's metrics ``g``; ``layers`` its layer strings."""
-    row = dict(scene=scene, method=method, dof=int(own["dof"].iloc[0]), latent_dof=int(own["latent_dim"].iloc[0]))
+    row = dict(scene=scene, method=_with_divergence(method, own), dof=int(own["dof"].iloc[0]), latent_dof=int(own["latent_dim"].iloc[0]))
     if layers:
         row["decoder_layers"], row["integrator_layers"] = layers
     row.update(jvp_torch_ms=own["jvp_torch_ms"].median(), jvp_forward_ms=own["jvp_forward_ms"].median(), ours_ms=own["latent_ms"].median())
@@ -239,15 +247,18 @@ def glance_table(df: pd.DataFrame, pts: pd.DataFrame, stress: pd.DataFrame | Non
 
     Columns: ``scene``, ``method``, ``ms_per_frame`` (median over test sequences), ``speedup`` (full-space
     over latent or reduced ms, both means timed in the method's own job, as Table 1), ``mean_error``
-    (mean), ``max_error`` (max), ``kinetic_ratio`` (mean; 1 for the full space), ``test_survived`` (test sequences stable to the end, ``k/N``), ``stress_survived``
-    (stress conditions survived, ``k/N``, empty where none ran), ``on_front`` (the chart's Pareto front).
+    (mean), ``max_error`` (max; both infinite where a test sequence diverged: the frames from the divergence
+    on count as failed, see :mod:`latentsim.report.metrics`), ``kinetic_ratio`` (mean; 1 for the full space,
+    NaN where a test sequence diverged), ``test_survived`` (test sequences stable to the end, ``k/N``),
+    ``stress_survived`` (stress conditions survived, ``k/N``, empty where none ran), ``on_front`` (the chart's
+    Pareto front; never a method that diverged).
     Sorted by scene, then ms per frame.
     """
     g = pts.copy()
     own = df.groupby(["scene", "method"], sort=False)
     # each method's job timed full-space frames in its own process: the speed-up is that ratio
     ratio = own["full_ms"].mean() / own["latent_ms"].mean()
-    ke = own["kinetic_ratio"].mean()
+    ke = own["kinetic_ratio"].agg(lambda s: s.mean(skipna=False))  # NaN where a sequence diverged (not measurable)
     ok = own["diverged_frame"].agg(lambda s: f"{int((s < 0).sum())}/{len(s)}")
     key = list(zip(g["scene"], g["method"]))
     g["speedup"] = [1.0 if k[1] == "full_space" else ratio.get(k, np.nan) for k in key]
@@ -267,7 +278,8 @@ def glance_table(df: pd.DataFrame, pts: pd.DataFrame, stress: pd.DataFrame | Non
 def glance_grid(glance: pd.DataFrame, methods=GLANCE_METHODS) -> pd.DataFrame:
     """Scenes x the comparison's methods, each cell ``mean error (ms per frame)``; ``*`` marks the Pareto
     front of these methods alone (the long table's ``on_front`` also counts the scene's variants), ``-`` a
-    method the scene did not run.  A method that diverged on a test sequence is never on the front."""
+    method the scene did not run.  A method that diverged on a test sequence (infinite error) reads
+    ``diverged k/N (ms per frame)``, k of its N test sequences survived, and is never on the front."""
     present = [m for m in methods if m in set(glance["method"])]
     rows = []
     for scene, g in glance.groupby("scene", sort=True):
@@ -279,8 +291,9 @@ def glance_grid(glance: pd.DataFrame, methods=GLANCE_METHODS) -> pd.DataFrame:
             if m not in by.index:
                 row[m] = "-"
                 continue
-            r = by.loc[m]
-            row[m] = f"{r['mean_error']:.3g} ({r['ms_per_frame']:.3g})" + (" *" if front[by.index.get_loc(m)] else "")
+            r, i = by.loc[m], by.index.get_loc(m)
+            error = f"{r['mean_error']:.3g}" if stable[i] else f"diverged {r['test_survived']}"
+            row[m] = f"{error} ({r['ms_per_frame']:.3g})" + (" *" if front[i] else "")
         rows.append(row)
     return pd.DataFrame(rows, columns=["scene", *present])
 

@@ -3,7 +3,8 @@
 - :func:`evaluate_scene` / :func:`write_scene_evaluation` (rule ``evaluate``): per scene, one row
   per method and test sequence with the metrics of :mod:`latentsim.report.metrics` (errors and
   Dirichlet error relative to the rest bounding-box diagonal, kinetic energy ratio, the steady
-  state's error and motion, first diverged frame) and the timings: ``full_ms`` (the full-space
+  state's error and motion, first diverged frame; a rollout that diverged, even at frame 0, gets a
+  row with infinite errors) and the timings: ``full_ms`` (the full-space
   Newton frame, timed in the rollout's own job where it did) against ``latent_ms`` (one latent step:
   integration + decoding), ``speedup``; beside it the reconstruction and stress tables, the scene's
   speed-accuracy chart and its curves over time;
@@ -61,7 +62,8 @@ def evaluate_scene(scene: str, trajectories, rollouts):
     Returns
     -------
     table : one row per (method, sequence): the metrics of
-        :func:`latentsim.report.metrics.rollout_metrics` (over the frames before divergence),
+        :func:`latentsim.report.metrics.rollout_metrics` (over the whole sequence: infinite errors for a
+        rollout that diverged, at any frame),
         full_ms (the simulator's median ms/frame, or the rollout job's own full-space timing),
         latent_ms (one latent step) and its parts, runtime, speedup, dof, latent_dim and the
         training seconds.
@@ -86,8 +88,11 @@ def evaluate_scene(scene: str, trajectories, rollouts):
                     pred = g["positions"][()]
                     if pred.shape != truth.shape:
                         raise ValueError(f"{path}: sequence {name!r} has positions {pred.shape}, ground truth {truth.shape}")
-                    metrics, curve = rollout_metrics(pred, truth, gt["dirichlet_positions"][()], D, masses, dt, diag,
-                                                     int(g.attrs["diverged_frame"]))  # fmt: skip
+                    try:
+                        metrics, curve = rollout_metrics(pred, truth, gt["dirichlet_positions"][()], D, masses, dt, diag,
+                                                         int(g.attrs["diverged_frame"]))  # fmt: skip
+                    except ValueError as e:
+                        raise ValueError(f"{path}: sequence {name!r}: {e}") from e
                     curves.setdefault(method, {})[name] = curve
                     # same-run timing of full-space frames when the rollout stage measured it
                     full_ms = float(fr.attrs.get("full_ms", np.median(gt["frame_ms"][1:])))
@@ -131,9 +136,16 @@ def _sized_layers(sizes: dict | None):
     return layers, sized
 
 
+# how the tables score a rollout that diverged (:mod:`latentsim.report.metrics`), under the summary's first heading
+_DIVERGENCE_NOTE = ("A rollout that diverged (non-finite, or beyond `rollout.max_extent` times the rest diagonal) fails every frame "
+                    "from its first diverged frame on: its errors are infinite (`inf`), the grid reads `diverged k/N` (k of N test "
+                    "sequences survived), `diverged_frame` gives the frames it survived, and it is never on a Pareto front.")  # fmt: skip
+
+
 def _summary_markdown(glance, t1, t2, st, sz, rec, df) -> str:
     """The summary's Markdown: the glance tables first, then Tables 1-2, stability, sizes, reconstruction, every row."""
     text = ["## At a glance: mean error / bbox diagonal (ms per frame) of the compared methods; * on their Pareto front", "",
+            _DIVERGENCE_NOTE, "",
             markdown(glance_grid(glance)), "",
             "## Every method per scene: median ms per frame, speed-up over the full space, errors, kinetic energy ratio, "
             "test sequences and stress conditions survived, Pareto front", "", markdown(glance), "",
