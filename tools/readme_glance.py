@@ -67,8 +67,9 @@ def glance_block(results: Path, commit: str) -> str:
         "",
         "**Li et al. scenes.** Mean vertex error over the bounding-box diagonal on the test sequences, and in "
         "brackets ms per frame (one thread, median over test sequences). `*`: on the Pareto front of these "
-        "methods (none both faster and more accurate); `-`: not run on that scene. The full space is the "
-        "ground truth.",
+        "methods (none both faster and more accurate); `-`: not run on that scene; `diverged k/N`: the "
+        "method's rollout diverged on k of the N test sequences (its frames from there on count as failed). "
+        "The full space is the ground truth.",
         "",
         markdown(glance_grid(glance)),
         "",
