@@ -10,7 +10,8 @@ so it survives a rewrite of the container and catches one flipped bit in any val
 A reader that finds an artefact truncated, unreadable or not matching its checksum moves it aside
 (to ``<name>.corrupt``) and raises :class:`ArtefactError` naming it (:func:`corrupt`): the file
 Snakemake expected is then missing, so the same ``snakemake`` command run again reruns the job that
-writes it.  A file without a checksum (written before checksums were recorded) is read unverified,
+writes it (rule ``all`` lists the data artefacts of every scene's chain, as Snakemake rewrites a
+missing file only when a job it runs needs it).  A file without a checksum (written before checksums were recorded) is read unverified,
 with a warning (:func:`unverified`).
 
 This module imports nothing from latentsim, so every layer (the deployable runtime included) can use it.
@@ -89,7 +90,7 @@ def corrupt(path, reason: str) -> ArtefactError:
     so and what to run; the caller raises it (``raise corrupt(path, why) from err``)."""
     path = os.fspath(path)
     aside = path + ".corrupt"
-    done = f"moved aside to {aside}: run the same snakemake command again and it reruns the job that writes it"
+    done = f"moved aside to {aside}: the same snakemake command run again writes it anew (if that run has nothing to do, add {path} as a target)"
     try:
         os.replace(path, aside)
     except FileNotFoundError:  # another reader of the same file moved it first

@@ -45,7 +45,7 @@ def test_a_truncated_trajectories_file_stops_its_reader_and_the_next_run_rewrite
     first = run(command, work)
     assert first.returncode != 0
     assert f"{rel}: corrupt artefact" in first.stderr, first.stderr[-3000:]  # the path as the rule names it
-    assert "truncated" in first.stderr and "run the same snakemake command again" in first.stderr
+    assert "truncated" in first.stderr and "the same snakemake command run again writes it anew" in first.stderr
     assert not path.exists() and (work / (rel + ".corrupt")).exists()
 
     second = run(command, work)
