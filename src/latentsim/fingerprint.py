@@ -13,6 +13,11 @@ Two fingerprints are compared in one of two ways:
 - **to a tolerance**: the sums agree to ``rtol`` of their scale; used for the full-space artefacts
   (meshes and simulations), which converge to the Newton tolerance whatever the processor.
 
+Files are read as they are (``h5py``, ``torch.load``, ``np.load``), not through the checked
+readers of :mod:`latentsim.checksum`: a fingerprint describes whatever a results tree holds (files
+written before checksums included, and a corrupt file is not moved aside), and an altered value shows
+as a differing digest.  The artefacts' own ``sha256`` checksums are left out, as they cover wall times.
+
 Command line::
 
     python -m latentsim.fingerprint record RESULTS OUT.json      # fingerprint a results tree
@@ -34,11 +39,13 @@ import numpy as np
 import pandas as pd
 import torch
 
+from latentsim.checksum import KEY
 # attributes that record wall time or a choice made by timing
 TIMING_NAMES = frozenset({"seconds", "runtime", "frame_ms", "step_ms"})
 # provenance: the package version and the validated config slice, which lists every setting with its
-# default (a setting added to the schema with the value the code already used changes it, not the results)
-SKIPPED_ATTRS = frozenset({"latentsim_version", "config"})
+# default (a setting added to the schema with the value the code already used changes it, not the results),
+# and the artefact's own checksum (latentsim.checksum.KEY), which covers its wall times too
+SKIPPED_ATTRS = frozenset({"latentsim_version", "config", KEY})
 # results/<stage>/... whose arrays converge to the Newton tolerance on any processor
 PHYSICS_STAGES = ("mesh", "sim")
 
@@ -116,6 +123,7 @@ def _tensors(obj, prefix: str, out: dict) -> None:
 
 def _pt(path: Path) -> dict:
     blob = torch.load(path, weights_only=True, map_location="cpu")
+    blob.pop(KEY, None)
     out: dict = {}
     _tensors(blob, "", out)
     return out
@@ -123,7 +131,7 @@ def _pt(path: Path) -> dict:
 
 def _npz(path: Path) -> dict:
     with np.load(path) as z:
-        return {k: _entry(z[k]) for k in z.files}
+        return {k: _entry(z[k]) for k in z.files if k != KEY}
 
 
 def _csv(path: Path) -> dict:

@@ -7,7 +7,12 @@ for complete.  Every HDF5 artefact carries, at its root:
 
 - ``latentsim_version`` : package version,
 - ``config`` : JSON of the config slice that produced it,
-- ``seed`` : the random seed used (-1 when none applies).
+- ``seed`` : the random seed used (-1 when none applies),
+- ``sha256`` : the checksum of everything else in the file (:func:`h5_checksum`), written last.
+
+Readers open them with :func:`open_artefact`, which verifies the checksum and turns a truncated,
+unreadable or altered file into an :class:`ArtefactError` naming it, after moving it aside so that
+the next ``snakemake`` run regenerates it (:mod:`latentsim.checksum`).
 
 The layout of each artefact is documented in ``docs/artefacts.md``.
 """
@@ -24,6 +29,21 @@ import h5py
 import numpy as np
 
 from latentsim import __version__
+from latentsim.checksum import KEY, ArtefactError, Digest, corrupt, unverified
+
+__all__ = [
+    "ArtefactError",
+    "atomic_h5",
+    "atomic_path",
+    "h5_checksum",
+    "open_artefact",
+    "read_config_attr",
+    "read_tree",
+    "require",
+    "write_dataset",
+    "write_provenance",
+    "write_tree",
+]
 
 
 @contextlib.contextmanager
@@ -50,7 +70,9 @@ def atomic_path(path):
 
 @contextlib.contextmanager
 def atomic_h5(path, config=None, seed=-1):
-    """Open an HDF5 file for writing under a temporary name, with provenance.
+    """Open an HDF5 file for writing under a temporary name, with provenance; on success its
+    checksum (:func:`h5_checksum`) is stored as the root attribute ``sha256`` and it is renamed
+    into place.
 
     >>> with atomic_h5("out.h5", config={"dt": 0.03}, seed=0) as f:
     ...     f["a"] = 1
@@ -59,6 +81,78 @@ def atomic_h5(path, config=None, seed=-1):
         with h5py.File(tmp, "w", track_order=True) as f:
             write_provenance(f, config, seed)
             yield f
+            f.attrs[KEY] = h5_checksum(f)
+
+
+def h5_checksum(f: h5py.File) -> str:
+    """SHA-256 (hex) of an open HDF5 file's content: every group's and dataset's path, every
+    attribute (but the root ``sha256`` itself) and every dataset's dtype, shape and bytes, in
+    sorted order (independent of creation order and of the file's layout on disk)."""
+    d = Digest()
+
+    def visit(name: str, obj) -> None:
+        for key in sorted(obj.attrs):
+            if not (name == "/" and key == KEY):
+                d.array(f"{name}@{key}", obj.attrs[key])
+        if isinstance(obj, h5py.Dataset):
+            if obj.shape is None:  # an empty (null) dataspace
+                d.value(name, "empty")
+            else:
+                d.blocks(name, obj.dtype, obj.shape, lambda a, b: obj[()] if a is None else obj[a:b])
+        else:
+            d.value(name, "group")
+            for key in sorted(obj):
+                visit(f"{name.rstrip('/')}/{key}", obj[key])
+
+    visit("/", f)
+    return d.hexdigest()
+
+
+_verified: set[tuple] = set()  # (path, inode, size, mtime) of files verified in this process
+
+
+@contextlib.contextmanager
+def open_artefact(path):
+    """Open an HDF5 artefact for reading, checked: yields the open ``h5py.File``.
+
+    The file's ``sha256`` attribute is compared with :func:`h5_checksum` of its content (once per
+    process for an unchanged file); a file without one (written before checksums) is read with a
+    warning.
+
+    Raises
+    ------
+    FileNotFoundError
+        ``path`` does not exist.
+    ArtefactError
+        The file is truncated, unreadable or does not match its checksum: it has been moved aside
+        to ``<path>.corrupt`` and the message, naming it, says to run snakemake again.
+    """
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"{path}: no such artefact")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as err:
+        raise corrupt(path, f"HDF5 cannot open it: {err}") from err
+    with f:
+        st = os.stat(path)
+        stamp = (os.path.abspath(path), st.st_ino, st.st_size, st.st_mtime_ns)
+        if stamp not in _verified:
+            stored = f.attrs.get(KEY)
+            if stored is None:
+                unverified(path)
+            else:
+                try:
+                    actual = h5_checksum(f)
+                except Exception as err:  # damaged metadata or chunks: HDF5 raises OSError, KeyError, RuntimeError, ...
+                    f.close()
+                    raise corrupt(path, f"HDF5 cannot read it: {err}") from err
+                stored = stored.decode() if isinstance(stored, bytes) else str(stored)
+                if actual != stored:
+                    f.close()
+                    raise corrupt(path, f"its content does not match its checksum (sha256 {actual[:12]}..., recorded {stored[:12]}...)")
+            _verified.add(stamp)
+        yield f
 
 
 def write_provenance(h5obj, config=None, seed=-1):
@@ -77,10 +171,6 @@ def write_dataset(group, name, data, **kwargs):
     """Write an array without timestamps, so identical runs give identical files."""
     data = np.asarray(data)
     return group.create_dataset(name, data=data, track_times=False, **kwargs)
-
-
-class ArtefactError(ValueError):
-    """An input artefact is missing a key or holds a bad value."""
 
 
 def require(h5obj, key, path=None):

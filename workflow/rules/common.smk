@@ -198,8 +198,25 @@ def gpu_count(wildcards):
     return 1 if config["device"] == "cuda" else 0
 
 
+def scene_artefacts(scene):
+    """The data artefacts of a scene's chain up to its rollouts (mesh, simulation, each method's
+    autoencoder and integrator): targets of rule all, so that one a reader found corrupt and moved
+    aside is written again on the next run (Snakemake skips a missing file that no job needs).
+    """
+    out = [f"results/mesh/{scene}/mesh.h5", f"results/sim/{scene}/trajectories.h5"]
+    for m in scene_methods(config, scene):
+        d = autoencoder_dir(config, scene, m)
+        out += [f"{d}/autoencoder.pt", f"{d}/latents.h5"]
+        out += [
+            f"results/integrator/{scene}/{m}/integrator.pt",
+            f"results/integrator/{scene}/{m}/history.h5",
+        ]
+    return list(dict.fromkeys(out))
+
+
 def all_targets():
-    out = [path for scene in SCENES for path in rollout_paths(scene)]
+    out = [path for scene in SCENES for path in scene_artefacts(scene)]
+    out += [path for scene in SCENES for path in rollout_paths(scene)]
     out += expand("results/evaluation/{scene}/metrics.csv", scene=SCENES)
     out += expand("results/evaluation/{scene}/frames.png", scene=SCENES)
     out += list(sweep_choices().values())

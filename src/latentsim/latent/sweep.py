@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import time
 
-import h5py
 import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
@@ -27,6 +26,7 @@ import torch
 
 from latentsim import runtime
 from latentsim.config import with_defaults
+from latentsim.io import open_artefact
 from latentsim.latent.autoencoder import encode_positions, fit_autoencoder
 from latentsim.latent.coordinates import coordinates_for
 from latentsim.latent.data import load_sequences
@@ -96,7 +96,7 @@ def train_point(trajectories, autoencoder: dict, integrator: dict, seed: int, de
     """
     ae_cfg = with_defaults("autoencoder", autoencoder, "train_point")
     int_cfg = with_defaults("integrator", integrator, "train_point")
-    with h5py.File(trajectories, "r") as f:
+    with open_artefact(trajectories) as f:
         coords = coordinates_for(f, ae_cfg["coordinates"])
         train = load_sequences(f, "train")
         tests = load_sequences(f, "test")

@@ -29,7 +29,7 @@ from latentsim.latent.coordinates import RelativeCoordinates
 from latentsim.latent.data import build_triplets
 from latentsim.latent.integrator import LatentIntegrator
 from latentsim.latent.loss import integrator_loss
-from latentsim.latent.serialization import atomic_save
+from latentsim.latent.serialization import atomic_save, load_checked
 from latentsim.physics.kernels import with_compiled_elastic
 
 log = logging.getLogger(__name__)
@@ -248,7 +248,7 @@ def _resume(path, fingerprint: str, epochs: int, integ: LatentIntegrator, opt, g
     to another training)."""
     if not os.path.exists(path):
         return 0, 0.0
-    state = torch.load(os.fspath(path), map_location="cpu", weights_only=True)
+    state = load_checked(path)
     if state.get("fingerprint") != fingerprint or int(state["epoch"]) > epochs:
         log.warning("checkpoint %s belongs to another training (settings, seed, architecture, data or a longer run): starting over", path)
         return 0, 0.0

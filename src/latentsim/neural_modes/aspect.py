@@ -45,6 +45,7 @@ from torch import nn
 from tqdm import tqdm
 
 from latentsim.config import with_defaults
+from latentsim.latent.serialization import load_blob
 from latentsim.neural_modes.compliant_modes import ground_truth
 from latentsim.neural_modes.linear import fixed_dofs, linear_modes, rigid_modes
 from latentsim.neural_modes.network import NeuralModes, from_config, neural_modes_from_state
@@ -325,7 +326,5 @@ def evaluate_family(model: RatioConditionedModes, family: ModeFamily, potentials
 
 def load_family_model(path) -> RatioConditionedModes:
     """A :class:`RatioConditionedModes` saved by ``latent.save_module`` (rule nm_aspect_ratio), in eval mode."""
-    blob = torch.load(path, map_location="cpu", weights_only=True)
-    if blob.get("kind") != "RatioConditionedModes":
-        raise ValueError(f"{path} holds a {blob.get('kind')!r}, not RatioConditionedModes")
+    blob = load_blob(path, "RatioConditionedModes")
     return RatioConditionedModes.from_state(blob["hparams"], blob["state_dict"]).eval()

@@ -17,6 +17,7 @@ import torch
 from torch import nn
 
 from latentsim.config import with_defaults
+from latentsim.latent.serialization import load_blob
 
 __all__ = ["NeuralModes", "from_config", "load_neural_modes", "neural_modes_from_state"]
 
@@ -151,9 +152,7 @@ class NeuralModes(nn.Module):
 
 def load_neural_modes(path) -> NeuralModes:
     """A :class:`NeuralModes` saved by ``latent.save_module`` (rule nm_train), in eval mode."""
-    blob = torch.load(path, map_location="cpu", weights_only=True)
-    if blob.get("kind") != "NeuralModes":
-        raise ValueError(f"{path} holds a {blob.get('kind')!r}, not NeuralModes")
+    blob = load_blob(path, "NeuralModes")
     return neural_modes_from_state(blob["hparams"], blob["state_dict"]).eval()
 
 

@@ -15,10 +15,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-import h5py
 import numpy as np
 
-from latentsim.io import ArtefactError, require
+from latentsim.io import ArtefactError, open_artefact, require
 from latentsim.mesh import surface_of
 
 __all__ = ["MODEL_CELLS", "Motion", "load_motion", "model_of"]
@@ -110,7 +109,7 @@ def load_motion(h5_path, sequence: str, frames=None, label=None) -> Motion:
         Naming the file and the missing key (sequence, positions, connectivity).
     """
     h5_path = str(h5_path)
-    with h5py.File(h5_path, "r") as f:
+    with open_artefact(h5_path) as f:
         seqs = require(f, "sequences", path=h5_path)
         if sequence not in seqs:
             raise ArtefactError(f"{h5_path}: no sequence '{sequence}'; has {sorted(seqs)}")

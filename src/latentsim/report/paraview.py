@@ -18,11 +18,10 @@ import tempfile
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
-import h5py
 import meshio
 import numpy as np
 
-from latentsim.io import ArtefactError, atomic_path, require
+from latentsim.io import ArtefactError, atomic_path, open_artefact, require
 from latentsim.report.motion import load_motion, model_of
 from latentsim.utils import working_directory
 
@@ -116,7 +115,7 @@ def write_xdmf_series(h5_path, sequence: str, out, reference=None, *, stop_at_di
         if data_file.resolve() == Path(src).resolve():
             raise ValueError(f"write_xdmf_series: the series data file {data_file} would overwrite the input {src}")
     h5_path = str(h5_path)
-    with h5py.File(h5_path, "r") as f:
+    with open_artefact(h5_path) as f:
         model = model_of(f, h5_path)
         cells = _cells(f, model, h5_path)
         rest = require(f, "rest_positions", path=h5_path)[()]

@@ -25,7 +25,6 @@ from __future__ import annotations
 from collections.abc import Mapping
 from pathlib import Path
 
-import h5py
 import matplotlib
 
 matplotlib.use("Agg")
@@ -35,7 +34,7 @@ import pandas as pd
 from matplotlib.lines import Line2D
 from matplotlib.ticker import NullFormatter
 
-from latentsim.io import ArtefactError, atomic_path, require
+from latentsim.io import ArtefactError, atomic_path, open_artefact, require
 from latentsim.report.metrics import kinetic_energy, pareto_front
 
 __all__ = [
@@ -470,7 +469,7 @@ def energy_curves_from_files(truth_h5, rollouts: Mapping, sequence: str, path, t
     rollout's divergence), the ground truth under ``"ground truth"``.
     """
     def load(p):
-        with h5py.File(p, "r") as f:
+        with open_artefact(p) as f:
             g = require(require(f, "sequences"), sequence)
             x = require(g, "positions")[()]
             m = require(f, "masses")[()]
@@ -492,7 +491,7 @@ def energy_curves_from_files(truth_h5, rollouts: Mapping, sequence: str, path, t
 
 def _load_history(run: str, h, key: str) -> np.ndarray:
     if isinstance(h, (str, Path)):
-        with h5py.File(h, "r") as f:
+        with open_artefact(h) as f:
             return np.asarray(require(f, key, path=str(h))[()], dtype=float)
     y = np.asarray(h, dtype=float)
     if y.ndim != 1:

@@ -25,11 +25,10 @@ import html
 import re
 from pathlib import Path
 
-import h5py
 import numpy as np
 import pandas as pd
 
-from latentsim.io import atomic_path, require
+from latentsim.io import atomic_path, open_artefact, require
 from latentsim.report.metrics import pareto_front
 from latentsim.report.paper import li2025_table1, li2025_table2
 
@@ -67,7 +66,7 @@ def stress_table(scene: str, rollouts) -> pd.DataFrame:
     """
     rows = []
     for path in rollouts:
-        with h5py.File(path, "r") as f:
+        with open_artefact(path) as f:
             method = str(f.attrs.get("method", "self_supervised"))
             for cond, g in f.get("stability", {}).items():
                 frames, survived = int(g.attrs["frames"]), int(g.attrs["survived"])
@@ -87,7 +86,7 @@ def speed_accuracy_rows(df: pd.DataFrame) -> pd.DataFrame:
 def reconstruction_table(scene: str, latents) -> pd.DataFrame:
     """Autoencoder reconstruction error per sequence (mean and max vertex error / bbox diagonal) from ``latents.h5``."""
     rows = []
-    with h5py.File(latents, "r") as f:
+    with open_artefact(latents) as f:
         for name, g in require(f, "sequences").items():
             rows.append(dict(scene=scene, sequence=name, split=str(g.attrs["split"]),
                              mean_error=float(g.attrs["mean_error"]), max_error=float(g.attrs["max_error"])))  # fmt: skip

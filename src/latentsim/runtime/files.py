@@ -2,8 +2,8 @@
 
 - ``*.npz``: the folded float64 weights and index arrays of :func:`latentsim.runtime.fold_networks`
   (the encoder's too, from format version 2; version 1 files are read, and step, but cannot encode)
-  plus a JSON ``header`` (its ``format`` and ``version`` checked on reading); NumPy only,
-  ``allow_pickle=False``.  :func:`load_runtime` steps it with a
+  plus a JSON ``header`` (its ``format`` and ``version`` checked on reading) and ``sha256``, the
+  checksum of the others (:func:`npz_checksum`, verified on reading); NumPy only, ``allow_pickle=False``.  :func:`load_runtime` steps it with a
   :class:`latentsim.runtime.NumpyStepper` (:func:`latentsim.runtime.compiled.load_runtime`:
   the compiled stepper).
 - ``*.pt2`` (``*.pt`` accepted too): the folded step as a ``torch.export`` program in the
@@ -21,6 +21,7 @@ import os
 import numpy as np
 import torch
 
+from latentsim.checksum import KEY, Digest, corrupt, unverified
 from latentsim.runtime.fold import FORMAT, VERSION, fold_networks
 from latentsim.runtime.numpy_stepper import NumpyStepper
 from latentsim.runtime.torch_stepper import export_step
@@ -42,7 +43,8 @@ def export_runtime(ae, integrator, coords, path, dtype: torch.dtype = torch.floa
     if path.endswith(".npz"):
         tmp = path[:-4] + ".tmp.npz"
         arrays = {k: v for k, v in folded.items() if k != "header"}
-        np.savez(tmp, header=np.asarray(json.dumps(folded["header"])), **arrays)
+        arrays["header"] = np.asarray(json.dumps(folded["header"]))
+        np.savez(tmp, **arrays, **{KEY: np.asarray(npz_checksum(arrays))})
     elif path.endswith(EXPORT_SUFFIXES):
         tmp = path[: path.rindex(".")] + ".tmp.pt2"  # torch.export.save expects its own suffix
         torch.export.save(export_step(folded, dtype), tmp)
@@ -54,14 +56,37 @@ def export_runtime(ae, integrator, coords, path, dtype: torch.dtype = torch.floa
 
 def read_runtime(path) -> dict:
     """The folded dict (arrays and ``header``) of a ``runtime.npz`` file."""
-    with np.load(os.fspath(path), allow_pickle=False) as f:
-        folded = {k: f[k] for k in f.files if k != "header"}
-        folded["header"] = json.loads(str(f["header"]))
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"{path}: no such file")
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            arrays = {k: f[k] for k in f.files}
+    except Exception as err:  # truncated or damaged zip: BadZipFile (CRC), EOFError, ValueError, OSError, ...
+        raise corrupt(path, f"NumPy cannot read it: {type(err).__name__}: {err}") from err
+    stored = arrays.pop(KEY, None)
+    if stored is None:
+        unverified(path)
+    elif (actual := npz_checksum(arrays)) != str(stored):
+        raise corrupt(path, f"its content does not match its checksum (sha256 {actual[:12]}..., recorded {str(stored)[:12]}...)")
+    if "header" not in arrays:
+        raise ValueError(f"{path}: not a latent runtime file (no header)")
+    folded = {k: v for k, v in arrays.items() if k != "header"}
+    folded["header"] = json.loads(str(arrays["header"]))
     if folded["header"].get("format") != FORMAT:
         raise ValueError(f"{path}: not a latent runtime file")
     if int(folded["header"].get("version", -1)) > VERSION:
         raise ValueError(f"{path}: runtime format version {folded['header']['version']} is newer than {VERSION}")
     return folded
+
+
+def npz_checksum(arrays: dict) -> str:
+    """SHA-256 (hex) of a runtime file's arrays (the ``header`` string among them): each array's
+    name, dtype, shape and bytes, in sorted order."""
+    d = Digest()
+    for k in sorted(arrays):
+        d.array(k, arrays[k])
+    return d.hexdigest()
 
 
 def load_runtime(path, dtype=np.float32) -> NumpyStepper:

@@ -8,12 +8,11 @@ from __future__ import annotations
 import logging
 import time
 
-import h5py
 import numpy as np
 import torch
 
 from latentsim.config import with_defaults
-from latentsim.io import atomic_h5, write_dataset
+from latentsim.io import atomic_h5, open_artefact, write_dataset
 from latentsim.latent.autoencoder import LatentRankError, decode_latents, encode_positions, fit_autoencoder
 from latentsim.latent.coordinates import coordinates_for
 from latentsim.latent.data import load_sequences
@@ -43,7 +42,7 @@ def train_autoencoder(trajectories, settings: dict, seed: int, device: str, out_
     :class:`~latentsim.latent.base.TrainingDiverged` and writes neither output.
     """
     cfg = with_defaults("autoencoder", settings, "train_autoencoder")
-    with h5py.File(trajectories, "r") as f:
+    with open_artefact(trajectories) as f:
         coords = coordinates_for(f, cfg["coordinates"])
         train = load_sequences(f, "train")
         every = load_sequences(f)

@@ -38,12 +38,11 @@ from __future__ import annotations
 import logging
 import time
 
-import h5py
 import numpy as np
 import torch
 
 from latentsim import latent
-from latentsim.io import atomic_h5, write_dataset
+from latentsim.io import atomic_h5, open_artefact, write_dataset
 from latentsim.neural_modes import load_neural_modes
 from latentsim.neural_modes.dynamics import NeuralModesSubspace
 from latentsim.scene import potential_from_artefact
@@ -155,7 +154,7 @@ def baseline_rollouts(trajectories, ae_path, method: str, settings: dict, out, p
     neural_modes : the scene's trained Neural Modes (``neural_modes_reduced`` only).
     """
     ae = latent.load_autoencoder(ae_path)
-    with h5py.File(trajectories, "r") as f:
+    with open_artefact(trajectories) as f:
         coords = autoencoder_coordinates(f, ae_path)
         train = load_sequences(f, "train")
         tests = load_sequences(f, "test")

@@ -19,11 +19,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import h5py
 import numpy as np
 import pandas as pd
 
-from latentsim.io import atomic_path, require
+from latentsim.io import atomic_path, open_artefact, require
 from latentsim.report.metrics import bbox_diagonal, rollout_metrics
 from latentsim.report.paraview import write_xdmf_series
 from latentsim.report.plots import empty_figure, rollout_curves, speed_accuracy_chart, stability_heatmap
@@ -72,14 +71,14 @@ def evaluate_scene(scene: str, trajectories, rollouts):
     if isinstance(rollouts, (str, bytes)) or hasattr(rollouts, "__fspath__"):
         rollouts = [rollouts]
     rows, curves = [], {}
-    with h5py.File(trajectories, "r") as ft:
+    with open_artefact(trajectories) as ft:
         rest = require(ft, "rest_positions")[()]
         masses = require(ft, "masses")[()]
         D = require(ft, "dirichlet")[()]
         dt = float(ft.attrs["dt"])
         diag = bbox_diagonal(rest)
         for path in rollouts:
-            with h5py.File(path, "r") as fr:
+            with open_artefact(path) as fr:
                 method = str(fr.attrs.get("method", "self_supervised"))
                 train_s = {k: float(fr.attrs.get(k, np.nan)) for k in _TRAIN_SECONDS}
                 for name, g in require(fr, "sequences").items():
@@ -208,7 +207,7 @@ def render_scene(scene: str, trajectories, rollouts, frames_png, clip_gif, parav
     """
     methods, diverged = {}, {}
     for path in rollouts:
-        with h5py.File(path, "r") as f:
+        with open_artefact(path) as f:
             m = str(f.attrs.get("method", Path(path).parent.name))
             seqs = list(require(f, "sequences"))
             if not seqs:
@@ -217,9 +216,9 @@ def render_scene(scene: str, trajectories, rollouts, frames_png, clip_gif, parav
             diverged[m] = int(f["sequences"][seqs[0]].attrs["diverged_frame"])
     if not methods:
         raise ValueError(f"scene {scene}: no rollout holds a test sequence")
-    with h5py.File(rollouts[0], "r") as f:
+    with open_artefact(rollouts[0]) as f:
         sequence = next(iter(require(f, "sequences")))
-    with h5py.File(trajectories, "r") as f:
+    with open_artefact(trajectories) as f:
         T = require(f["sequences"], sequence)["positions"].shape[0]
     picks = [0, T // 3, (2 * T) // 3, T - 1]
     render_frames(trajectories, methods, sequence, picks, frames_png, title=f"{scene} / {sequence}: ground truth and every method")

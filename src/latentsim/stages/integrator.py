@@ -9,11 +9,10 @@ from __future__ import annotations
 import logging
 import os
 
-import h5py
 import numpy as np
 
 from latentsim.config import with_defaults
-from latentsim.io import atomic_h5, write_dataset
+from latentsim.io import atomic_h5, open_artefact, write_dataset
 from latentsim.latent.data import load_sequences
 from latentsim.latent.serialization import autoencoder_coordinates, load_autoencoder, save_module
 from latentsim.latent.training import fit_integrator
@@ -33,7 +32,7 @@ def train_integrator(trajectories, ae_path, settings: dict, seed: int, device: s
     keeps the last good epoch).
     """
     cfg = with_defaults("integrator", settings, "train_integrator")
-    with h5py.File(trajectories, "r") as f:
+    with open_artefact(trajectories) as f:
         coords = autoencoder_coordinates(f, ae_path)
         train = load_sequences(f, "train")
         potential = potential_from_artefact(f)

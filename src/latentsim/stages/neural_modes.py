@@ -34,7 +34,7 @@ import torch
 
 from latentsim import neural_modes as nm
 from latentsim.config import with_defaults
-from latentsim.io import ArtefactError, atomic_h5, atomic_path, read_tree, require, write_dataset, write_tree
+from latentsim.io import ArtefactError, atomic_h5, atomic_path, open_artefact, read_tree, require, write_dataset, write_tree
 from latentsim.latent import save_module
 from latentsim.neural_modes import aspect as nm_aspect
 from latentsim.neural_modes import dynamics as nm_dynamics
@@ -195,7 +195,7 @@ def summary_stage(history_files: dict, out_csv, out_md):
     """Stage ``nm_summary``: one row per scene (energy vs linear modes, constraint, origin, correlation eigenvalues)."""
     rows = []
     for scene, path in sorted(history_files.items()):
-        with h5py.File(path, "r") as f:
+        with open_artefact(path) as f:
             cfg = json.loads(f.attrs["config"])["neural_modes"]
             e, el = f["eval_energy"][()], f["eval_energy_linear"][()]
             w = f["correlation_eigenvalues"][()]
@@ -223,7 +223,7 @@ def summary_stage(history_files: dict, out_csv, out_md):
 # --------------------------------------------------------------------------------------------------
 def read_linear_modes(path) -> dict:
     """``linear_modes.h5`` as a dict: X (n,3), masses, modes (3n,m), free_dofs, fixed_dofs, rigid (3n,6) or None."""
-    with h5py.File(path, "r") as f:
+    with open_artefact(path) as f:
         names = {"X": "rest_positions", "masses": "masses", "modes": "modes", "free_dofs": "free_dofs", "fixed_dofs": "fixed_dofs"}
         out = {k: require(f, name, path=path)[()] for k, name in names.items()}
         out["rigid"] = f["rigid_modes"][()] if "rigid_modes" in f else None
@@ -241,7 +241,7 @@ def write_markdown(path, sections: dict, preamble: str = ""):
 
 def read_ground_truth(path) -> dict:
     """``ground_truth.h5``: {set name: {z, x, energy, residual, iterations}}."""
-    with h5py.File(path, "r") as f:
+    with open_artefact(path) as f:
         sets = read_tree(require(f, "sets", path=path))
     if not sets:
         raise ArtefactError(f"{path}: no ground-truth sets under /sets")
@@ -325,7 +325,7 @@ def sheet_tables_stage(study_h5, out: dict):
     ``out``: paths by name: the keys of :data:`SHEET_TABLES`, ``markdown``, ``learning_curves``,
     ``latent_walk``, ``correlation_figure``.
     """
-    with h5py.File(study_h5, "r") as f:
+    with open_artefact(study_h5) as f:
         study = read_tree(f)
     for key in ("methods", "walk", "correlation", "rest_positions", "triangles"):
         if key not in study:
@@ -404,7 +404,7 @@ def dynamics_stage(trajectories_h5, model_pt, params: dict, out: dict, progress:
     """
     model = nm.load_neural_modes(model_pt)
     st = params["study"]
-    with h5py.File(trajectories_h5, "r") as f:
+    with open_artefact(trajectories_h5) as f:
         full = time_full_space(f, nm_dynamics.first_test_sequence(f), int(st["full_frames_timed"]))
         res = nm_dynamics.subspace_dynamics(f, model, float(params["box"]), st, full, progress)
         name = res["sequence"]

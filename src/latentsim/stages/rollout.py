@@ -10,12 +10,11 @@ from __future__ import annotations
 import logging
 import time
 
-import h5py
 import torch
 
 from latentsim import runtime
 from latentsim.config import with_defaults
-from latentsim.io import atomic_h5, write_dataset
+from latentsim.io import atomic_h5, open_artefact, write_dataset
 from latentsim.latent.autoencoder import encode_positions
 from latentsim.latent.coordinates import coordinates_for
 from latentsim.latent.data import load_sequences
@@ -70,7 +69,7 @@ def _read_scene(trajectories, coordinates: str | None, cfg: dict) -> dict:
     """What the rollout needs of a scene's ``trajectories.h5``: ``coords``, the ``tests``
     sequences, ``train_frames`` (the longest training sequence), the ``potential``, the scene's
     ``arrays`` and ``attrs`` (copied to the output) and ``full``, the full-space timing."""
-    with h5py.File(trajectories, "r") as f:
+    with open_artefact(trajectories) as f:
         tests = load_sequences(f, "test")
         return {
             "coords": coordinates_for(f, coordinates),

@@ -16,11 +16,10 @@ import shutil
 import time
 from pathlib import Path
 
-import h5py
 import meshio
 import numpy as np
 
-from latentsim.io import atomic_h5, atomic_path, write_dataset
+from latentsim.io import atomic_h5, atomic_path, open_artefact, write_dataset
 from latentsim.report.paraview import single_block_xdmf
 from latentsim.stages.mesh import cells_for
 from latentsim.scene import bc_parameters, build_potential, dirichlet_trajectory
@@ -35,7 +34,7 @@ class SimulationError(RuntimeError):
 
 
 def read_mesh_arrays(path) -> dict:
-    with h5py.File(path, "r") as f:
+    with open_artefact(path) as f:
         arrays = {k: f[k][()] for k in f.keys()}
         arrays["model"] = str(f.attrs["model"])
     return arrays

@@ -1,0 +1,59 @@
+"""A corrupt artefact in a finished run: the job that reads it stops naming the file, and the next run of
+the same command rewrites it (on a copy of the shared tiny run, which other tests read)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from latentsim.io import open_artefact
+
+from workflow_support import TINY_COMMAND
+
+
+def copy_of_run(work, dest):
+    """The finished run ``work`` (results and Snakemake's records) copied to ``dest``, ``../shared`` beside it."""
+    copy = dest / "latentsim"
+    shutil.copytree(work, copy, symlinks=True)
+    if (work.parent / "shared").exists():
+        (dest / "shared").symlink_to((work.parent / "shared").resolve(), target_is_directory=True)
+    return copy
+
+
+def run(command, cwd):
+    """``command`` as a user types it (as ``workflow_support.shell``), its failure returned, not raised."""
+    env = dict(os.environ, CI="1", PATH=os.pathsep.join([str(Path(sys.executable).parent), os.environ["PATH"]]))
+    return subprocess.run(["bash", "-c", command], cwd=cwd, capture_output=True, text=True, env=env)
+
+
+def test_a_truncated_trajectories_file_stops_its_reader_and_the_next_run_rewrites_it(tiny_run, tmp_path):
+    work = copy_of_run(tiny_run[0], tmp_path)
+    rel = "results/sim/tiny_rods/trajectories.h5"
+    path = work / rel
+    with h5py.File(path, "r") as f:
+        before = f["sequences/test_mid/positions"][()]
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])  # as a full disk or an interrupted copy leaves it
+
+    command = TINY_COMMAND  # snakemake --cores 2 all ...: the truncated file is newer, so its readers rerun
+    first = run(command, work)
+    assert first.returncode != 0
+    assert f"{rel}: corrupt artefact" in first.stderr, first.stderr[-3000:]  # the path as the rule names it
+    assert "truncated" in first.stderr and "the same snakemake command run again writes it anew" in first.stderr
+    assert not path.exists() and (work / (rel + ".corrupt")).exists()
+
+    second = run(command, work)
+    assert second.returncode == 0, second.stderr[-3000:]
+    assert "rule simulate:" in second.stdout + second.stderr  # the producer reran, then its readers
+    for rel_out in ("results/autoencoder/tiny_rods/autoencoder.pt", "results/evaluation/summary.csv"):
+        assert (work / rel_out).exists(), rel_out
+    with open_artefact(path) as f:
+        after = f["sequences/test_mid/positions"][()]
+    scale = np.abs(before).max()
+    np.testing.assert_allclose(after, before, rtol=0, atol=1e-9 * scale)
