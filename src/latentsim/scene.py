@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from latentsim.physics import rods, shells, tets
+from latentsim.physics import rods, shells, stvk_nm, tets
 from latentsim.physics.incremental_potential import ElasticPotential, IncrementalPotential
 
 BC_DIM = 6
@@ -91,7 +91,10 @@ def build_elastic(model: str, arrays: dict, material: dict, free_only: bool = Fa
         element arrays of the model: 'edges' and 'triples' (rods), 'triangles'
         (shell), 'tets'.
     material : youngs_modulus [Pa], poisson_ratio, density [kg/m^3], and
-        radius [m] (rods) or thickness [m] (shell).
+        radius [m] (rods) or thickness [m] (shell); optionally ``model``
+        ('stvk', the default, or 'stvk_nm': the Neural Modes authors' membrane,
+        hinge and tets, ``physics.stvk_nm``) and, for stvk_nm shells,
+        ``bending_stiffness`` kB [N m] (default D/2).
     free_only : drop the elastic stencils whose vertices are all Dirichlet.
         Their energy is then a constant, so the full-space solver (which
         prescribes the Dirichlet vertices exactly) loses nothing; losses and
@@ -111,12 +114,13 @@ def build_elastic(model: str, arrays: dict, material: dict, free_only: bool = Fa
 
     Y = float(material["youngs_modulus"])
     rho = float(material["density"])
+    law = material_model(model, material)
     if model == "rods":
         edges = torch.as_tensor(np.asarray(arrays["edges"], dtype=np.int64))
         triples = torch.as_tensor(np.asarray(arrays["triples"], dtype=np.int64))
         r = float(material["radius"])
         ks, kb = rods.rod_stiffness(Y, r)
-        terms = [rods.RodStretch(X, active(edges), ks), rods.RodBend(X, active(triples), kb)]
+        terms = [rods.RodStretch(X, active(edges), ks), rods.RodBend(X, active(triples), kb)]  # law == "stvk"
         masses = rods.lumped_masses_rods(X, edges, rho, r)
     elif model == "shell":
         tris = torch.as_tensor(np.asarray(arrays["triangles"], dtype=np.int64))
@@ -125,14 +129,22 @@ def build_elastic(model: str, arrays: dict, material: dict, free_only: bool = Fa
         hinges = shells.hinges_from_triangles(tris)
         # Grinspun's hinge weight 3|e|^2/(A1+A2) with k_b = D converges to 6x the plate energy
         # D/2 kappa^2 per area (measured in tests/physics/test_energy_shells.py); 1/6 calibrates it.
-        terms = [
-            shells.ShellMembraneStVK(X, active(tris), Y, nu, h),
-            shells.ShellHinge(X, active(hinges), Y, nu, h, stiffness_scale=1.0 / 6.0),
-        ]
+        if law == "stvk_nm":
+            kb = material.get("bending_stiffness")
+            terms = [
+                stvk_nm.ShellMembraneNM(X, active(tris), Y, nu, h),
+                stvk_nm.neural_modes_hinge(X, active(hinges), Y, nu, h, None if kb is None else float(kb)),
+            ]
+        else:
+            terms = [
+                shells.ShellMembraneStVK(X, active(tris), Y, nu, h),
+                shells.ShellHinge(X, active(hinges), Y, nu, h, stiffness_scale=1.0 / 6.0),
+            ]
         masses = shells.lumped_masses_shell(X, tris, rho, h)
     elif model == "tets":
         T = torch.as_tensor(np.asarray(arrays["tets"], dtype=np.int64))
-        terms = [tets.StVKTets(X, active(T), Y, float(material["poisson_ratio"]))]
+        nu = float(material["poisson_ratio"])
+        terms = [stvk_nm.TetsNM(X, active(T), Y, nu) if law == "stvk_nm" else tets.StVKTets(X, active(T), Y, nu)]
         masses = tets.lumped_masses(X, T, rho)
     else:
         raise ValueError(f"model '{model}': use one of rods, shell, tets")
@@ -141,6 +153,25 @@ def build_elastic(model: str, arrays: dict, material: dict, free_only: bool = Fa
         masses=torch.as_tensor(masses, dtype=torch.float64),
         dirichlet=torch.as_tensor(np.asarray(arrays["dirichlet"], dtype=np.int64)),
     )
+
+
+MATERIAL_MODELS = {"rods": ("stvk",), "shell": ("stvk", "stvk_nm"), "tets": ("stvk", "stvk_nm")}
+
+
+def material_model(model: str, material: dict) -> str:
+    """The scene's ``material.model`` (default 'stvk'), checked against those its ``model`` offers.
+
+    Raises
+    ------
+    ValueError naming the key and the value when the model has no such material.
+    """
+    law = str(material.get("model", "stvk"))
+    offered = MATERIAL_MODELS.get(model, ("stvk",))
+    if law not in offered:
+        raise ValueError(f"material.model '{law}' is not available for model '{model}': use one of {', '.join(offered)}")
+    if material.get("bending_stiffness") is not None and not (model == "shell" and law == "stvk_nm"):
+        raise ValueError(f"material.bending_stiffness applies to model 'shell' with material.model 'stvk_nm' only (got model '{model}', material.model '{law}')")
+    return law
 
 
 def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity, w_bc: float = 1e5, free_only: bool = False):
@@ -157,7 +188,9 @@ def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity
     )
 
 
-MATERIAL_KEYS = ("youngs_modulus", "poisson_ratio", "density", "thickness", "radius")
+MATERIAL_KEYS = ("youngs_modulus", "poisson_ratio", "density", "thickness", "radius", "bending_stiffness")
+# the material model is a string, stored as the attribute ``material_model`` (``model`` is the scene's)
+MATERIAL_MODEL_ATTR = "material_model"
 ELEMENT_KEYS = ("edges", "triples", "triangles", "tets", "root_of")
 
 
@@ -169,4 +202,6 @@ def potential_from_artefact(f, w_bc: float = 1e5, free_only: bool = False) -> In
     """
     arrays = {k: f[k][()] for k in ("rest_positions", "dirichlet") + ELEMENT_KEYS if k in f}
     material = {k: float(f.attrs[k]) for k in MATERIAL_KEYS if k in f.attrs}
+    if MATERIAL_MODEL_ATTR in f.attrs:
+        material["model"] = str(f.attrs[MATERIAL_MODEL_ATTR])
     return build_potential(str(f.attrs["model"]), arrays, material, float(f.attrs["dt"]), f.attrs["gravity"], w_bc, free_only=free_only)

@@ -22,7 +22,7 @@ import numpy as np
 from latentsim.io import atomic_h5, atomic_path, open_artefact, write_dataset
 from latentsim.report.paraview import single_block_xdmf
 from latentsim.stages.mesh import cells_for
-from latentsim.scene import bc_parameters, build_potential, dirichlet_trajectory
+from latentsim.scene import MATERIAL_MODEL_ATTR, bc_parameters, build_potential, dirichlet_trajectory
 from latentsim.solve.implicit_euler import ImplicitEuler, NewtonFailed, NewtonSettings, StepInfo
 from latentsim.utils import progress_bar, working_directory
 
@@ -100,7 +100,10 @@ def simulate_scene(scene: str, mesh_h5, cfg: dict, out_h5, paraview_dir=None, pr
         f.attrs["force_scale"] = solver.f_ref
         f.attrs["linear_solver"] = solver.linear.method
         for k, v in cfg["material"].items():
-            f.attrs[k] = float(v)
+            if k == "model":
+                f.attrs[MATERIAL_MODEL_ATTR] = str(v)
+            elif v is not None:
+                f.attrs[k] = float(v)
         write_dataset(f, "rest_positions", rest)
         write_dataset(f, "masses", pot.masses.numpy())
         for k in ("dirichlet", "edges", "triples", "root_of", "triangles", "tets", "surface"):
