@@ -336,3 +336,19 @@ def test_sheet_modes_with_identity_mass_are_the_hessian_eigenpairs(sheet):
     # the assembled (compiled) Hessian is the same matrix
     K, _ = stiffness_matrix(unit, X)
     assert np.abs(K.toarray() - Hf).max() <= 1e-10 * np.abs(Hf).max()
+
+
+def test_the_artefact_keeps_the_material_model():
+    """simulate writes ``material.model`` as the attribute material_model (``model`` is the scene's);
+    ``potential_from_artefact`` rebuilds the same terms from it."""
+    import h5py
+
+    from latentsim.scene import MATERIAL_MODEL_ATTR, potential_from_artefact
+
+    X, T = beam_tets(1, 1, 1, 1.0, 1.0, 1.0)
+    with h5py.File("in-memory.h5", "w", driver="core", backing_store=False) as f:
+        f["rest_positions"], f["tets"], f["dirichlet"] = X, T, np.array([0])
+        f.attrs.update(model="tets", dt=0.01, gravity=np.zeros(3), youngs_modulus=1e6, poisson_ratio=0.3, density=1.0)
+        assert type(potential_from_artefact(f).terms[0]).__name__ == "StVKTets"
+        f.attrs[MATERIAL_MODEL_ATTR] = "stvk_nm"
+        assert type(potential_from_artefact(f).terms[0]).__name__ == "TetsNM"
