@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from latentsim.physics import rods, shells, tets
+from latentsim.physics import neohookean, rods, shells, tets
 from latentsim.physics.incremental_potential import ElasticPotential, IncrementalPotential
 
 BC_DIM = 6
@@ -80,6 +80,13 @@ def dirichlet_trajectory(rest_D: np.ndarray, p: np.ndarray, dt: float) -> np.nda
 # --- the physical model -------------------------------------------------------
 
 
+# material.model of a tet scene -> its energy term (``physics.tets``, ``physics.neohookean``)
+TET_MATERIALS = {
+    "stvk": tets.StVKTets,
+    "neohookean": neohookean.StableNeoHookeanTets,
+}
+
+
 def build_elastic(model: str, arrays: dict, material: dict, free_only: bool = False) -> ElasticPotential:
     """ElasticPotential of a scene (its elastic terms, lumped masses, Dirichlet set) from its mesh
     arrays and material: the elastic energy alone, with no time step or gravity.
@@ -91,7 +98,8 @@ def build_elastic(model: str, arrays: dict, material: dict, free_only: bool = Fa
         element arrays of the model: 'edges' and 'triples' (rods), 'triangles'
         (shell), 'tets'.
     material : youngs_modulus [Pa], poisson_ratio, density [kg/m^3], and
-        radius [m] (rods) or thickness [m] (shell).
+        radius [m] (rods) or thickness [m] (shell); for tets, ``model``: 'stvk'
+        (default) or 'neohookean' (stable neo-Hookean), see ``TET_MATERIALS``.
     free_only : drop the elastic stencils whose vertices are all Dirichlet.
         Their energy is then a constant, so the full-space solver (which
         prescribes the Dirichlet vertices exactly) loses nothing; losses and
@@ -111,6 +119,8 @@ def build_elastic(model: str, arrays: dict, material: dict, free_only: bool = Fa
 
     Y = float(material["youngs_modulus"])
     rho = float(material["density"])
+    if str(material.get("model", "stvk")) in TET_MATERIALS.keys() - {"stvk"} and model != "tets":
+        raise ValueError(f"material.model '{material['model']}' is a solid's: the {model} model takes stvk")
     if model == "rods":
         edges = torch.as_tensor(np.asarray(arrays["edges"], dtype=np.int64))
         triples = torch.as_tensor(np.asarray(arrays["triples"], dtype=np.int64))
@@ -132,7 +142,10 @@ def build_elastic(model: str, arrays: dict, material: dict, free_only: bool = Fa
         masses = shells.lumped_masses_shell(X, tris, rho, h)
     elif model == "tets":
         T = torch.as_tensor(np.asarray(arrays["tets"], dtype=np.int64))
-        terms = [tets.StVKTets(X, active(T), Y, float(material["poisson_ratio"]))]
+        solid = TET_MATERIALS.get(str(material.get("model", "stvk")))
+        if solid is None:
+            raise ValueError(f"material.model '{material['model']}' for tets: use one of {', '.join(TET_MATERIALS)}")
+        terms = [solid(X, active(T), Y, float(material["poisson_ratio"]))]
         masses = tets.lumped_masses(X, T, rho)
     else:
         raise ValueError(f"model '{model}': use one of rods, shell, tets")
@@ -169,4 +182,6 @@ def potential_from_artefact(f, w_bc: float = 1e5, free_only: bool = False) -> In
     """
     arrays = {k: f[k][()] for k in ("rest_positions", "dirichlet") + ELEMENT_KEYS if k in f}
     material = {k: float(f.attrs[k]) for k in MATERIAL_KEYS if k in f.attrs}
+    if "material_model" in f.attrs:  # material.model, stored under this name beside the scene's "model"
+        material["model"] = str(f.attrs["material_model"])
     return build_potential(str(f.attrs["model"]), arrays, material, float(f.attrs["dt"]), f.attrs["gravity"], w_bc, free_only=free_only)

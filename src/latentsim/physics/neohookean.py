@@ -60,8 +60,9 @@ def snh_density(F: torch.Tensor, mu, lam) -> torch.Tensor:
     """Psi(F) - Psi(I) of the module docstring; F (..., 3, 3), mu, lam broadcastable to (...) -> (...)."""
     Ic = (F * F).sum((-1, -2))
     J = torch.linalg.det(F)
-    alpha = 1.0 + 0.75 * mu / lam
-    rest = 0.5 * lam * (1.0 - alpha) ** 2 - 0.5 * mu * math.log(4.0)
+    ratio = torch.where(torch.as_tensor(lam) != 0, torch.as_tensor(mu) / torch.as_tensor(lam), 0.0)  # a zero-weight element: 0
+    alpha = 1.0 + 0.75 * ratio
+    rest = 0.28125 * mu * ratio - 0.5 * mu * math.log(4.0)  # lam/2 (1 - alpha)^2 - mu/2 log 4
     return 0.5 * mu * (Ic - 3.0) + 0.5 * lam * (J - alpha) ** 2 - 0.5 * mu * torch.log(Ic + 1.0) - rest
 
 
@@ -100,7 +101,9 @@ class StableNeoHookeanTets(StVKTets):
             t = torch.as_tensor(t, dtype=torch.float64)
             return t[idx] if t.ndim else t
 
-        return StableNeoHookeanTets(self.rest_positions, self.stencils[idx], per_element(youngs) * w, per_element(nu))
+        sub = StableNeoHookeanTets(self.rest_positions, self.stencils[idx], per_element(youngs), per_element(nu))
+        sub.mu, sub.lam = per_element(self.mu) * w, per_element(self.lam) * w  # a zero weight: mu = lam = 0
+        return sub
 
     def local_energy(self, xe: torch.Tensor) -> torch.Tensor:
         """W_e (Psi(F_e) - Psi(I)); xe (..., E, 4, 3) -> (..., E); differentiable, batched."""
@@ -117,7 +120,8 @@ class StableNeoHookeanTets(StVKTets):
         J = torch.linalg.det(F)[..., None, None]
         c0, c1, c2 = F[..., :, 0], F[..., :, 1], F[..., :, 2]
         cof = torch.stack([torch.linalg.cross(c1, c2), torch.linalg.cross(c2, c0), torch.linalg.cross(c0, c1)], -1)
-        return mu * Ic / (Ic + 1.0) * F + lam * (J - (1.0 + 0.75 * mu / lam)) * cof
+        ratio = torch.where(lam != 0, mu / lam, 0.0)
+        return mu * Ic / (Ic + 1.0) * F + lam * (J - (1.0 + 0.75 * ratio)) * cof
 
     def kernel_spec(self) -> KernelSpec:
         """The compiled kernels (``kernels.neohookean``): gradient W B^T vec(P), the exact Hessian

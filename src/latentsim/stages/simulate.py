@@ -100,7 +100,10 @@ def simulate_scene(scene: str, mesh_h5, cfg: dict, out_h5, paraview_dir=None, pr
         f.attrs["force_scale"] = solver.f_ref
         f.attrs["linear_solver"] = solver.linear.method
         for k, v in cfg["material"].items():
-            f.attrs[k] = float(v)
+            if k == "model":  # the material model; the attribute "model" is the scene's (rods, shell, tets)
+                f.attrs["material_model"] = str(v)
+            else:
+                f.attrs[k] = float(v)
         write_dataset(f, "rest_positions", rest)
         write_dataset(f, "masses", pot.masses.numpy())
         for k in ("dirichlet", "edges", "triples", "root_of", "triangles", "tets", "surface"):

@@ -54,8 +54,9 @@ def _cofactor(F, C):
 @njit(**INLINE)
 def _density(Ic, J, m_, l_):
     """Psi(F) - Psi(I) from the invariants I_C and J."""
-    alpha = 1.0 + 0.75 * m_ / l_
-    rest = 0.28125 * m_ * m_ / l_ - 0.5 * m_ * LOG4  # lam/2 (1 - alpha)^2 - mu/2 log 4
+    ratio = m_ / l_ if l_ != 0.0 else 0.0  # lam = 0: a zero-weight cubature element (mu = 0 too)
+    alpha = 1.0 + 0.75 * ratio
+    rest = 0.28125 * m_ * ratio - 0.5 * m_ * LOG4  # lam/2 (1 - alpha)^2 - mu/2 log 4
     return 0.5 * m_ * (Ic - 3.0) + 0.5 * l_ * (J - alpha) ** 2 - 0.5 * m_ * math.log(Ic + 1.0) - rest
 
 
@@ -88,7 +89,7 @@ def _snh_energy_gradient(e, x, st, D, vol, mu, lam, g, F, C, P, inv):
         for j in range(3):
             Ic += F[i, j] * F[i, j]
     s = m_ * Ic / (Ic + 1.0)
-    p = l_ * (J - (1.0 + 0.75 * m_ / l_))
+    p = l_ * (J - (1.0 + 0.75 * (m_ / l_ if l_ != 0.0 else 0.0)))
     inv[0], inv[1], inv[2], inv[3] = Ic, J, s, p
     for i in range(3):
         for j in range(3):
