@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from latentsim.physics import rods, shells, stvk_nm, tets
+from latentsim.physics import neohookean, rods, shells, stvk_nm, tets
 from latentsim.physics.incremental_potential import ElasticPotential, IncrementalPotential
 
 BC_DIM = 6
@@ -80,6 +80,14 @@ def dirichlet_trajectory(rest_D: np.ndarray, p: np.ndarray, dt: float) -> np.nda
 # --- the physical model -------------------------------------------------------
 
 
+#: The tet energy of each ``material.model`` (``physics.tets``, ``physics.stvk_nm``, ``physics.neohookean``).
+TET_MATERIALS = {
+    "stvk": tets.StVKTets,
+    "stvk_nm": stvk_nm.TetsNM,
+    "neohookean": neohookean.StableNeoHookeanTets,
+}
+
+
 def build_elastic(model: str, arrays: dict, material: dict, free_only: bool = False) -> ElasticPotential:
     """ElasticPotential of a scene (its elastic terms, lumped masses, Dirichlet set) from its mesh
     arrays and material: the elastic energy alone, with no time step or gravity.
@@ -92,9 +100,10 @@ def build_elastic(model: str, arrays: dict, material: dict, free_only: bool = Fa
         (shell), 'tets'.
     material : youngs_modulus [Pa], poisson_ratio, density [kg/m^3], and
         radius [m] (rods) or thickness [m] (shell); optionally ``model``
-        ('stvk', the default, or 'stvk_nm': the Neural Modes authors' membrane,
-        hinge and tets, ``physics.stvk_nm``) and, for stvk_nm shells,
-        ``bending_stiffness`` kB [N m] (default D/2).
+        ('stvk', the default; 'stvk_nm': the Neural Modes authors' membrane,
+        hinge and tets, ``physics.stvk_nm``; 'neohookean', tets only: stable
+        neo-Hookean, ``physics.neohookean``; see ``MATERIAL_MODELS``) and, for
+        stvk_nm shells, ``bending_stiffness`` kB [N m] (default D/2).
     free_only : drop the elastic stencils whose vertices are all Dirichlet.
         Their energy is then a constant, so the full-space solver (which
         prescribes the Dirichlet vertices exactly) loses nothing; losses and
@@ -143,8 +152,7 @@ def build_elastic(model: str, arrays: dict, material: dict, free_only: bool = Fa
         masses = shells.lumped_masses_shell(X, tris, rho, h)
     elif model == "tets":
         T = torch.as_tensor(np.asarray(arrays["tets"], dtype=np.int64))
-        nu = float(material["poisson_ratio"])
-        terms = [stvk_nm.TetsNM(X, active(T), Y, nu) if law == "stvk_nm" else tets.StVKTets(X, active(T), Y, nu)]
+        terms = [TET_MATERIALS[law](X, active(T), Y, float(material["poisson_ratio"]))]
         masses = tets.lumped_masses(X, T, rho)
     else:
         raise ValueError(f"model '{model}': use one of rods, shell, tets")
@@ -155,7 +163,7 @@ def build_elastic(model: str, arrays: dict, material: dict, free_only: bool = Fa
     )
 
 
-MATERIAL_MODELS = {"rods": ("stvk",), "shell": ("stvk", "stvk_nm"), "tets": ("stvk", "stvk_nm")}
+MATERIAL_MODELS = {"rods": ("stvk",), "shell": ("stvk", "stvk_nm"), "tets": tuple(TET_MATERIALS)}
 
 
 def material_model(model: str, material: dict) -> str:

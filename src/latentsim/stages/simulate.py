@@ -100,7 +100,7 @@ def simulate_scene(scene: str, mesh_h5, cfg: dict, out_h5, paraview_dir=None, pr
         f.attrs["force_scale"] = solver.f_ref
         f.attrs["linear_solver"] = solver.linear.method
         for k, v in cfg["material"].items():
-            if k == "model":
+            if k == "model":  # the material model; the attribute "model" is the scene's (rods, shell, tets)
                 f.attrs[MATERIAL_MODEL_ATTR] = str(v)
             elif v is not None:
                 f.attrs[k] = float(v)

@@ -1,0 +1,217 @@
+r"""Compiled stable neo-Hookean tetrahedra (``physics.neohookean.StableNeoHookeanTets``).
+
+With D (4, 3) the barycentric gradients of tet e, F = sum_a x_a D_a^T,
+I_C = ||F||_F^2, J = det F, cof F = dJ/dF (columns f1 x f2, f2 x f0, f0 x f1),
+Lame parameters (mu, lam) of the energy (already reparametrised, see
+``physics.neohookean``), alpha = 1 + 3 mu / (4 lam) and W the rest volume:
+
+    energy      W [mu/2 (I_C - 3) + lam/2 (J - alpha)^2 - mu/2 log(I_C + 1) - Psi(I)],
+    stress      P = s F + p cof F,   s = mu I_C / (I_C + 1),  p = lam (J - alpha),
+    gradient    g_a = W P D_a,
+    Hessian     H_(a i)(b j) = W [ s (D_a . D_b) d_ij + h q_(a,i) q_(b,j) + lam c_(a,i) c_(b,j)
+                                   + p eps_ijm (F (D_a x D_b))_m ],
+                q_a = F D_a,  c_a = (cof F) D_a,  h = 2 mu / (I_C + 1)^2.
+
+The projection clamps the analytic eigensystem of dP/dF in the principal-stretch
+frame of the rotation-variant SVD F = U diag(sigma) V^T (Smith, de Goes, Kim
+2018, section 4; the same frame as the StVK kernels of ``kernels.tets``):
+
+    scaling (3): eigenpairs (lambda_k, w_k) of A_ij = s d_ij + h sigma_i sigma_j
+                 + lam J_i J_j + p sigma_k [i != j, k the third index],
+                 J_i = dJ/dsigma_i (the product of the other two),
+                 eigenmatrix U diag(w_k) V^T;
+    flip  (ij):  s - p sigma_k,  eigenmatrix U (e_i e_j^T + e_j e_i^T) V^T / sqrt 2;
+    twist (ij):  s + p sigma_k,  eigenmatrix U (e_i e_j^T - e_j e_i^T) V^T / sqrt 2;
+
+H_e^+ = W sum_k max(lambda_k, 0) g_k g_k^T with g_k = B^T vec(Q_k).  ``snh_energy``
+and ``snh_run`` follow the calling convention of ``dispatch.TermKernel``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from latentsim.physics.kernels.core import GRADIENT, INLINE, JIT, SCATTER, jacobi_eigh, scatter, scatter_gradient, svd3
+from latentsim.physics.kernels.tets import _tet_F
+
+LOG4 = math.log(4.0)
+
+
+@njit(**INLINE)
+def _cofactor(F, C):
+    """C (3, 3) = cof F = dJ/dF (columns f1 x f2, f2 x f0, f0 x f1 of the columns f_j of F); returns J."""
+    for j in range(3):
+        a, b = (j + 1) % 3, (j + 2) % 3
+        C[0, j] = F[1, a] * F[2, b] - F[2, a] * F[1, b]
+        C[1, j] = F[2, a] * F[0, b] - F[0, a] * F[2, b]
+        C[2, j] = F[0, a] * F[1, b] - F[1, a] * F[0, b]
+    return F[0, 0] * C[0, 0] + F[1, 0] * C[1, 0] + F[2, 0] * C[2, 0]
+
+
+@njit(**INLINE)
+def _density(Ic, J, m_, l_):
+    """Psi(F) - Psi(I) from the invariants I_C and J."""
+    ratio = m_ / l_ if l_ != 0.0 else 0.0  # lam = 0: a zero-weight cubature element (mu = 0 too)
+    alpha = 1.0 + 0.75 * ratio
+    rest = 0.28125 * m_ * ratio - 0.5 * m_ * LOG4  # lam/2 (1 - alpha)^2 - mu/2 log 4
+    return 0.5 * m_ * (Ic - 3.0) + 0.5 * l_ * (J - alpha) ** 2 - 0.5 * m_ * math.log(Ic + 1.0) - rest
+
+
+@njit(**JIT)
+def snh_energy(x, st, order, D, vol, mu, lam):
+    """sum_e W_e (Psi(F_e) - Psi(I))."""
+    F, C = np.empty((3, 3)), np.empty((3, 3))
+    total = 0.0
+    for ii in range(order.shape[0]):
+        e = order[ii]
+        _tet_F(e, x, st, D, F)
+        J = _cofactor(F, C)
+        Ic = 0.0
+        for i in range(3):
+            for j in range(3):
+                Ic += F[i, j] * F[i, j]
+        total += vol[e] * _density(Ic, J, mu[e], lam[e])
+    return total
+
+
+@njit(**INLINE)
+def _snh_energy_gradient(e, x, st, D, vol, mu, lam, g, F, C, P, inv):
+    """Energy (returned) and gradient g (12,) = W D P^T of tet e; leaves F, C = cof F and
+    inv = (I_C, J, s, p)."""
+    _tet_F(e, x, st, D, F)
+    W, m_, l_ = vol[e], mu[e], lam[e]
+    J = _cofactor(F, C)
+    Ic = 0.0
+    for i in range(3):
+        for j in range(3):
+            Ic += F[i, j] * F[i, j]
+    s = m_ * Ic / (Ic + 1.0)
+    p = l_ * (J - (1.0 + 0.75 * (m_ / l_ if l_ != 0.0 else 0.0)))
+    inv[0], inv[1], inv[2], inv[3] = Ic, J, s, p
+    for i in range(3):
+        for j in range(3):
+            P[i, j] = s * F[i, j] + p * C[i, j]
+    for a in range(4):
+        for i in range(3):
+            g[3 * a + i] = W * (P[i, 0] * D[e, a, 0] + P[i, 1] * D[e, a, 1] + P[i, 2] * D[e, a, 2])
+    return W * _density(Ic, J, m_, l_)
+
+
+@njit(**INLINE)
+def _snh_exact_hessian(e, D, vol, mu, lam, F, C, inv, q, c, H):
+    """The exact Hessian of tet e, written to the upper triangle of H (12, 12) only (all that
+    ``scatter`` reads); q, c (4, 3) scratch."""
+    W, l_ = vol[e], lam[e]
+    Ic, s, p = inv[0], inv[2], inv[3]
+    h = 2.0 * mu[e] / ((Ic + 1.0) * (Ic + 1.0))
+    for a in range(4):
+        for i in range(3):
+            q[a, i] = F[i, 0] * D[e, a, 0] + F[i, 1] * D[e, a, 1] + F[i, 2] * D[e, a, 2]
+            c[a, i] = C[i, 0] * D[e, a, 0] + C[i, 1] * D[e, a, 1] + C[i, 2] * D[e, a, 2]
+    for a in range(4):
+        for b_ in range(a, 4):
+            dd = D[e, a, 0] * D[e, b_, 0] + D[e, a, 1] * D[e, b_, 1] + D[e, a, 2] * D[e, b_, 2]
+            # n = D_a x D_b, w = F n: the second derivative of J
+            n0 = D[e, a, 1] * D[e, b_, 2] - D[e, a, 2] * D[e, b_, 1]
+            n1 = D[e, a, 2] * D[e, b_, 0] - D[e, a, 0] * D[e, b_, 2]
+            n2 = D[e, a, 0] * D[e, b_, 1] - D[e, a, 1] * D[e, b_, 0]
+            w0 = p * (F[0, 0] * n0 + F[0, 1] * n1 + F[0, 2] * n2)
+            w1 = p * (F[1, 0] * n0 + F[1, 1] * n1 + F[1, 2] * n2)
+            w2 = p * (F[2, 0] * n0 + F[2, 1] * n1 + F[2, 2] * n2)
+            for i in range(3):
+                for j in range(3):
+                    v = h * q[a, i] * q[b_, j] + l_ * c[a, i] * c[b_, j]
+                    if i == j:
+                        v += s * dd
+                    H[3 * a + i, 3 * b_ + j] = W * v
+            H[3 * a + 0, 3 * b_ + 1] += W * w2
+            H[3 * a + 1, 3 * b_ + 0] -= W * w2
+            H[3 * a + 2, 3 * b_ + 0] += W * w1
+            H[3 * a + 0, 3 * b_ + 2] -= W * w1
+            H[3 * a + 1, 3 * b_ + 2] += W * w0
+            H[3 * a + 2, 3 * b_ + 1] -= W * w0
+
+
+@njit(**INLINE)
+def _snh_projected_hessian(e, D, vol, mu, lam, F, inv, H, S, P, DV, U, V, Lf, A, b, sig, w3, N):
+    """The projected Hessian H (12, 12) of tet e from F: the 9 analytic eigenpairs of dP/dF in the
+    principal-stretch frame, clamped, H = N^T N for the weighted mode vectors N (9, 12); the rest
+    is scratch."""
+    W, l_ = vol[e], lam[e]
+    Ic, s, p = inv[0], inv[2], inv[3]
+    h = 2.0 * mu[e] / ((Ic + 1.0) * (Ic + 1.0))
+    svd3(F, S, P, w3, U, sig, V, b)
+    Jd0, Jd1, Jd2 = sig[1] * sig[2], sig[0] * sig[2], sig[0] * sig[1]
+    A[0, 0] = s + h * sig[0] * sig[0] + l_ * Jd0 * Jd0
+    A[1, 1] = s + h * sig[1] * sig[1] + l_ * Jd1 * Jd1
+    A[2, 2] = s + h * sig[2] * sig[2] + l_ * Jd2 * Jd2
+    A[0, 1] = A[1, 0] = h * sig[0] * sig[1] + l_ * Jd0 * Jd1 + p * sig[2]
+    A[0, 2] = A[2, 0] = h * sig[0] * sig[2] + l_ * Jd0 * Jd2 + p * sig[1]
+    A[1, 2] = A[2, 1] = h * sig[1] * sig[2] + l_ * Jd1 * Jd2 + p * sig[0]
+    jacobi_eigh(A, Lf, w3)
+    sw = math.sqrt(W)
+    for k in range(3):
+        f = math.sqrt(max(w3[k], 0.0)) * sw
+        for r in range(3):
+            Lf[r, k] *= f
+    for a in range(4):  # DV[a, r] = D_a . v_r
+        for r in range(3):
+            DV[a, r] = D[e, a, 0] * V[0, r] + D[e, a, 1] * V[1, r] + D[e, a, 2] * V[2, r]
+    for k in range(3):  # scaling modes sum_r L[r, k] g_rr, g_rt = (D v_t) (x) u_r
+        for a in range(4):
+            for c in range(3):
+                N[k, 3 * a + c] = (Lf[0, k] * DV[a, 0] * U[c, 0] + Lf[1, k] * DV[a, 1] * U[c, 1]
+                                   + Lf[2, k] * DV[a, 2] * U[c, 2])  # fmt: skip
+    for m in range(3):  # flips and twists of the pairs (0,1), (0,2), (1,2); k the third index
+        r = 0 if m < 2 else 1
+        t = 1 if m == 0 else 2
+        k = 3 - r - t
+        wf = math.sqrt(0.5 * max(s - p * sig[k], 0.0)) * sw
+        wt = math.sqrt(0.5 * max(s + p * sig[k], 0.0)) * sw
+        for a in range(4):
+            for c in range(3):
+                grt = DV[a, t] * U[c, r]
+                gtr = DV[a, r] * U[c, t]
+                N[3 + m, 3 * a + c] = (grt + gtr) * wf
+                N[6 + m, 3 * a + c] = (grt - gtr) * wt
+    for i in range(12):
+        for j in range(i, 12):
+            acc = 0.0
+            for k in range(9):
+                acc += N[k, i] * N[k, j]
+            H[i, j] = acc
+            H[j, i] = acc
+
+
+@njit(**JIT)
+def snh_run(x, st, order, D, vol, mu, lam, project, grad, data, slots, g_out, H_out, mode):
+    F, C, P, S = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    U, V, Lf, A, b = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    q, c = np.empty((4, 3)), np.empty((4, 3))
+    w3, sig, inv = np.empty(3), np.empty(3), np.empty(4)
+    N = np.empty((9, 12))
+    g = np.empty(12)
+    H = np.empty((12, 12))
+    total = 0.0
+    for ii in range(order.shape[0]):
+        e = order[ii]
+        total += _snh_energy_gradient(e, x, st, D, vol, mu, lam, g, F, C, P, inv)
+        if mode == GRADIENT:
+            scatter_gradient(e, st, g, grad, 4)
+            continue
+        if project:
+            _snh_projected_hessian(e, D, vol, mu, lam, F, inv, H, S, P, q, U, V, Lf, A, b, sig, w3, N)
+        else:
+            _snh_exact_hessian(e, D, vol, mu, lam, F, C, inv, q, c, H)
+        if mode == SCATTER:
+            scatter(e, st, g, H, grad, data, slots, 4)
+        else:
+            g_out[e] = g
+            for i in range(12):
+                for j in range(i, 12):
+                    H_out[e, i, j] = H[i, j]
+                    H_out[e, j, i] = H[i, j]
+    return total
