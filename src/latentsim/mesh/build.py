@@ -28,6 +28,13 @@ from latentsim.mesh.validation import MeshError
 logger = logging.getLogger(__name__)
 
 
+def _tetgen_quality(q: dict) -> tuple[float, float] | None:
+    """TetGen's (radius-edge ratio, min dihedral) bounds of ``mesh.quality``, None when off."""
+    if not q.get("tetgen", True):
+        return None
+    return float(q.get("radius_edge", 2.0)), float(q.get("min_dihedral_deg", 10.0))
+
+
 def _from_file(model: str, cfg: dict, sources: dict) -> dict[str, np.ndarray]:
     """``rest_positions`` and the model's cells of the scene's mesh file.
 
@@ -51,7 +58,8 @@ def _from_file(model: str, cfg: dict, sources: dict) -> dict[str, np.ndarray]:
             V, surf, _ = remove_unreferenced(m.vertices, surf)
             try:
                 out["rest_positions"], out["tets"] = tetrahedralize_to(
-                    V, surf, int(cfg["target_vertices"]), str(path))
+                    V, surf, int(cfg["target_vertices"]), str(path),
+                    quality=_tetgen_quality(cfg.get("quality") or {}))
             except MeshError as exc:  # name the file where the message does not
                 if str(path) in str(exc):
                     raise
@@ -124,11 +132,15 @@ def scene_mesh(scene: str, model: str, mesh_cfg: dict, dirichlet_rule: dict,
     Raises
     ------
     MeshError
-        A quality problem or an empty Dirichlet set, naming the scene.
+        A quality problem (a tet's dihedral angle below
+        ``mesh.quality.gate_min_dihedral_deg`` included) or an empty Dirichlet
+        set, naming the scene.
     """
     arrays = build_mesh(model, mesh_cfg, sources)
+    gate = float((mesh_cfg.get("quality") or {}).get("gate_min_dihedral_deg", 0.01))
     quality = check_mesh(arrays["rest_positions"], tets=arrays.get("tets"),
-                         triangles=arrays.get("triangles"), name=scene)
+                         triangles=arrays.get("triangles"), name=scene,
+                         min_dihedral_deg=gate if gate > 0 else None)
     arrays["dirichlet"] = select_dirichlet(arrays["rest_positions"], dirichlet_rule,
                                            arrays.get("root_of"))
     if len(arrays["dirichlet"]) == 0:

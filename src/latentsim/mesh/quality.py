@@ -60,8 +60,16 @@ def _tet_quality(p: np.ndarray, tets: np.ndarray) -> dict[str, np.ndarray]:
     dihedral = 180.0 - np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
     edges = x[:, [0, 0, 0, 1, 1, 2]] - x[:, [1, 2, 3, 2, 3, 3]]
     elen = np.linalg.norm(edges, axis=2)
+    # circumradius: centre offset from x0 = (|a|^2 b x c + |b|^2 c x a + |c|^2 a x b) / (2 a.(b x c))
+    a, b, c = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]
+    num = ((a * a).sum(1)[:, None] * np.cross(b, c) + (b * b).sum(1)[:, None] * np.cross(c, a)
+           + (c * c).sum(1)[:, None] * np.cross(a, b))
+    den = 2.0 * np.abs(np.einsum("ij,ij->i", a, np.cross(b, c)))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        radius = np.where(den > 0, np.linalg.norm(num, axis=1) / den, np.inf)
+        radius_edge = radius / elen.min(axis=1)
     return {"dihedral": dihedral, "edge_min": elen.min(axis=1), "edge_max": elen.max(axis=1),
-            "edge_rms": np.sqrt((elen ** 2).mean(axis=1))}
+            "edge_rms": np.sqrt((elen ** 2).mean(axis=1)), "radius_edge": radius_edge}
 
 
 def _checked_cells(tets, triangles, n: int, name: str, problems: _Problems) -> dict:
@@ -98,8 +106,8 @@ def _count_unreferenced(cells: dict, n: int, name: str, unreferenced: str,
 
 
 def _tet_stats(p: np.ndarray, t: np.ndarray, finite: np.ndarray, degenerate_tol: float,
-               name: str, problems: _Problems) -> dict[str, Any]:
-    """Inverted and (near) zero-volume tets, volumes, dihedral angles, edge ratio."""
+               min_dihedral_deg: float | None, name: str, problems: _Problems) -> dict[str, Any]:
+    """Inverted, (near) zero-volume and sliver tets, volumes, dihedral angles, edge ratios."""
     good = finite[t].all(axis=1)
     vol = np.full(len(t), np.nan)
     vol[good] = tet_volumes(p, t[good])
@@ -122,10 +130,26 @@ def _tet_stats(p: np.ndarray, t: np.ndarray, finite: np.ndarray, degenerate_tol:
                      f"({degenerate.size} such tets)")
     if good.any():
         vg = vol[good]
+        smallest = np.nanmin(q["dihedral"], axis=1)  # (e_good,) each tet's smallest angle
+        absv = np.abs(vg)
         stats.update(volume_total=float(vg.sum()), volume_min=float(vg.min()),
                      volume_max=float(vg.max()),
+                     volume_ratio=float(absv.max() / absv.min()) if absv.min() > 0
+                     else float("inf"),
                      dihedral_min_deg=float(np.nanmin(q["dihedral"])),
-                     dihedral_max_deg=float(np.nanmax(q["dihedral"])))
+                     dihedral_median_deg=float(np.nanmedian(smallest)),
+                     dihedral_max_deg=float(np.nanmax(q["dihedral"])),
+                     radius_edge_max=float(np.nanmax(q["radius_edge"])))
+        if min_dihedral_deg is not None:
+            below = np.flatnonzero(smallest < min_dihedral_deg)
+            stats["n_below_min_dihedral"] = int(below.size)
+            if below.size:
+                w = int(below[np.argmin(smallest[below])])
+                i = int(np.flatnonzero(good)[w])
+                problems.add(
+                    f"{name}: tet {i} {t[i].tolist()} has a dihedral angle of "
+                    f"{smallest[w]:.4g} degrees, below the bound of {min_dihedral_deg:g} "
+                    f"({below.size} tets below it; mesh.quality.gate_min_dihedral_deg)")
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = q["edge_max"] / q["edge_min"]
         stats["edge_ratio_max"] = float(np.nanmax(ratio)) if np.isfinite(ratio).any() \
@@ -174,6 +198,7 @@ def check_mesh(
     *,
     unreferenced: str = "warn",
     degenerate_tol: float = 1e-10,
+    min_dihedral_deg: float | None = None,
     strict: bool = True,
 ) -> dict[str, Any]:
     """Check a mesh and return quality statistics for logging.
@@ -183,7 +208,9 @@ def check_mesh(
     ``"error"``: a problem; ``"ignore"``), inverted tets (negative volume),
     zero-volume tets (``volume <= degenerate_tol * rms_edge**3``, i.e. a shape
     measure ~1e-9 of a regular tet's), degenerate triangles (repeated vertex
-    or ``area <= degenerate_tol * rms_edge**2``).  Every message names the mesh
+    or ``area <= degenerate_tol * rms_edge**2``), and, when ``min_dihedral_deg``
+    is given, tets with a dihedral angle below it (slivers; the message names
+    the worst one).  Every message names the mesh
     and the first bad vertex/element index (and its volume or area) and how
     many there are.
 
@@ -195,6 +222,8 @@ def check_mesh(
     name : str, used in messages
     unreferenced : "warn" | "error" | "ignore"
     degenerate_tol : float
+    min_dihedral_deg : float, optional
+        The quality gate [degrees]: the smallest dihedral angle a tet may have.
     strict : bool
         Raise :class:`MeshError` on the first problem (default).  If False,
         problems are collected in ``stats["problems"]`` and statistics are
@@ -205,8 +234,12 @@ def check_mesh(
     dict with plain Python numbers: ``n_vertices``, ``n_tets``,
     ``n_triangles``, ``n_unreferenced``, ``bbox_min``, ``bbox_max``; for tets
     ``volume_total``, ``volume_min``, ``volume_max``, ``n_inverted``,
-    ``n_degenerate_tets``, ``dihedral_min_deg``, ``dihedral_max_deg``,
-    ``edge_ratio_max`` (longest / shortest edge of a tet); for triangles
+    ``n_degenerate_tets``, ``dihedral_min_deg``, ``dihedral_median_deg`` (the
+    median over tets of each tet's smallest dihedral angle),
+    ``dihedral_max_deg``, ``edge_ratio_max`` (longest / shortest edge of a
+    tet), ``radius_edge_max`` (circumradius / shortest edge; 0.612 for a
+    regular tet), ``volume_ratio`` (largest / smallest tet volume), and with
+    a gate ``n_below_min_dihedral``; for triangles
     ``area_total``, ``area_min``, ``area_max``, ``n_degenerate_triangles``,
     ``angle_min_deg``; and ``problems`` (list of str, empty when all is well).
     """
@@ -228,7 +261,8 @@ def check_mesh(
     cells = _checked_cells(tets, triangles, n, name, problems)
     stats["n_unreferenced"] = _count_unreferenced(cells, n, name, unreferenced, problems)
     if len(cells.get("tet", ())):
-        stats.update(_tet_stats(p, cells["tet"], finite, degenerate_tol, name, problems))
+        stats.update(_tet_stats(p, cells["tet"], finite, degenerate_tol, min_dihedral_deg, name,
+                                problems))
     if len(cells.get("triangle", ())):
         stats.update(_triangle_stats(p, cells["triangle"], finite, degenerate_tol, name,
                                      problems))
