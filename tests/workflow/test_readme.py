@@ -80,7 +80,7 @@ def test_readme_quick_commands_run_as_written(tiny_run):
         if fails:
             assert out.returncode != 0 and "config key 'seed': nan is not a finite number" in out.stdout + out.stderr
             assert "Job stats" not in out.stdout + out.stderr  # stopped before planning any job
-        if "--report" in command:
+        elif "--report" in command:
             html = (work / "report.html").read_text(errors="replace")
             assert len(html) > 100_000 and "tiny_cloth" in html
         elif command.startswith("snakemake -n"):
