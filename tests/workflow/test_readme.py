@@ -7,6 +7,7 @@ README's tiny command), in the README's order.
 from __future__ import annotations
 
 import re
+import shutil
 import subprocess
 from pathlib import Path
 
@@ -68,8 +69,14 @@ def test_the_example_scene_test_runs_the_readme_command():
     assert "config/examples/ring.yaml" in (ROOT / "tests" / "workflow" / "test_example_scene.py").read_text()
 
 
-def test_readme_quick_commands_run_as_written(tiny_run):
-    work, _ = tiny_run
+def test_readme_quick_commands_run_as_written(tiny_run, tmp_path):
+    # on a copy of the tiny run: these commands add files (a report, another scene's mesh) that the other
+    # tests of the shared run must not see
+    work = tmp_path / "latentsim"
+    shutil.copytree(tiny_run[0], work, symlinks=True)
+    shared = tiny_run[0].parent / "shared"
+    if shared.exists():
+        (tmp_path / "shared").symlink_to(shared.resolve(), target_is_directory=True)
     # the copy has no history: make it a checkout of its own, so the glance script can name its commit
     subprocess.run("git init -q && git add -A && git -c user.name=t -c user.email=t@t commit -qm copy",
                    shell=True, cwd=work, check=True, capture_output=True)
