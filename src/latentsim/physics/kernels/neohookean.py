@@ -34,8 +34,8 @@ import math
 import numpy as np
 from numba import njit
 
-from latentsim.physics.kernels.core import GRADIENT, INLINE, JIT, SCATTER, jacobi_eigh, scatter, scatter_gradient, svd3
-from latentsim.physics.kernels.tets import _tet_F
+from latentsim.physics.kernels.core import GRADIENT, INLINE, JIT, SCATTER, scatter, scatter_gradient, svd3
+from latentsim.physics.kernels.tets import _tet_F, projected_from_eigensystem
 
 LOG4 = math.log(4.0)
 
@@ -137,9 +137,9 @@ def _snh_exact_hessian(e, D, vol, mu, lam, F, C, inv, q, c, H):
 
 @njit(**INLINE)
 def _snh_projected_hessian(e, D, vol, mu, lam, F, inv, H, S, P, DV, U, V, Lf, A, b, sig, w3, N):
-    """The projected Hessian H (12, 12) of tet e from F: the 9 analytic eigenpairs of dP/dF in the
-    principal-stretch frame, clamped, H = N^T N for the weighted mode vectors N (9, 12); the rest
-    is scratch."""
+    """The projected Hessian H (12, 12) of neo-Hookean tet e from F
+    (:func:`~latentsim.physics.kernels.tets.projected_from_eigensystem` with this energy's
+    eigenvalues: flips s - p sigma_k, twists s + p sigma_k); the rest is scratch."""
     W, l_ = vol[e], lam[e]
     Ic, s, p = inv[0], inv[2], inv[3]
     h = 2.0 * mu[e] / ((Ic + 1.0) * (Ic + 1.0))
@@ -151,39 +151,11 @@ def _snh_projected_hessian(e, D, vol, mu, lam, F, inv, H, S, P, DV, U, V, Lf, A,
     A[0, 1] = A[1, 0] = h * sig[0] * sig[1] + l_ * Jd0 * Jd1 + p * sig[2]
     A[0, 2] = A[2, 0] = h * sig[0] * sig[2] + l_ * Jd0 * Jd2 + p * sig[1]
     A[1, 2] = A[2, 1] = h * sig[1] * sig[2] + l_ * Jd1 * Jd2 + p * sig[0]
-    jacobi_eigh(A, Lf, w3)
-    sw = math.sqrt(W)
-    for k in range(3):
-        f = math.sqrt(max(w3[k], 0.0)) * sw
-        for r in range(3):
-            Lf[r, k] *= f
-    for a in range(4):  # DV[a, r] = D_a . v_r
-        for r in range(3):
-            DV[a, r] = D[e, a, 0] * V[0, r] + D[e, a, 1] * V[1, r] + D[e, a, 2] * V[2, r]
-    for k in range(3):  # scaling modes sum_r L[r, k] g_rr, g_rt = (D v_t) (x) u_r
-        for a in range(4):
-            for c in range(3):
-                N[k, 3 * a + c] = (Lf[0, k] * DV[a, 0] * U[c, 0] + Lf[1, k] * DV[a, 1] * U[c, 1]
-                                   + Lf[2, k] * DV[a, 2] * U[c, 2])  # fmt: skip
-    for m in range(3):  # flips and twists of the pairs (0,1), (0,2), (1,2); k the third index
-        r = 0 if m < 2 else 1
-        t = 1 if m == 0 else 2
-        k = 3 - r - t
-        wf = math.sqrt(0.5 * max(s - p * sig[k], 0.0)) * sw
-        wt = math.sqrt(0.5 * max(s + p * sig[k], 0.0)) * sw
-        for a in range(4):
-            for c in range(3):
-                grt = DV[a, t] * U[c, r]
-                gtr = DV[a, r] * U[c, t]
-                N[3 + m, 3 * a + c] = (grt + gtr) * wf
-                N[6 + m, 3 * a + c] = (grt - gtr) * wt
-    for i in range(12):
-        for j in range(i, 12):
-            acc = 0.0
-            for k in range(9):
-                acc += N[k, i] * N[k, j]
-            H[i, j] = acc
-            H[j, i] = acc
+    for m in range(3):  # the pairs (0,1), (0,2), (1,2); k the third index
+        k = 2 - m
+        b[0, m] = s - p * sig[k]
+        b[1, m] = s + p * sig[k]
+    projected_from_eigensystem(e, D, W, A, b, DV, U, V, Lf, w3, N, H)
 
 
 @njit(**JIT)

@@ -115,20 +115,17 @@ def _tet_exact_hessian(e, D, vol, mu, lam, F, S, q, FF, H):
 
 
 @njit(**INLINE)
-def _tet_projected_hessian(e, D, vol, mu, lam, F, H, S, P, DV, U, V, Lf, A, b, sig, w3, N):
-    """The projected Hessian H (12, 12) of tet e from F: the 9 analytic eigenpairs of dP/dF in the
-    principal-stretch frame, clamped, H = N^T N for the weighted mode vectors N (9, 12); the rest
-    is scratch (S and P are overwritten)."""
-    W, m_, l_ = vol[e], mu[e], lam[e]
-    svd3(F, S, P, w3, U, sig, V, b)
-    s0, s1, s2 = sig[0] * sig[0], sig[1] * sig[1], sig[2] * sig[2]
-    T = 0.5 * (s0 + s1 + s2 - 3.0)
-    sw = math.sqrt(W)
-    for i in range(3):
-        for j in range(3):
-            A[i, j] = l_ * sig[i] * sig[j]
-        A[i, i] += m_ * (3.0 * sig[i] * sig[i] - 1.0) + l_ * T
+def projected_from_eigensystem(e, D, W, A, fw, DV, U, V, Lf, w3, N, H):
+    """The projected Hessian H (12, 12) of tet e from dP/dF's eigensystem in the principal-stretch
+    frame (Teran et al. 2005; Smith, de Goes and Kim 2018), each eigenvalue clamped at 0.
+
+    ``A`` (3, 3): the block of the three scaling modes (overwritten by its eigen-decomposition);
+    ``fw`` (2, 3): the eigenvalues of the flip (row 0) and twist (row 1) modes of the stretch pairs
+    (0,1), (0,2), (1,2); ``W`` the element's rest volume; ``U``, ``V`` the rotation-variant SVD of F.
+    H = N^T N for the weighted mode vectors N (9, 12); ``DV``, ``Lf``, ``w3`` are scratch.
+    """
     jacobi_eigh(A, Lf, w3)
+    sw = math.sqrt(W)
     for k in range(3):
         f = math.sqrt(max(w3[k], 0.0)) * sw
         for p in range(3):
@@ -144,10 +141,8 @@ def _tet_projected_hessian(e, D, vol, mu, lam, F, H, S, P, DV, U, V, Lf, A, b, s
     for m in range(3):  # flips and twists of the pairs (0,1), (0,2), (1,2)
         p = 0 if m < 2 else 1
         qq = 1 if m == 0 else 2
-        base = m_ * (sig[p] * sig[p] + sig[qq] * sig[qq] - 1.0) + l_ * T
-        cross = m_ * sig[p] * sig[qq]
-        wf = math.sqrt(0.5 * max(base + cross, 0.0)) * sw
-        wt = math.sqrt(0.5 * max(base - cross, 0.0)) * sw
+        wf = math.sqrt(0.5 * max(fw[0, m], 0.0)) * sw
+        wt = math.sqrt(0.5 * max(fw[1, m], 0.0)) * sw
         for a in range(4):
             for c in range(3):
                 gpq = DV[a, qq] * U[c, p]
@@ -161,6 +156,28 @@ def _tet_projected_hessian(e, D, vol, mu, lam, F, H, S, P, DV, U, V, Lf, A, b, s
                 acc += N[k, i] * N[k, j]
             H[i, j] = acc
             H[j, i] = acc
+
+
+@njit(**INLINE)
+def _tet_projected_hessian(e, D, vol, mu, lam, F, H, S, P, DV, U, V, Lf, A, b, sig, w3, N):
+    """The projected Hessian H (12, 12) of StVK tet e from F (:func:`projected_from_eigensystem`
+    with StVK's eigenvalues); the rest is scratch (S, P and b are overwritten)."""
+    W, m_, l_ = vol[e], mu[e], lam[e]
+    svd3(F, S, P, w3, U, sig, V, b)
+    s0, s1, s2 = sig[0] * sig[0], sig[1] * sig[1], sig[2] * sig[2]
+    T = 0.5 * (s0 + s1 + s2 - 3.0)
+    for i in range(3):
+        for j in range(3):
+            A[i, j] = l_ * sig[i] * sig[j]
+        A[i, i] += m_ * (3.0 * sig[i] * sig[i] - 1.0) + l_ * T
+    for m in range(3):  # flip and twist eigenvalues of the pairs (0,1), (0,2), (1,2)
+        p = 0 if m < 2 else 1
+        qq = 1 if m == 0 else 2
+        base = m_ * (sig[p] * sig[p] + sig[qq] * sig[qq] - 1.0) + l_ * T
+        cross = m_ * sig[p] * sig[qq]
+        b[0, m] = base + cross
+        b[1, m] = base - cross
+    projected_from_eigensystem(e, D, W, A, b, DV, U, V, Lf, w3, N, H)
 
 
 @njit(**JIT)
