@@ -375,10 +375,38 @@ def test_simulated_frames_satisfy_the_neohookean_equations_of_motion(tmp_path):
         pot = potential_from_artefact(f)
         X = torch.as_tensor(f["sequences/s/positions"][()])
         tol = f.attrs["newton_tolerance"] * f.attrs["force_scale"]
+        min_ratio = f["sequences/s/min_volume_ratio"][()]
+        inverted = f["sequences/s/inverted_tets"][()]
     assert type(pot.terms[0]) is StableNeoHookeanTets
+    # the recorded inversion measure is the frames' own smallest det F = V / V0
+    vol = lambda x: torch.linalg.det(x[T[:, 1:]] - x[T[:, :1]])  # noqa: E731
+    det_f = torch.stack([vol(x) / vol(X[0]) for x in X])
+    np.testing.assert_allclose(min_ratio, det_f.min(dim=1).values.numpy(), rtol=1e-12)
+    assert min_ratio[0] == pytest.approx(1.0) and (inverted == 0).all() and min_ratio.min() < 1.0
     free = np.setdiff1d(np.arange(X.shape[1]), D)
     for t in range(1, X.shape[0]):
         x = X[t].clone().requires_grad_(True)
         (g,) = torch.autograd.grad(pot(x, X[t - 1], X[max(t - 2, 0)], penalty=False), x)
         assert g[free].norm() <= tol, f"frame {t}: residual {g[free].norm():.3e} > {tol:.3e}"
     assert (X[-1] - X[0]).abs().max() > 1e-2  # the motion is not trivial
+
+
+def test_volume_ratios_give_det_f_and_count_inverted_tets():
+    """Uniform scaling by s gives det F = s^3 on every tet; a vertex pushed through its opposite face inverts
+    exactly the tets that hold it."""
+    from latentsim.stages.simulate import volume_ratios
+
+    V, T = beam_tets(2, 1, 1, 0.2, 0.1, 0.1, tets_per_cell=5)
+    flipped = V.copy()
+    k = int(np.argmax(np.bincount(T.ravel())))  # the vertex in the most tets
+    holders = np.flatnonzero((T == k).any(axis=1))
+    # reflect vertex k through the plane of the opposite face of its first tet, far enough to invert that tet
+    t = T[holders[0]]
+    a, b, c = V[[v for v in t if v != k]]
+    n = np.cross(b - a, c - a)
+    n /= np.linalg.norm(n)
+    flipped[k] = V[k] - 2.5 * np.dot(V[k] - a, n) * n
+    min_ratio, inverted = volume_ratios(np.stack([V, 1.5 * V, flipped]), V, T)
+    assert min_ratio[0] == pytest.approx(1.0) and min_ratio[1] == pytest.approx(1.5**3)
+    assert inverted[0] == inverted[1] == 0
+    assert 1 <= inverted[2] <= len(holders) and min_ratio[2] < 0

@@ -5,8 +5,10 @@ Layout (see docs/artefacts.md): root datasets ``rest_positions (n,3)``,
 attributes ``model``, ``dt``, ``gravity`` and the material constants; one group
 per sequence ``/sequences/<name>`` with ``positions (T,n,3)``,
 ``dirichlet_positions (T,m,3)``, ``bc (T,6)``, ``newton_iterations (T,)``,
-``gradient_norm (T,)``, ``frame_ms (T,)`` and attribute ``split``.  Frame 0 is
-the initial state (at rest); frame 1 is solved with x_{-1} = x_0.
+``gradient_norm (T,)``, ``frame_ms (T,)`` and attribute ``split``; tet scenes add
+``min_volume_ratio (T,)`` (the smallest det F = V / V0 over the tets) and
+``inverted_tets (T,)`` (how many have det F <= 0) at the end of each frame.
+Frame 0 is the initial state (at rest); frame 1 is solved with x_{-1} = x_0.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import meshio
 import numpy as np
 
 from latentsim.io import atomic_h5, atomic_path, open_artefact, write_dataset
+from latentsim.mesh.geometry import tet_volumes
 from latentsim.report.paraview import single_block_xdmf
 from latentsim.stages.mesh import cells_for
 from latentsim.scene import MATERIAL_MODEL_ATTR, bc_parameters, build_potential, dirichlet_trajectory
@@ -38,6 +41,25 @@ def read_mesh_arrays(path) -> dict:
         arrays = {k: f[k][()] for k in f.keys()}
         arrays["model"] = str(f.attrs["model"])
     return arrays
+
+
+def volume_ratios(positions: np.ndarray, rest: np.ndarray, tets: np.ndarray):
+    """Per frame, the smallest tet volume ratio det F = V / V0 and the count of inverted tets.
+
+    Parameters
+    ----------
+    positions : (T, n, 3) float, the frames.
+    rest : (n, 3) float, the rest positions.
+    tets : (e, 4) int, positively oriented at rest.
+
+    Returns
+    -------
+    min_ratio : (T,) float64, min over tets of det F.
+    inverted : (T,) int64, the number of tets with det F <= 0.
+    """
+    v0 = tet_volumes(rest, tets)
+    ratios = np.stack([tet_volumes(x, tets) / v0 for x in positions])
+    return ratios.min(axis=1), (ratios <= 0).sum(axis=1).astype(np.int64)
 
 
 def simulate_sequence(solver: ImplicitEuler, rest, seq: dict, dt: float, label: str, progress=False):
@@ -85,6 +107,14 @@ def simulate_scene(scene: str, mesh_h5, cfg: dict, out_h5, paraview_dir=None, pr
     for seq in cfg["sequences"]:
         label = f"scene {scene}, sequence {seq['name']}"
         data, timings = simulate_sequence(solver, rest, seq, cfg["dt"], label, progress)
+        if model == "tets":
+            data["min_volume_ratio"], data["inverted_tets"] = volume_ratios(data["positions"], rest, arrays["tets"])
+            bad = np.flatnonzero(data["inverted_tets"])
+            if bad.size:
+                log.warning("%s: %d frames end with an inverted tet (first %d: %d tets, det F down to %.3g)", label,
+                            bad.size, bad[0], data["inverted_tets"][bad[0]], data["min_volume_ratio"].min())
+            else:
+                log.info("%s: no inverted tet at the end of any frame (smallest det F %.3g)", label, data["min_volume_ratio"].min())
         it = data["newton_iterations"][1:]
         log.info(
             "%s: %d frames, %.1f ms/frame, %.2f Newton iterations/frame, timings %s",
