@@ -16,7 +16,9 @@ Two fingerprints are compared in one of two ways:
 Files are read as they are (``h5py``, ``torch.load``, ``np.load``), not through the checked
 readers of :mod:`latentsim.checksum`: a fingerprint describes whatever a results tree holds (files
 written before checksums included, and a corrupt file is not moved aside), and an altered value shows
-as a differing digest.  The artefacts' own ``sha256`` checksums are left out, as they cover wall times.
+as a differing digest.  The artefacts' own ``sha256`` checksums are left out, as they cover wall times,
+and so is the computing environment they record (:mod:`latentsim.provenance`): it says where a result
+was computed, not what it is.
 
 Command line::
 
@@ -29,7 +31,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import platform
 import re
 import sys
 from pathlib import Path
@@ -40,12 +41,15 @@ import pandas as pd
 import torch
 
 from latentsim.checksum import KEY
+from latentsim.provenance import ENVIRONMENT, machine_signature
+
 # attributes that record wall time or a choice made by timing
 TIMING_NAMES = frozenset({"seconds", "runtime", "frame_ms", "step_ms"})
 # provenance: the package version and the validated config slice, which lists every setting with its
 # default (a setting added to the schema with the value the code already used changes it, not the results),
-# and the artefact's own checksum (latentsim.checksum.KEY), which covers its wall times too
-SKIPPED_ATTRS = frozenset({"latentsim_version", "config", KEY})
+# the artefact's own checksum (latentsim.checksum.KEY), which covers its wall times too, and the processor
+# and libraries that computed it (latentsim.provenance.ENVIRONMENT; also a key of .pt and .npz files)
+SKIPPED_ATTRS = frozenset({"latentsim_version", "config", KEY, ENVIRONMENT})
 # results/<stage>/... whose arrays converge to the Newton tolerance on any processor
 PHYSICS_STAGES = ("mesh", "sim")
 
@@ -59,19 +63,6 @@ def is_timing(name: str) -> bool:
     ``train s``, ``speedup``, ``on_front``."""
     leaf = name.rsplit("/", 1)[-1].rsplit("@", 1)[-1]
     return leaf in TIMING_NAMES or bool(TIMING_WORDS.search(leaf))
-
-
-def machine_signature() -> str:
-    """Processor model and numeric library versions: bitwise comparisons hold only where these match."""
-    model = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{model} | numpy {np.__version__} | torch {torch.__version__}"
 
 
 def _digest(data: bytes) -> str:
@@ -123,7 +114,8 @@ def _tensors(obj, prefix: str, out: dict) -> None:
 
 def _pt(path: Path) -> dict:
     blob = torch.load(path, weights_only=True, map_location="cpu")
-    blob.pop(KEY, None)
+    for key in (KEY, ENVIRONMENT):
+        blob.pop(key, None)
     out: dict = {}
     _tensors(blob, "", out)
     return out
@@ -131,7 +123,7 @@ def _pt(path: Path) -> dict:
 
 def _npz(path: Path) -> dict:
     with np.load(path) as z:
-        return {k: _entry(z[k]) for k in z.files if k != KEY}
+        return {k: _entry(z[k]) for k in z.files if k not in (KEY, ENVIRONMENT)}
 
 
 def _csv(path: Path) -> dict:

@@ -8,6 +8,8 @@ for complete.  Every HDF5 artefact carries, at its root:
 - ``latentsim_version`` : package version,
 - ``config`` : JSON of the config slice that produced it,
 - ``seed`` : the random seed used (-1 when none applies),
+- ``environment`` : JSON of the processor and numerical libraries that computed it
+  (:func:`latentsim.provenance.environment`),
 - ``sha256`` : the checksum of everything else in the file (:func:`h5_checksum`), written last.
 
 Readers open them with :func:`open_artefact`, which verifies the checksum and turns a truncated,
@@ -30,6 +32,7 @@ import numpy as np
 
 from latentsim import __version__
 from latentsim.checksum import KEY, ArtefactError, Digest, corrupt, unverified
+from latentsim.provenance import ENVIRONMENT, environment
 
 __all__ = [
     "ArtefactError",
@@ -156,10 +159,12 @@ def open_artefact(path):
 
 
 def write_provenance(h5obj, config=None, seed=-1):
-    """Record package version, config slice (JSON) and seed as attributes."""
+    """Record package version, config slice (JSON), seed and the computing environment (JSON of
+    :func:`latentsim.provenance.environment`) as attributes."""
     h5obj.attrs["latentsim_version"] = __version__
     h5obj.attrs["config"] = json.dumps(config if config is not None else {}, sort_keys=True)
     h5obj.attrs["seed"] = int(seed)
+    h5obj.attrs[ENVIRONMENT] = json.dumps(environment(), sort_keys=True)
 
 
 def read_config_attr(h5obj) -> dict:

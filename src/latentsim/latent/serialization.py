@@ -1,8 +1,10 @@
 """Saving and loading the trained networks of the latent method (autoencoder and latent
-integrator), each file ``{"kind", "hparams", "state_dict", "extra", "sha256"}`` written atomically
+integrator), each file ``{"kind", "hparams", "state_dict", "extra", "environment", "sha256"}`` written atomically
 (temp file + ``os.replace``) and read, checked, with :func:`load_checked`: every PyTorch file of
 the pipeline (the Neural Modes networks and training checkpoints too) stores the checksum of its
-dict (:func:`torch_checksum`) under ``sha256`` and is loaded only through it.
+dict (:func:`torch_checksum`) under ``sha256`` and is loaded only through it, and the processor and
+libraries that computed it (:func:`latentsim.provenance.environment`) under ``environment``, which the
+loaders of networks and checkpoints do not read.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from latentsim.latent.autoencoder import Autoencoder
 from latentsim.latent.base import resolve_device
 from latentsim.latent.coordinates import RelativeCoordinates, coordinates_for
 from latentsim.latent.integrator import LatentIntegrator
+from latentsim.provenance import ENVIRONMENT, environment
 
 
 def save_module(path: str | os.PathLike, module: nn.Module, extra: dict | None = None) -> None:
@@ -26,11 +29,13 @@ def save_module(path: str | os.PathLike, module: nn.Module, extra: dict | None =
 
 
 def atomic_save(obj: dict, path) -> None:
-    """``torch.save`` the dict ``obj`` with its checksum (:func:`torch_checksum`, under
-    ``sha256``) to a temporary file beside ``path``, then ``os.replace`` it there."""
+    """``torch.save`` the dict ``obj`` with the computing environment (under ``environment``) and
+    the checksum of both (:func:`torch_checksum`, under ``sha256``) to a temporary file beside
+    ``path``, then ``os.replace`` it there."""
     path = os.fspath(path)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     tmp = path + ".tmp"
+    obj = {**obj, ENVIRONMENT: environment()}
     torch.save({**obj, KEY: torch_checksum(obj)}, tmp)
     os.replace(tmp, path)
 

@@ -2,8 +2,9 @@
 
 - ``*.npz``: the folded float64 weights and index arrays of :func:`latentsim.runtime.fold_networks`
   (the encoder's too, from format version 2; version 1 files are read, and step, but cannot encode)
-  plus a JSON ``header`` (its ``format`` and ``version`` checked on reading) and ``sha256``, the
-  checksum of the others (:func:`npz_checksum`, verified on reading); NumPy only, ``allow_pickle=False``.  :func:`load_runtime` steps it with a
+  plus a JSON ``header`` (its ``format`` and ``version`` checked on reading), ``environment`` (JSON of
+  the processor and libraries that wrote it, :func:`latentsim.provenance.environment`; not returned
+  by the readers) and ``sha256``, the checksum of the others (:func:`npz_checksum`, verified on reading); NumPy only, ``allow_pickle=False``.  :func:`load_runtime` steps it with a
   :class:`latentsim.runtime.NumpyStepper` (:func:`latentsim.runtime.compiled.load_runtime`:
   the compiled stepper).
 - ``*.pt2`` (``*.pt`` accepted too): the folded step as a ``torch.export`` program in the
@@ -22,6 +23,7 @@ import numpy as np
 import torch
 
 from latentsim.checksum import KEY, Digest, corrupt, unverified
+from latentsim.provenance import ENVIRONMENT, environment
 from latentsim.runtime.fold import FORMAT, VERSION, fold_networks
 from latentsim.runtime.numpy_stepper import NumpyStepper
 from latentsim.runtime.torch_stepper import export_step
@@ -44,6 +46,7 @@ def export_runtime(ae, integrator, coords, path, dtype: torch.dtype = torch.floa
         tmp = path[:-4] + ".tmp.npz"
         arrays = {k: v for k, v in folded.items() if k != "header"}
         arrays["header"] = np.asarray(json.dumps(folded["header"]))
+        arrays[ENVIRONMENT] = np.asarray(json.dumps(environment(), sort_keys=True))
         np.savez(tmp, **arrays, **{KEY: np.asarray(npz_checksum(arrays))})
     elif path.endswith(EXPORT_SUFFIXES):
         tmp = path[: path.rindex(".")] + ".tmp.pt2"  # torch.export.save expects its own suffix
@@ -71,7 +74,7 @@ def read_runtime(path) -> dict:
         raise corrupt(path, f"its content does not match its checksum (sha256 {actual[:12]}..., recorded {str(stored)[:12]}...)")
     if "header" not in arrays:
         raise ValueError(f"{path}: not a latent runtime file (no header)")
-    folded = {k: v for k, v in arrays.items() if k != "header"}
+    folded = {k: v for k, v in arrays.items() if k not in ("header", ENVIRONMENT)}
     folded["header"] = json.loads(str(arrays["header"]))
     if folded["header"].get("format") != FORMAT:
         raise ValueError(f"{path}: not a latent runtime file")
@@ -81,7 +84,7 @@ def read_runtime(path) -> dict:
 
 
 def npz_checksum(arrays: dict) -> str:
-    """SHA-256 (hex) of a runtime file's arrays (the ``header`` string among them): each array's
+    """SHA-256 (hex) of a runtime file's arrays (the ``header`` and ``environment`` strings among them): each array's
     name, dtype, shape and bytes, in sorted order."""
     d = Digest()
     for k in sorted(arrays):
