@@ -72,6 +72,11 @@ def _tet_quality(p: np.ndarray, tets: np.ndarray) -> dict[str, np.ndarray]:
             "edge_rms": np.sqrt((elen ** 2).mean(axis=1)), "radius_edge": radius_edge}
 
 
+def tet_min_dihedral(p: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Each tet's smallest dihedral angle (e,) in degrees, of tets (e, 4) on vertices p (n, 3)."""
+    return _tet_quality(p, tets)["dihedral"].min(axis=1)
+
+
 def _checked_cells(tets, triangles, n: int, name: str, problems: _Problems) -> dict:
     """{"tet": (e, 4), "triangle": (t, 3)} int64 of the given cells, rows out of range dropped."""
     cells = {}
