@@ -33,7 +33,7 @@ from latentsim.mesh.geometry import (
     reorient,
     tet_volumes,
 )
-from latentsim.mesh.quality import tet_min_dihedral
+from latentsim.mesh.quality import dihedral_angles, tet_min_dihedral
 from latentsim.mesh.remesh import edge_length_for, remesh_isotropic
 from latentsim.mesh.surface import check_closed_surface, surface_of, weld
 from latentsim.mesh.validation import (
@@ -171,7 +171,7 @@ def improve_slivers(nodes: np.ndarray, tets: np.ndarray, fixed: np.ndarray,
                     below_deg: float = 10.0, rounds: int = 4) -> tuple[np.ndarray, int]:
     """Move free vertices of tets with a dihedral angle below ``below_deg`` to raise it.
 
-    Each round visits the free vertices of such tets, worst tet first, and
+    Each round visits the free vertices of such tets once, worst tet first, and
     tries moving the vertex part of the way (1, 1/2, 1/4) to the centroid of
     its neighbours, or away from the bad tet's opposite face by 0.05 to 0.3
     of its mean edge length; the move that raises the smallest dihedral angle
@@ -201,32 +201,36 @@ def improve_slivers(nodes: np.ndarray, tets: np.ndarray, fixed: np.ndarray,
         if bad.size == 0:
             break
         before = moved
+        visited = fixed.copy()
         for t in bad[np.argsort(angle[bad])]:
             for v in tets[t]:
-                if fixed[v]:
+                if visited[v]:
                     continue
-                star = vt[start[v]:start[v + 1]]
-                worst = tet_min_dihedral(nodes, tets[star]).min()
-                ring = np.unique(tets[star])
-                old = nodes[v].copy()
+                visited[v] = True
+                star = tets[vt[start[v]:start[v + 1]]]
+                x = nodes[star]  # (s, 4, 3)
+                old = nodes[v]
+                ring = np.unique(star)
                 others = nodes[ring[ring != v]]
                 # away from the opposite face of the bad tet, scaled by the local edge length
                 f = nodes[tets[t][tets[t] != v]]
                 up = np.cross(f[1] - f[0], f[2] - f[0])
                 up *= np.sign(up @ (old - f[0])) / max(np.linalg.norm(up), 1e-300)
                 h = np.linalg.norm(others - old, axis=1).mean()
-                moves = [s * (others.mean(axis=0) - old) for s in (1.0, 0.5, 0.25)]
-                moves += [s * h * up for s in (0.05, 0.1, 0.2, 0.3)]
-                best = (worst, old)
-                for move in moves:
-                    nodes[v] = old + move
-                    if (tet_volumes(nodes, tets[star]) <= 0).any():
-                        continue
-                    w = tet_min_dihedral(nodes, tets[star]).min()
-                    if w > best[0]:
-                        best = (w, nodes[v].copy())
-                nodes[v] = best[1]
-                moved += best[0] > worst
+                moves = np.vstack([np.outer([0.0, 1.0, 0.5, 0.25], others.mean(axis=0) - old),
+                                   np.outer([0.05, 0.1, 0.2, 0.3], h * up)])
+                xs = np.repeat(x[None], len(moves), axis=0)  # (c, s, 4, 3)
+                corner = star == v
+                xs[:, corner] = (old + moves)[:, None, :]
+                xs = xs.reshape(-1, 4, 3)
+                e = xs[:, 1:] - xs[:, :1]
+                volume_ok = (np.linalg.det(e) > 0).reshape(len(moves), -1).all(axis=1)
+                worst = dihedral_angles(xs).min(axis=1).reshape(len(moves), -1).min(axis=1)
+                worst[~volume_ok] = -np.inf
+                k = int(np.argmax(worst))
+                if k > 0 and worst[k] > worst[0]:
+                    nodes[v] = old + moves[k]
+                    moved += 1
         if moved == before:
             break
     return nodes, moved
