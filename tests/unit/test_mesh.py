@@ -585,13 +585,20 @@ def test_weld_merges_close_vertices_and_drops_collapsed_triangles():
     np.testing.assert_array_equal(f, [[0, 2, 3], [0, 3, 1]])
 
 
-def test_tetrahedralize_to_decimates_a_dense_surface(bunny):
-    v, t = M.tetrahedralize_to(bunny.vertices, bunny.triangles, 2120, "bunny")
+@pytest.mark.parametrize("remesh", [True, False])
+def test_tetrahedralize_to_coarsens_a_dense_surface(bunny, remesh):
+    """Remeshed (the default) or decimated, the bunny reaches its target; remeshed, with no
+    dihedral angle under 5 degrees and its volume kept."""
+    v, t = M.tetrahedralize_to(bunny.vertices, bunny.triangles, 2120, "bunny", remesh=remesh)
     assert len(v) < len(bunny.vertices)  # TetGen alone cannot go below the surface's count
     assert abs(len(v) - 2120) <= 0.05 * 2120
     assert (M.tet_volumes(v, t) > 0).all()
     M.check_closed_surface(M.surface_of(t))
     assert M.check_mesh(v, tets=t, name="bunny")["problems"] == []
+    if remesh:
+        assert M.check_mesh(v, tets=t, min_dihedral_deg=5.0)["n_below_min_dihedral"] == 0
+        volume = M.enclosed_volume(bunny.vertices, bunny.triangles)
+        assert M.tet_volumes(v, t).sum() == pytest.approx(volume, rel=0.01)
 
 
 def test_select_dirichlet_roots_and_config_filled_rules():
