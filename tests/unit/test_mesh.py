@@ -585,13 +585,20 @@ def test_weld_merges_close_vertices_and_drops_collapsed_triangles():
     np.testing.assert_array_equal(f, [[0, 2, 3], [0, 3, 1]])
 
 
-def test_tetrahedralize_to_decimates_a_dense_surface(bunny):
-    v, t = M.tetrahedralize_to(bunny.vertices, bunny.triangles, 2120, "bunny")
+@pytest.mark.parametrize("remesh", [True, False])
+def test_tetrahedralize_to_coarsens_a_dense_surface(bunny, remesh):
+    """Remeshed (the default) or decimated, the bunny reaches its target; remeshed, with no
+    dihedral angle under 5 degrees and its volume kept."""
+    v, t = M.tetrahedralize_to(bunny.vertices, bunny.triangles, 2120, "bunny", remesh=remesh)
     assert len(v) < len(bunny.vertices)  # TetGen alone cannot go below the surface's count
     assert abs(len(v) - 2120) <= 0.05 * 2120
     assert (M.tet_volumes(v, t) > 0).all()
     M.check_closed_surface(M.surface_of(t))
     assert M.check_mesh(v, tets=t, name="bunny")["problems"] == []
+    if remesh:
+        assert M.check_mesh(v, tets=t, min_dihedral_deg=5.0)["n_below_min_dihedral"] == 0
+        volume = M.enclosed_volume(bunny.vertices, bunny.triangles)
+        assert M.tet_volumes(v, t).sum() == pytest.approx(volume, rel=0.01)
 
 
 def test_select_dirichlet_roots_and_config_filled_rules():
@@ -816,3 +823,26 @@ def test_scene_mesh_gate_from_config(tmp_path):
     cfg["quality"]["gate_min_dihedral_deg"] = 69.0  # no tet mesh of a sphere meets this
     with pytest.raises(MeshError, match=r"ball: tet \d+ .* below the bound of 69"):
         M.scene_mesh("ball", "tets", cfg, rule, {"cache_dir": str(tmp_path)})
+
+
+def test_quality_table_has_a_row_per_scene_with_the_gate_passed(tmp_path):
+    import pandas as pd
+
+    from latentsim.stages.mesh import QUALITY_COLUMNS, prepare_mesh, write_quality_table
+
+    beam = {"generator": "beam_tets", "nx": 4, "ny": 2, "nz": 2, "length": 0.2, "width": 0.05,
+            "height": 0.05}
+    cloth = {"generator": "cloth_grid", "nx": 4, "ny": 3, "width": 0.4, "height": 0.3,
+             "plane": "xy"}
+    rule = {"type": "extreme", "axis": "x", "side": "min", "fraction": 0.1}
+    prepare_mesh("beam", "tets", beam, rule, {}, tmp_path / "beam.h5")
+    prepare_mesh("sheet", "shell", cloth, rule, {}, tmp_path / "sheet.h5")
+    out = tmp_path / "quality.csv"
+    df = write_quality_table({"beam": tmp_path / "beam.h5", "sheet": tmp_path / "sheet.h5"}, out)
+    read = pd.read_csv(out)
+    assert list(read.columns) == ["scene", "model", *QUALITY_COLUMNS]
+    assert read["scene"].tolist() == ["beam", "sheet"] and len(df) == 2
+    b, s = read.iloc[0], read.iloc[1]
+    assert b["n_tets"] > 0 and b["gate_min_dihedral_deg"] == 5.0 and b["n_below_min_dihedral"] == 0
+    assert b["dihedral_min_deg"] >= 5.0 and b["radius_edge_max"] >= 0.612
+    assert s["n_triangles"] == 24 and np.isnan(s["dihedral_min_deg"]) and s["angle_min_deg"] > 0

@@ -265,7 +265,7 @@ def test_paraview_series_reads_back(tiny_run):
 # sweep, Neural Modes summary and studies.
 REPORT_TABLES = (
     ["evaluation/" + t for t in ("glance.csv", "table1.csv", "table2.csv", "stability.csv", "sizes.csv", "summary.csv")]
-    + ["sweep/tiny_cloth/choice.csv", "neural_modes/summary.csv"]
+    + ["sweep/tiny_cloth/choice.csv", "neural_modes/summary.csv", "mesh/quality.csv"]
     + ["neural_modes/tiny_nm/sheet/" + t for t in ("table2.csv", "table3.csv", "table4.csv", "tableA1.csv", "correlation.csv", "structure.csv")]
     + ["neural_modes/tiny_nm/" + t for t in ("energy/table5.csv", "dynamics/dynamics.csv", "aspect/aspect.csv")]
 )

@@ -221,16 +221,18 @@ def all_targets():
     out += expand("results/evaluation/{scene}/frames.png", scene=SCENES)
     out += list(sweep_choices().values())
     out += ["results/evaluation/summary.csv", "results/evaluation/summary.md"]
+    out += ["results/mesh/quality.csv"]
     return out
 
 
 def report_pages():
     """The HTML pages of the report's tables (see report.smk), the input of the default target: one per
-    Markdown target (its page job names it) and one per sweep choice.
+    Markdown target (its page job names it), one per sweep choice and the mesh quality table's.
     """
     md = [t for t in all_targets() + neural_modes_targets() if t.endswith(".md")]
     pages = [t.removesuffix(".md") + ".html" for t in md]
-    return pages + [c.removesuffix(".csv") + ".html" for c in sweep_choices().values()]
+    pages += [c.removesuffix(".csv") + ".html" for c in sweep_choices().values()]
+    return pages + ["results/mesh/quality.html"]
 
 
 # --- Neural Modes (workflow/rules/neural_modes.smk) ---

@@ -17,3 +17,19 @@ rule prepare_mesh:
         sources=mesh_sources(),
     script:
         "../scripts/prepare_mesh.py"
+
+
+# One row per scene of the quality statistics its mesh.h5 records (dihedral angles, radius-edge ratio, ...).
+rule mesh_quality_table:
+    input:
+        meshes=expand("results/mesh/{scene}/mesh.h5", scene=SCENES),
+    output:
+        table="results/mesh/quality.csv",
+    log:
+        "logs/mesh/quality_table.log",
+    conda:
+        "../../envs/latentsim.yaml"
+    params:
+        scenes=SCENES,
+    script:
+        "../scripts/mesh_quality_table.py"

@@ -62,6 +62,25 @@ rule report_summary_pages:
         "../scripts/report_pages.py"
 
 
+rule report_mesh_quality_page:
+    input:
+        table="results/mesh/quality.csv",
+    output:
+        table=report(
+            "results/mesh/quality.html",
+            caption="../report/mesh_quality.rst",
+            category="Meshes",
+        ),
+    log:
+        "logs/report/mesh_quality_page.log",
+    conda:
+        "../../envs/latentsim.yaml"
+    params:
+        titles={"table": "Mesh quality: one row per scene"},
+    script:
+        "../scripts/report_pages.py"
+
+
 rule report_sweep_page:
     input:
         choice="results/sweep/{scene}/choice.csv",

@@ -15,7 +15,9 @@ Modules, one job each:
 * :mod:`~latentsim.mesh.geometry`: volumes, areas, orientation, unreferenced vertices;
 * :mod:`~latentsim.mesh.generators`: :func:`rod_bundle`, :func:`cloth_grid`, :func:`beam_tets`;
 * :mod:`~latentsim.mesh.surface`: :func:`surface_of`, :func:`check_closed_surface`, :func:`weld`;
-* :mod:`~latentsim.mesh.tetgen`: :func:`tetrahedralize`, :func:`tetrahedralize_to`;
+* :mod:`~latentsim.mesh.remesh`: :func:`remesh_isotropic` (a surface to near-equilateral triangles);
+* :mod:`~latentsim.mesh.tetgen`: :func:`tetrahedralize`, :func:`tetrahedralize_to`,
+  :func:`improve_slivers`;
 * :mod:`~latentsim.mesh.transform`: :func:`rotation_matrix`, :func:`normalise`, :func:`place`;
 * :mod:`~latentsim.mesh.selection`: :func:`select_vertices`, :func:`select_dirichlet`;
 * :mod:`~latentsim.mesh.quality`: :func:`check_mesh`;
@@ -65,7 +67,8 @@ from latentsim.mesh.sources import (
     user_mesh_path,
 )
 from latentsim.mesh.surface import check_closed_surface, surface_of, weld
-from latentsim.mesh.tetgen import tetrahedralize, tetrahedralize_to
+from latentsim.mesh.remesh import remesh_isotropic
+from latentsim.mesh.tetgen import improve_slivers, tetrahedralize, tetrahedralize_to
 from latentsim.mesh.transform import normalise, place, rotation_matrix
 from latentsim.mesh.validation import MeshError
 
@@ -86,6 +89,8 @@ __all__ = [
     "cloth_grid",
     "beam_tets",
     "check_closed_surface",
+    "remesh_isotropic",
+    "improve_slivers",
     "tetrahedralize",
     "tetrahedralize_to",
     "surface_of",

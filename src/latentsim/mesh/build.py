@@ -35,6 +35,29 @@ def _tetgen_quality(q: dict) -> tuple[float, float] | None:
     return float(q.get("radius_edge", 2.0)), float(q.get("min_dihedral_deg", 10.0))
 
 
+#: the default gate on the smallest dihedral angle [degrees] of a mesh the pipeline makes
+GATE_MIN_DIHEDRAL_DEG = 5.0
+#: the default gate for a file's own tets, kept as they are (the Neural Modes meshes have
+#: 0.23 and 0.50 degrees)
+GATE_MIN_DIHEDRAL_DEG_FILE_TETS = 0.01
+
+
+def quality_gate(cfg: dict) -> float:
+    """The smallest dihedral angle [degrees] a scene's tets may have (0: no gate).
+
+    ``mesh.quality.gate_min_dihedral_deg`` when set; otherwise
+    :data:`GATE_MIN_DIHEDRAL_DEG_FILE_TETS` for a file's own tets
+    (``generator: file``, ``target_vertices`` 0) and :data:`GATE_MIN_DIHEDRAL_DEG`
+    for tets the pipeline makes (TetGen, ``beam_tets``).
+    """
+    gate = (cfg.get("quality") or {}).get("gate_min_dihedral_deg")
+    if gate is not None:
+        return float(gate)
+    if cfg.get("generator") == "file" and not cfg.get("target_vertices"):
+        return GATE_MIN_DIHEDRAL_DEG_FILE_TETS
+    return GATE_MIN_DIHEDRAL_DEG
+
+
 def _from_file(model: str, cfg: dict, sources: dict) -> dict[str, np.ndarray]:
     """``rest_positions`` and the model's cells of the scene's mesh file.
 
@@ -59,7 +82,8 @@ def _from_file(model: str, cfg: dict, sources: dict) -> dict[str, np.ndarray]:
             try:
                 out["rest_positions"], out["tets"] = tetrahedralize_to(
                     V, surf, int(cfg["target_vertices"]), str(path),
-                    quality=_tetgen_quality(cfg.get("quality") or {}))
+                    quality=_tetgen_quality(cfg.get("quality") or {}),
+                    remesh=bool((cfg.get("quality") or {}).get("remesh", True)))
             except MeshError as exc:  # name the file where the message does not
                 if str(path) in str(exc):
                     raise
@@ -132,12 +156,12 @@ def scene_mesh(scene: str, model: str, mesh_cfg: dict, dirichlet_rule: dict,
     Raises
     ------
     MeshError
-        A quality problem (a tet's dihedral angle below
-        ``mesh.quality.gate_min_dihedral_deg`` included) or an empty Dirichlet
+        A quality problem (a tet's dihedral angle below :func:`quality_gate`
+        included) or an empty Dirichlet
         set, naming the scene.
     """
     arrays = build_mesh(model, mesh_cfg, sources)
-    gate = float((mesh_cfg.get("quality") or {}).get("gate_min_dihedral_deg", 0.01))
+    gate = quality_gate(mesh_cfg)
     quality = check_mesh(arrays["rest_positions"], tets=arrays.get("tets"),
                          triangles=arrays.get("triangles"), name=scene,
                          min_dihedral_deg=gate if gate > 0 else None)

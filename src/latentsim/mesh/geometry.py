@@ -87,3 +87,23 @@ def remove_unreferenced(vertices: np.ndarray, *cells: np.ndarray):
     new_index = np.full(len(vertices), -1, dtype=np.int64)
     new_index[kept] = np.arange(len(kept))
     return (vertices[kept], *(new_index[np.asarray(c)] for c in cells), kept)
+
+
+def cells_around_vertices(cells: np.ndarray, n: int):
+    """The cells around each vertex, as compressed rows.
+
+    Parameters
+    ----------
+    cells : (e, k) int, e.g. triangles (k = 3) or tets (k = 4)
+    n : int, the number of vertices
+
+    Returns
+    -------
+    start : (n + 1,) int64; the cells around vertex ``v`` are
+        ``ids[start[v]:start[v + 1]]``.
+    ids : (e * k,) int64, cell indices.
+    """
+    cells = np.asarray(cells)
+    flat = cells.ravel()
+    order = np.argsort(flat, kind="stable")
+    return np.searchsorted(flat[order], np.arange(n + 1)), order // cells.shape[1]

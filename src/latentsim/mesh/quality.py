@@ -49,15 +49,20 @@ class _Problems(list):
         self.append(msg)
 
 
-def _tet_quality(p: np.ndarray, tets: np.ndarray) -> dict[str, np.ndarray]:
-    """Dihedral angles (e, 6) in degrees and edge lengths: min, max, rms (e,) of tets (e, 4)."""
-    x = p[tets]  # (e, 4, 3)
+def dihedral_angles(x: np.ndarray) -> np.ndarray:
+    """The six dihedral angles (e, 6) in degrees of tets with corners x (e, 4, 3)."""
     faces = x[:, TET_FACES]  # (e, 4, 3, 3)
     normals = np.cross(faces[:, :, 1] - faces[:, :, 0], faces[:, :, 2] - faces[:, :, 0])
     nn = np.linalg.norm(normals, axis=2, keepdims=True)
     unit = normals / np.where(nn > 0, nn, 1.0)
     cos = np.einsum("eij,eij->ei", unit[:, _FACE_PAIRS[:, 0]], unit[:, _FACE_PAIRS[:, 1]])
-    dihedral = 180.0 - np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return 180.0 - np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def _tet_quality(p: np.ndarray, tets: np.ndarray) -> dict[str, np.ndarray]:
+    """Dihedral angles (e, 6) in degrees and edge lengths: min, max, rms (e,) of tets (e, 4)."""
+    x = p[tets]  # (e, 4, 3)
+    dihedral = dihedral_angles(x)
     edges = x[:, [0, 0, 0, 1, 1, 2]] - x[:, [1, 2, 3, 2, 3, 3]]
     elen = np.linalg.norm(edges, axis=2)
     # circumradius: centre offset from x0 = (|a|^2 b x c + |b|^2 c x a + |c|^2 a x b) / (2 a.(b x c))
@@ -70,6 +75,11 @@ def _tet_quality(p: np.ndarray, tets: np.ndarray) -> dict[str, np.ndarray]:
         radius_edge = radius / elen.min(axis=1)
     return {"dihedral": dihedral, "edge_min": elen.min(axis=1), "edge_max": elen.max(axis=1),
             "edge_rms": np.sqrt((elen ** 2).mean(axis=1)), "radius_edge": radius_edge}
+
+
+def tet_min_dihedral(p: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Each tet's smallest dihedral angle (e,) in degrees, of tets (e, 4) on vertices p (n, 3)."""
+    return dihedral_angles(p[tets]).min(axis=1)
 
 
 def _checked_cells(tets, triangles, n: int, name: str, problems: _Problems) -> dict:
