@@ -182,6 +182,40 @@ def material_model(model: str, material: dict) -> str:
     return law
 
 
+#: What the elastic energy of each (model, material.model) is, in words, for table notes and captions.
+MATERIAL_ENERGIES = {
+    ("rods", "stvk"): "the project's discrete rods (stretch and bend, physics.rods)",
+    ("shell", "stvk"): "the project's StVK shell (plane-stress membrane with lam/2 (tr E)^2, hinge kB = D/6; physics.shells)",
+    ("shell", "stvk_nm"): (
+        "stvk_nm, the Neural Modes authors' discrete shell (membrane h A (mu tr(E^2) + lam/2 (J - 1)^2) with the 3D Lame "
+        "constants and J the area ratio, hinge 3 kB |e|^2 / (A1 + A2) (theta - theta0)^2; physics.stvk_nm)"
+    ),
+    ("tets", "stvk"): "the project's StVK tets (V (mu ||E||^2 + lam/2 (tr E)^2); physics.tets)",
+    ("tets", "stvk_nm"): "stvk_nm, the Neural Modes authors' StVK tets (V (mu ||E||^2 + lam (det F - 1)^2); physics.stvk_nm)",
+    ("tets", "neohookean"): "stable neo-Hookean tets (Smith, de Goes and Kim 2018; physics.neohookean)",
+}
+
+
+def energy_description(model: str, material: dict) -> str:
+    """The scene's elastic energy in words: its ``material.model``'s formulas and its constants.
+
+    Raises
+    ------
+    ValueError (from :func:`material_model`) naming the key and the value when the model has no such material.
+    """
+    law = material_model(model, material)
+    consts = [f"E {float(material['youngs_modulus']):.3g} Pa", f"nu {float(material.get('poisson_ratio', 0.3)):g}"]
+    if model == "shell":
+        consts.append(f"h {float(material['thickness']):g} m")
+        if material.get("bending_stiffness") is not None:
+            consts.append(f"kB {float(material['bending_stiffness']):.3g} N m")
+        elif law == "stvk_nm":
+            consts.append("kB = D/2 = E h^3 / (24 (1 - nu^2))")
+    elif model == "rods":
+        consts.append(f"radius {float(material['radius']):g} m")
+    return f"{MATERIAL_ENERGIES[(model, law)]}, {', '.join(consts)}"
+
+
 def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity, w_bc: float = 1e5, free_only: bool = False):
     """IncrementalPotential of a scene: :func:`build_elastic` (same arguments) with the time
     step ``dt`` [s], ``gravity`` (3,) [m/s^2] and the Dirichlet penalty weight ``w_bc``."""

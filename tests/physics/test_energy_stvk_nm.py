@@ -352,3 +352,19 @@ def test_the_artefact_keeps_the_material_model():
         assert type(potential_from_artefact(f).terms[0]).__name__ == "StVKTets"
         f.attrs[MATERIAL_MODEL_ATTR] = "stvk_nm"
         assert type(potential_from_artefact(f).terms[0]).__name__ == "TetsNM"
+
+
+def test_membrane_stress_is_the_derivative_of_the_density(sheet):
+    """Table 4's |S| on stvk_nm: P = 2 mu F E + lam (J - 1) J F C^{-1}, and h Abar P G_a is the vertex force."""
+    X, tris, pot = sheet
+    mem = next(t for t in pot.terms if isinstance(t, ShellMembraneNM))
+    rng = np.random.default_rng(7)
+    x = torch.as_tensor(X[None] + 0.02 * rng.standard_normal((4, *X.shape)))
+    F = mem.deformation_gradient(mem.gather(x))
+    C = F.transpose(-1, -2) @ F
+    E = 0.5 * (C - torch.eye(2, dtype=F.dtype))
+    J = torch.sqrt(torch.linalg.det(C))
+    P = 2.0 * mem.mu[:, None, None] * F @ E + (mem.lam * (J - 1.0) * J)[..., None, None] * F @ torch.linalg.inv(C)
+    np.testing.assert_allclose(mem.first_piola(x).numpy(), P.numpy(), rtol=1e-9, atol=1e-9 * float(P.abs().max()))
+    np.testing.assert_allclose(mem.stress_norm(x).numpy(), torch.linalg.matrix_norm(P).numpy(), rtol=1e-9)
+    assert mem.stress_norm(x[0]).shape == (len(tris),)

@@ -757,9 +757,16 @@ def test_report_captions_are_valid_restructuredtext(caption):
     from docutils.utils import Reporter
     from jinja2 import Environment
 
+    from types import SimpleNamespace
+
+    from latentsim.stages.neural_modes import energy_note
+
     # Snakemake renders a caption as a Jinja template first (the landing page includes the glance grid only
-    # when the report holds the glance page: here it holds nothing)
-    text = Environment(trim_blocks=True, lstrip_blocks=True).from_string(caption.read_text()).render(snakemake=None, categories={}, files=[])
+    # when the report holds the glance page: here it holds nothing); the Neural Modes captions insert the
+    # rule's params.energy, whose norms hold bars
+    material = {"model": "stvk_nm", "youngs_modulus": 4.0e8, "poisson_ratio": 0.2, "thickness": 0.005}
+    smk = SimpleNamespace(params=SimpleNamespace(energy=energy_note("shell", material)))
+    text = Environment(trim_blocks=True, lstrip_blocks=True).from_string(caption.read_text()).render(snakemake=smk, categories={}, files=[])
     doctree = publish_doctree(text, settings_overrides={"report_level": Reporter.SEVERE_LEVEL + 1, "halt_level": 5})
     found = [n for n in doctree.findall() if n.tagname == "system_message"] + list(doctree.transform_messages)
     messages = [m.astext() for m in found if int(m["level"]) >= Reporter.ERROR_LEVEL]

@@ -116,6 +116,7 @@ rule report_nm_summary_page:
         "../../envs/latentsim.yaml"
     params:
         titles={"summary": "Neural Modes (Wang et al. 2024): one row per scene"},
+        energy=nm_pipeline.scene_energies(config, NM_SCENES),
     script:
         "../scripts/report_pages.py"
 
@@ -186,6 +187,7 @@ rule report_nm_sheet_pages:
             "correlation": "Mode collapse: eigenvalues of the latent directions' correlation",
             "structure": "Latent-space structure: the origin and the half-turn symmetry",
         },
+        energy=lambda w: nm_pipeline.scene_energy_note(config, w.scene),
     script:
         "../scripts/report_pages.py"
 
@@ -206,6 +208,7 @@ rule report_nm_energy_page:
         "../../envs/latentsim.yaml"
     params:
         titles={},
+        energy=lambda w: nm_pipeline.scene_energy_note(config, w.scene),
     script:
         "../scripts/report_pages.py"
 

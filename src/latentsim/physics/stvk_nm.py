@@ -108,14 +108,27 @@ class ShellMembraneNM(EnergyTerm):
         Ds = torch.stack([xe[..., 1, :] - xe[..., 0, :], xe[..., 2, :] - xe[..., 0, :]], dim=-1)
         return Ds @ self.Dm_inv.to(xe)
 
-    def local_energy(self, xe: torch.Tensor) -> torch.Tensor:
-        """h Abar (mu tr(E^2) + lam/2 (J - 1)^2); xe (..., T, 3, 3) -> (..., T)."""
-        F = self.deformation_gradient(xe)
+    def energy_density(self, F: torch.Tensor) -> torch.Tensor:
+        """psi = mu tr(E^2) + lam/2 (J - 1)^2 [Pa] per triangle; F (..., T, 3, 2) -> (..., T)."""
         C = F.transpose(-1, -2) @ F
         Eg = 0.5 * (C - torch.eye(2, dtype=F.dtype, device=F.device))
         J = torch.sqrt(C[..., 0, 0] * C[..., 1, 1] - C[..., 0, 1] * C[..., 1, 0])
-        psi = self.mu.to(xe) * (Eg * Eg).sum((-1, -2)) + 0.5 * self.lam.to(xe) * (J - 1.0) ** 2
-        return (self.rest_area * self.thickness).to(xe) * psi
+        return self.mu.to(F) * (Eg * Eg).sum((-1, -2)) + 0.5 * self.lam.to(F) * (J - 1.0) ** 2
+
+    def local_energy(self, xe: torch.Tensor) -> torch.Tensor:
+        """h Abar (mu tr(E^2) + lam/2 (J - 1)^2); xe (..., T, 3, 3) -> (..., T)."""
+        return (self.rest_area * self.thickness).to(xe) * self.energy_density(self.deformation_gradient(xe))
+
+    def first_piola(self, x: torch.Tensor) -> torch.Tensor:
+        """P = d psi / dF [Pa] per triangle (autograd of :meth:`energy_density`); x (..., n, 3) -> (..., T, 3, 2)."""
+        F = self.deformation_gradient(self.gather(x)).detach().requires_grad_(True)
+        with torch.enable_grad():
+            (P,) = torch.autograd.grad(self.energy_density(F).sum(), F)
+        return P
+
+    def stress_norm(self, x: torch.Tensor) -> torch.Tensor:
+        """||P||_F per triangle [Pa] (Wang et al. Table 4); x (..., n, 3) -> (..., T)."""
+        return torch.linalg.matrix_norm(self.first_piola(x))
 
     def kernel_spec(self) -> KernelSpec:
         """The compiled kernels (``kernels.stvk_nm``), G (T, 3, 2) = [[-1, -1], [1, 0], [0, 1]] Dm^{-1}."""

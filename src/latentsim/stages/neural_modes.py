@@ -46,7 +46,7 @@ from latentsim.neural_modes import figures as nm_figures
 from latentsim.report.paraview import write_xdmf_series
 from latentsim.report.tables import write_table
 from latentsim.latent.timing import time_full_space
-from latentsim.scene import build_elastic
+from latentsim.scene import build_elastic, energy_description, material_model
 from latentsim.stages.simulate import read_mesh_arrays
 
 log = logging.getLogger(__name__)
@@ -67,6 +67,37 @@ MODE_KEYS = ("modes", "boundary", "normalization")  # all that the linear modes 
 GROUND_TRUTH_KEYS = MODE_KEYS + ("box", "metric")  # ... and the ground truth
 SET_KEYS = {"sheet": ("train_grid", "random_samples", "val_grid", "test_grid"), "energy": ("samples", "train", "validation")}
 STUDY_SETS = ("epochs", "batch_size", "sampling", "grid")  # Neural Modes settings the sheet study sets itself
+
+
+#: The energy of the paper's columns: Wang et al.'s own, as their Table 1 names it for each model.
+PAPER_ENERGIES = {"shell": "Discrete Shell", "tets": "Tetrahedron, StVK"}
+
+
+def energy_note(model: str, material: dict) -> str:
+    """Which energy each column of a Wang et al. table uses: ours (the scene's ``material.model``, its
+    formulas and constants) and the paper's (the authors' own), for table notes and report captions."""
+    law = material_model(model, material)
+    paper = PAPER_ENERGIES.get(model, model)
+    same = (
+        "the same formulas as ours (material.model stvk_nm); absolute values still differ with the constants, sets and training lengths"
+        if law == "stvk_nm"
+        else f"not ours (material.model {law}): compare ratios between methods, not absolute values"
+    )
+    return (
+        f"Energy of our columns: {energy_description(model, material)}. Energy of the paper's columns (named paper): "
+        f"the authors' own ('{paper}', their Table 1), as they print them: {same}."
+    )
+
+
+def scene_energy_note(config: dict, scene: str) -> str:
+    """:func:`energy_note` of a configured scene (report captions)."""
+    sc = config["scenes"][scene]
+    return energy_note(sc["model"], sc["material"])
+
+
+def scene_energies(config: dict, scenes) -> str:
+    """The elastic energy of each configured scene, in words (the summary's caption)."""
+    return "; ".join(f"{s}: {energy_description(config['scenes'][s]['model'], config['scenes'][s]['material'])}" for s in scenes)
 
 
 def modes_params(config: dict, scene: str) -> dict:
@@ -193,10 +224,12 @@ def train_stage(mesh_h5, modes_h5, params: dict, seed: int, out_pt, out_h5):
 
 def summary_stage(history_files: dict, out_csv, out_md):
     """Stage ``nm_summary``: one row per scene (energy vs linear modes, constraint, origin, correlation eigenvalues)."""
-    rows = []
+    rows, energies = [], []
     for scene, path in sorted(history_files.items()):
         with open_artefact(path) as f:
-            cfg = json.loads(f.attrs["config"])["neural_modes"]
+            params = json.loads(f.attrs["config"])
+            cfg = params["neural_modes"]
+            energies.append(f"- {scene}: {energy_description(params['model'], params['material'])}")
             e, el = f["eval_energy"][()], f["eval_energy_linear"][()]
             w = f["correlation_eigenvalues"][()]
             rows.append(
@@ -204,6 +237,7 @@ def summary_stage(history_files: dict, out_csv, out_md):
                     "scene": scene,
                     "modes": cfg.get("modes"),
                     "boundary": cfg.get("boundary"),
+                    "material.model": material_model(params["model"], params["material"]),
                     "E_avg neural": float(e.mean()),
                     "E_avg linear": float(el.mean()),
                     "E ratio": float(e.mean() / max(el.mean(), 1e-300)),
@@ -215,7 +249,7 @@ def summary_stage(history_files: dict, out_csv, out_md):
             )
     df = pd.DataFrame(rows)
     write_table(df, out_csv)
-    write_markdown(out_md, {None: df})
+    write_markdown(out_md, {None: df}, "Elastic energy of each scene (every E column):\n\n" + "\n".join(energies) + "\n")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -333,13 +367,13 @@ def sheet_tables_stage(study_h5, out: dict):
     tabs = sheet_tables(study)
     for name in SHEET_TABLES:
         write_table(tabs[name], out[name])
-    st, g = json.loads(study["config"])["study"], study["ground_truth"]
+    cfg = json.loads(study["config"])
+    st, g = cfg["study"], study["ground_truth"]
     preamble = (
         f"# Neural Modes sheet study (Wang et al. 2024, Sec. 4.1-4.4)\n\nOurs beside the paper's numbers (columns `*_paper*`). "
         f"Sets: train {st['train_grid']}^m grid and {st['random_samples']} random samples, validation {st['val_grid']}^m, "
         f"test {st['test_grid']}^m grid (the paper: 9^3, 729, 7^3, 11^3). Neural Modes {st['epochs']} L-BFGS epochs, "
-        f"L2 supervised {st['l2_epochs']}, PCA+AE {st['ae_epochs']} Adam epochs. The paper's sheet material is not published: "
-        "compare ratios between methods, not absolute values. Ground truth on the test set (constrained Newton, at most "
+        f"L2 supervised {st['l2_epochs']}, PCA+AE {st['ae_epochs']} Adam epochs. {energy_note(cfg['model'], cfg['material'])} Ground truth on the test set (constrained Newton, at most "
         f"{st['gt_max_iterations']} iterations): KKT residual relative to the force at X + l, median {g['residual_median']:.1e}, "
         f"90th percentile {g['residual_p90']:.1e}; {g['iterations_mean']:.1f} iterations on average.\n"
     )
@@ -377,7 +411,7 @@ def energy_table_stage(mesh_h5, gt_h5, model_pt, params: dict, out_csv, out_md, 
         f"# Table 5 (Wang et al. 2024): mean elastic energy [J] on the test set, per interval and overall\n\n"
         f"{sizes['train']} / {sizes['val']} / {sizes['test']} uniform modal samples (train / validation / test; the paper: 900 / 100 / 300); "
         f"PCA+AE kept at its least validation L2 (epoch {int(hist['epochs'][hist['stop']])} of {st['ae_epochs']}); "
-        "`l2`: mean squared position error against the ground truth. The paper's row is x1e4 J in its own material units: compare ratios.\n",
+        f"`l2`: mean squared position error against the ground truth. The paper's row is x1e4 J. {energy_note(params['model'], params['material'])}\n",
     )  # fmt: skip
     with atomic_h5(out_h5, config=params, seed=params["seed"]) as f:
         write_tree(f, {k: (np.asarray(v) if np.ndim(v) else v) for k, v in hist.items()})
