@@ -776,7 +776,8 @@ def test_report_captions_are_valid_restructuredtext(caption):
 @pytest.mark.parametrize("scene", ["tiny_rods", "tiny_cloth"])
 def test_the_example_encodes_and_steps_the_trained_model_as_the_rollout(tiny_run, scene):
     """examples/step_trained_model.py, run as a user runs it (from the workflow directory) on the rollout folder and
-    the scene's trajectories: it imports latentsim.runtime and no training code; the latents it encodes frames 0
+    the scene's trajectories: it imports latentsim.runtime (with the standalone checksum and provenance modules)
+    and no training code; the latents it encodes frames 0
     and 1 to are latents.h5's, and the frames it steps are the rollout stage's, to float32 rounding."""
     import importlib.util
 
@@ -784,7 +785,7 @@ def test_the_example_encodes_and_steps_the_trained_model_as_the_rollout(tiny_run
     example = ROOT / "examples" / "step_trained_model.py"
     args = [f"results/rollout/{scene}/self_supervised", "--trajectories", f"results/sim/{scene}/trajectories.h5"]
     check = ("import runpy, sys; sys.argv = sys.argv[1:]; runpy.run_path(sys.argv[0], run_name='__main__'); "
-             "print('training modules:', sorted(m for m in sys.modules if m.startswith('latentsim.') and not m.startswith(('latentsim.runtime', 'latentsim.checksum'))))")  # fmt: skip
+             "print('training modules:', sorted(m for m in sys.modules if m.startswith('latentsim.') and not m.startswith(('latentsim.runtime', 'latentsim.checksum', 'latentsim.provenance'))))")  # fmt: skip
     env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
     proc = subprocess.run([sys.executable, "-c", check, str(example), *args], cwd=work, capture_output=True, text=True, timeout=HANG_SECONDS, env=env)
     assert proc.returncode == 0, proc.stderr
