@@ -81,3 +81,28 @@ def test_unknown_solver_is_named(system):
     n, stencils, _, _, free, _ = system
     with pytest.raises(ValueError, match="'cholesky'"):
         LinearSolver(HessianPattern(n, stencils, free), "cholesky")
+
+
+@pytest.mark.parametrize("method", ["pardiso", "splu"])
+def test_indefinite_solves_agree_with_dense_and_pardiso_analyses_once(system, method):
+    """``solve_indefinite`` on symmetric indefinite systems of one pattern: the dense solution; with
+    PARDISO one symbolic analysis for every call and no SuperLU factorisation."""
+    if method == "pardiso":
+        pytest.importorskip("pypardiso")
+    n, stencils, blocks, diag, free, rng = system
+    pattern = HessianPattern(n, stencils, free)
+    solver = LinearSolver(pattern, method)
+    eig = np.linalg.eigvalsh(dense_assembly(n, stencils, blocks, diag, free))
+    for q in (0.2, 0.5, 0.8):  # shifted into the spectrum: indefinite
+        shift = -0.5 * (eig[int(q * len(eig))] + eig[int(q * len(eig)) + 1])
+        U = pattern.assemble(blocks, diag + shift)
+        K = dense_assembly(n, stencils, blocks, diag + shift, free)
+        assert np.linalg.eigvalsh(K).min() < 0 < np.linalg.eigvalsh(K).max()
+        b = rng.standard_normal((len(free), 2))
+        x = solver.solve_indefinite(U, b)
+        assert np.allclose(K @ x.reshape(b.shape), b, atol=1e-8 * np.abs(b).max())
+    counts = solver.indefinite_counts
+    if method == "pardiso":
+        assert counts == {"analyses": 1, "pardiso": 3, "splu": 0}
+    else:
+        assert counts["splu"] == 3 and counts["pardiso"] == 0

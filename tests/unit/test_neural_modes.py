@@ -483,3 +483,30 @@ def test_subspace_frame_of_two_prescribed_corners():
     a, b = V[D[1]] - V[D[0]], xD[1] - xD[0]
     assert np.allclose(sub.map(np.zeros(2), xD)[D], xD, atol=1e-12)
     assert np.isclose(np.arccos((np.trace(R) - 1) / 2), np.arccos(a @ b / np.linalg.norm(a) / np.linalg.norm(b)), atol=1e-9)
+
+
+def test_ground_truth_solves_an_indefinite_hessian_without_superlu():
+    """At large deformations the exact stvk_nm Hessian is indefinite and every KKT direction is an
+    indefinite solve: with PARDISO these reuse one symbolic analysis and no SuperLU factorisation
+    runs, and the solve ends where the same iteration with SuperLU's directions ends."""
+    pytest.importorskip("pypardiso")
+    V, T = beam_tets(8, 2, 2, 1.0, 0.1, 0.1, tets_per_cell=5)
+    arrays = {"rest_positions": V, "tets": T, "dirichlet": np.flatnonzero(V[:, 0] < 1e-12)}
+    pot = build_elastic("tets", arrays, {"model": "stvk_nm", "youngs_modulus": 1e6, "poisson_ratio": 0.45, "density": 1000.0})
+    lm = linear_modes(pot, 2, V)
+    l = lm.modes @ np.array([1.5, -1.0])  # tip deflections of the order of the length
+    runs = {}
+    for name in ("pardiso", "splu"):
+        solver = ConstrainedNewton(pot, V, lm.free_dofs)
+        assert solver.linear.method == "pardiso"
+        if name == "splu":  # the indefinite solves by SuperLU on the full matrix
+            solver.linear._solve_pardiso_indefinite = lambda U, b: None
+        x, info = solver.solve(l, rtol=1e-8, etol=0.0, max_iter=60)
+        runs[name] = x, info, dict(solver.linear.indefinite_counts)
+    (x, info, counts), (x_lu, info_lu, counts_lu) = runs["pardiso"], runs["splu"]
+    assert info.residual <= 1e-8 and info_lu.residual <= 1e-8
+    assert counts["pardiso"] > 0 and counts["analyses"] == 1 and counts["splu"] == 0
+    assert counts_lu["splu"] > 0 and counts_lu["pardiso"] == 0
+    X = V.reshape(-1)
+    assert np.abs(x - x_lu).max() <= 1e-6 * np.abs(x_lu - X).max()
+    assert abs(info.energy - info_lu.energy) <= 1e-10 * info_lu.energy

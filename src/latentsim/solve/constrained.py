@@ -23,14 +23,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse.linalg
 import torch
 
 from latentsim.physics.incremental_potential import IncrementalPotential
 from latentsim.solve.assembly import CompiledAssembly
 from latentsim.solve.modes import stiffness_matrix
 from latentsim.solve.newton import LineSearch, minimise
-from latentsim.solve.sparse import HessianPattern, LinearSolver, NotPositiveDefinite, symmetric_from_upper
+from latentsim.solve.sparse import HessianPattern, LinearSolver, NotPositiveDefinite
 
 # the KKT iteration's line search: below 1e-13 |E| the search still runs, and the full step is
 # taken only where it fails
@@ -82,7 +81,8 @@ class ConstrainedNewton:
         # Levenberg shifts are multiples of M, starting at the lowest nonzero rest eigenvalue's scale
         self.mass_diagonal = m3[self.free]
         # the scene's fastest SPD solver (PARDISO on tets, with its symbolic analysis reused); an
-        # indefinite exact Hessian falls back to SuperLU on the full matrix (see _direction)
+        # indefinite exact Hessian (at large deformations the rule, not the exception) is solved by
+        # the same solver's symmetric indefinite factorisation (``LinearSolver.solve_indefinite``)
         self.linear = LinearSolver(self.pattern)
         self.damping0 = 1e-3 * abs(K0.diagonal()).mean() / m3.mean()
         # the simulator's compiled kernels
@@ -137,7 +137,7 @@ class ConstrainedNewton:
         try:
             sol = self.linear.solve(U, rhs)
         except NotPositiveDefinite:  # the exact Hessian may be indefinite: the KKT step still exists
-            sol = scipy.sparse.linalg.splu(symmetric_from_upper(U).tocsc()).solve(rhs)
+            sol = self.linear.solve_indefinite(U, rhs)
         sol = sol.reshape(len(gf), -1)
         a, B = sol[:, 0], sol[:, 1:]
         if not C.shape[1]:

@@ -15,6 +15,10 @@ PSD-projected Hessian plus M/h^2 is):
 - ``splu``    : SciPy SuperLU, always available, slowest.
 - ``auto``    : banded when the bandwidth is small, else pardiso if it imports,
   else splu.
+
+``LinearSolver.solve_indefinite`` solves a symmetric system that need not be definite (the exact
+Hessian of the Neural Modes ground truth): PARDISO's symmetric indefinite factorisation with
+its symbolic analysis reused, else SuperLU.
 """
 
 from __future__ import annotations
@@ -215,6 +219,9 @@ class LinearSolver:
         self.bandwidth = pattern.bandwidth
         self._pardiso = None
         self._analysed = False
+        self._pardiso_indefinite = None
+        # symbolic analyses and numeric factorisations of ``solve_indefinite``, by method
+        self.indefinite_counts = {"analyses": 0, "pardiso": 0, "splu": 0}
 
     def solve(self, U, b):
         """Solve with the upper-triangular CSR ``U`` of an SPD matrix (or its ``BandedUpper``)."""
@@ -254,6 +261,47 @@ class LinearSolver:
             if e.value == -4:  # zero pivot: not positive definite
                 raise NotPositiveDefinite(f"PARDISO: {e}") from e
             raise
+
+
+    # residual ||A x - b|| / ||b|| above which an indefinite PARDISO solve (whose pivots may have been
+    # perturbed) is redone by SuperLU
+    INDEFINITE_RTOL = 1e-8
+
+    def solve_indefinite(self, U, b):
+        """Solve with the upper-triangular CSR ``U`` of a symmetric matrix that need not be definite
+        (where ``solve`` raised :class:`NotPositiveDefinite`): the same solution as SuperLU on the full
+        matrix, by PARDISO's symmetric indefinite factorisation (mtype -2, Bunch-Kaufman pivoting)
+        with its symbolic analysis reused across calls when the method is 'pardiso', and SuperLU when
+        PARDISO is not the method or its solution's residual exceeds ``INDEFINITE_RTOL``."""
+        if isinstance(U, BandedUpper):
+            U = U.tocsr()
+        if self.method == "pardiso":
+            x = self._solve_pardiso_indefinite(U, b)
+            if x is not None:
+                r = symmetric_from_upper(U) @ x.reshape(b.shape) - b
+                if np.linalg.norm(r) <= self.INDEFINITE_RTOL * max(float(np.linalg.norm(b)), 1e-300):
+                    return x
+        self.indefinite_counts["splu"] += 1
+        return scipy.sparse.linalg.splu(symmetric_from_upper(U).tocsc()).solve(b)
+
+    def _solve_pardiso_indefinite(self, U, b):
+        import pypardiso  # optional (see _solve_pardiso)
+
+        if self._pardiso_indefinite is None:
+            p = pypardiso.PyPardisoSolver(mtype=-2)
+            p.msglvl = 0
+            p._check_A(U)
+            p.set_phase(11)
+            p._call_pardiso(U, np.asfortranarray(b, dtype=np.float64))
+            self._pardiso_indefinite = p
+            self.indefinite_counts["analyses"] += 1
+        p = self._pardiso_indefinite
+        p.set_phase(23)
+        self.indefinite_counts["pardiso"] += 1
+        try:
+            return p._call_pardiso(U, np.asfortranarray(b, dtype=np.float64))
+        except pypardiso.pardiso_wrapper.PyPardisoError:
+            return None
 
 
 def _pardiso_available() -> bool:
