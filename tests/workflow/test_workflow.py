@@ -109,6 +109,20 @@ def test_dry_run_of_default_config_lists_every_stage_for_every_scene(tmp_path):
     assert planned_outputs(out) == recorded
 
 
+def test_dry_run_of_the_soft_solids_example_plans_every_stage_of_both_scenes(tmp_path):
+    """config/examples/soft_solids.yaml (neo-Hookean giraffe and armadillo) validates and plans the simulation,
+    the latent methods with their variant and the giraffe's Neural Modes (its full run: docs/measurements.md)."""
+    config = ROOT / "config" / "examples" / "soft_solids.yaml"
+    scenes = yaml.safe_load(config.read_text())["scenes"]
+    assert {s["material"]["model"] for s in scenes.values()} == {"neohookean"}
+    jobs = planned_jobs(snakemake("-n", "all", "--cores", "2", "--configfile", str(config), "--directory", str(tmp_path)).stdout, methods=True)
+    for stage in ("prepare_mesh", "simulate", "train_autoencoder", "evaluate"):
+        assert sorted(s for r, s, _ in jobs if r == stage) == sorted(scenes), stage
+    for scene in scenes:
+        assert sorted(m for r, s, m in jobs if r == "train_integrator" and s == scene) == ["hybrid_w1e4", "self_supervised"], scene
+    assert [s for r, s, _ in jobs if r == "nm_train"] == ["giraffe_neohookean"]
+
+
 def test_slurm_profile_dry_run(tmp_path):
     out = snakemake("-n", "all", "--workflow-profile", str(ROOT / "profiles" / "slurm"), "--configfile", str(TINY), "--directory", str(tmp_path)).stdout
     jobs = planned_jobs(out)
