@@ -217,9 +217,8 @@ class LinearSolver:
                 method = "pardiso" if _pardiso_available() else "splu"
         self.method = method
         self.bandwidth = pattern.bandwidth
-        self._pardiso = None
-        self._analysed = False
-        self._pardiso_indefinite = None
+        # the PARDISO solvers by matrix type, each with its symbolic analysis done
+        self._pardiso_by_type: dict = {}
         # symbolic analyses and numeric factorisations of ``solve_indefinite``, by method
         self.indefinite_counts = {"analyses": 0, "pardiso": 0, "splu": 0}
 
@@ -237,31 +236,36 @@ class LinearSolver:
             return self._solve_pardiso(U, b)
         return scipy.sparse.linalg.splu(symmetric_from_upper(U).tocsc()).solve(b)
 
-    def _solve_pardiso(self, U, b):
-        # PARDISO on the upper triangle, mtype 2 (real SPD).  The pattern never
-        # changes within a scene, so the symbolic analysis (phase 11, fill-in
-        # reducing ordering) runs once; each Newton iteration only refactors
-        # numerically and solves (phase 23).
+    def _pardiso(self, mtype: int, U, b):
+        # PARDISO of matrix type ``mtype`` (2: real SPD, -2: real symmetric indefinite) on the upper
+        # triangle.  The pattern never changes within a scene, so the symbolic analysis (phase 11,
+        # fill-in reducing ordering) runs once per type; each call only refactors numerically and
+        # solves (phase 23).  Raises pypardiso's PyPardisoError.
         import pypardiso  # here, not at the top: an optional dependency that loads MKL (heavy)
 
-        if self._pardiso is None:
-            self._pardiso = pypardiso.PyPardisoSolver(mtype=2)
-            self._pardiso.msglvl = 0
-        p = self._pardiso
         b = np.asfortranarray(b, dtype=np.float64)
-        if not self._analysed:
+        p = self._pardiso_by_type.get(mtype)
+        if p is None:
+            p = pypardiso.PyPardisoSolver(mtype=mtype)
+            p.msglvl = 0
             p._check_A(U)
             p.set_phase(11)
             p._call_pardiso(U, b)
-            self._analysed = True
+            self._pardiso_by_type[mtype] = p
+            if mtype == -2:
+                self.indefinite_counts["analyses"] += 1
         p.set_phase(23)
+        return p._call_pardiso(U, b)
+
+    def _solve_pardiso(self, U, b):
+        import pypardiso
+
         try:
-            return p._call_pardiso(U, b)
+            return self._pardiso(2, U, b)
         except pypardiso.pardiso_wrapper.PyPardisoError as e:
             if e.value == -4:  # zero pivot: not positive definite
                 raise NotPositiveDefinite(f"PARDISO: {e}") from e
             raise
-
 
     # residual ||A x - b|| / ||b|| above which an indefinite PARDISO solve (whose pivots may have been
     # perturbed) is redone by SuperLU
@@ -285,21 +289,12 @@ class LinearSolver:
         return scipy.sparse.linalg.splu(symmetric_from_upper(U).tocsc()).solve(b)
 
     def _solve_pardiso_indefinite(self, U, b):
-        import pypardiso  # optional (see _solve_pardiso)
+        """PARDISO's symmetric indefinite solve, or None where it fails."""
+        import pypardiso
 
-        if self._pardiso_indefinite is None:
-            p = pypardiso.PyPardisoSolver(mtype=-2)
-            p.msglvl = 0
-            p._check_A(U)
-            p.set_phase(11)
-            p._call_pardiso(U, np.asfortranarray(b, dtype=np.float64))
-            self._pardiso_indefinite = p
-            self.indefinite_counts["analyses"] += 1
-        p = self._pardiso_indefinite
-        p.set_phase(23)
         self.indefinite_counts["pardiso"] += 1
         try:
-            return p._call_pardiso(U, np.asfortranarray(b, dtype=np.float64))
+            return self._pardiso(-2, U, b)
         except pypardiso.pardiso_wrapper.PyPardisoError:
             return None
 
