@@ -67,6 +67,9 @@ def _describe(error: jsonschema.ValidationError) -> str:
 def validate_config(config: dict, schema_path=SCHEMA) -> dict:
     """Validate ``config`` in place (filling defaults) and return it."""
     _check_finite(config)
+    if isinstance(config, dict) and "seed" in config:
+        raise ConfigError(f"config key 'seed': {config['seed']!r}: the single seed was replaced by a list of seeds, "
+                          f"'seeds' (e.g. seeds: [{config['seed']!r}]); every learned method runs once per seed")  # fmt: skip
     with open(schema_path) as fh:
         schema = yaml.safe_load(fh)
     validator = _Validator(schema)
@@ -285,9 +288,23 @@ def autoencoder_settings(config: dict, scene: str, method: str = "self_supervise
     return base
 
 
-def autoencoder_dir(config: dict, scene: str, method: str = "self_supervised") -> str:
-    """Where ``method``'s autoencoder of ``scene`` lives: the scene's, or the variant's own."""
-    return f"results/autoencoder/{scene}/{method}" if own_autoencoder(config, method) else f"results/autoencoder/{scene}"
+def scene_seeds(config: dict, scene: str) -> list[int]:
+    """The seeds a scene's learned methods run with: its own ``seeds``, else the config's."""
+    own = config["scenes"][scene].get("seeds")
+    return [int(s) for s in (own if own is not None else config["seeds"])]
+
+
+def seed_dir(seed: int) -> str:
+    """The folder of one seed's artefacts inside a method's folder: ``seed<k>``."""
+    return f"seed{int(seed)}"
+
+
+def autoencoder_dir(config: dict, scene: str, method: str = "self_supervised", seed: int | None = None) -> str:
+    """Where ``method``'s autoencoder of ``scene`` lives for ``seed`` (default: the scene's first seed): the
+    scene's, or the variant's own, in the seed's folder."""
+    seed = scene_seeds(config, scene)[0] if seed is None else seed
+    base = f"results/autoencoder/{scene}/{method}" if own_autoencoder(config, method) else f"results/autoencoder/{scene}"
+    return f"{base}/{seed_dir(seed)}"
 
 
 def sweep_point_settings(config: dict, scene: str, latent_dim: int, size_index: int) -> dict:

@@ -97,8 +97,9 @@ def test_a_variant_of_another_size_overrides_the_autoencoder_apart_from_the_inte
     assert autoencoder_settings(cfg, "tiny_rods", "supervised") == own  # a variant without the block shares the scene's
     integ = integrator_settings(cfg, "tiny_rods", "small")
     assert "autoencoder" not in integ and integ["widths"] == [16] and integ["epochs"] == cfg["scenes"]["tiny_rods"]["integrator"]["epochs"]
-    assert autoencoder_dir(cfg, "tiny_rods", "small") == "results/autoencoder/tiny_rods/small"
-    assert autoencoder_dir(cfg, "tiny_rods", "supervised") == autoencoder_dir(cfg, "tiny_rods") == "results/autoencoder/tiny_rods"
+    assert autoencoder_dir(cfg, "tiny_rods", "small") == "results/autoencoder/tiny_rods/small/seed0"
+    assert autoencoder_dir(cfg, "tiny_rods", "small", 1) == "results/autoencoder/tiny_rods/small/seed1"
+    assert autoencoder_dir(cfg, "tiny_rods", "supervised") == autoencoder_dir(cfg, "tiny_rods") == "results/autoencoder/tiny_rods/seed0"
     with pytest.raises(ConfigError, match="no integrator variant 'small'"):
         autoencoder_settings(cfg, "tiny_cloth", "small")  # the scene does not list it
 

@@ -110,7 +110,7 @@ def test_tables_1_and_2_name_a_method_that_diverged():
     stable = df[df["method"] != "supervised_5x256"]
     assert list(table1(stable)["method"]) == ["self_supervised"] and list(table2(stable)["method"]) == ["self_supervised"]
     df.loc[df["method"] == "self_supervised", ["diverged_frame", "mean_error"]] = (7, np.inf)
-    assert list(table1(df)["method"]) == list(table2(df)["method"]) == ["self_supervised (diverged on 1/1 test sequences)"]
+    assert list(table1(df)["method"]) == list(table2(df)["method"]) == ["self_supervised (diverged on 1/1 test rollouts)"]
     st = stability_table(df).set_index("method")
     assert st.loc["pca_reduced", "survived"] == 0 and st.loc["supervised_5x256", "survived"] == 2 and st.loc["newton_1it", "survived"] == 30
 

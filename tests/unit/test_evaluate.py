@@ -97,7 +97,7 @@ def test_evaluate_scene_one_row_per_method_and_sequence(tmp_path):
     div = _write(tmp_path / "div.h5", rest, {"s1": (bad, 8)}, method="supervised_5x256")
     df, curves = evaluate_scene("a", gt, [ok, div])
     assert list(zip(df["method"], df["sequence"])) == [("self_supervised", "s0"), ("self_supervised", "s1"), ("supervised_5x256", "s1")]
-    assert list(df.columns[:12]) == ["scene", "method", "sequence", "frames", "diverged_frame", "mean_error", "max_error",
+    assert list(df.columns[:13]) == ["scene", "method", "seed", "sequence", "frames", "diverged_frame", "mean_error", "max_error",
                                      "dirichlet_error", "kinetic_ratio", "end_error", "end_motion", "end_motion_truth"]  # fmt: skip
     r = df.set_index(["method", "sequence"])
     assert np.isclose(r.loc[("self_supervised", "s0"), "mean_error"], 0.01 / bbox_diagonal(rest))
@@ -184,10 +184,11 @@ def test_summary_markdown_opens_with_the_glance(tmp_path):
               stress=[tmp_path / "st.csv"], stress_paths=(tmp_path / "stress.csv", tmp_path / "stress.png"),
               glance_path=tmp_path / "glance.csv")  # fmt: skip
     text = (tmp_path / "s.md").read_text()
-    assert text.startswith("## At a glance")
+    assert text.startswith("## What the tables say") and "\n## At a glance" in text
     assert "| a | 0 (11) * | 0.001 (2) * | 0.02 (0.1) * | diverged 1/2 (0.05) |" in text
-    assert "| a | supervised_5x256 | 0.05 | 220 | inf | inf | nan | 1/2 | 1/3 | False |" in text
-    assert "| a | self_supervised | 0.1 | 110 | 0.02 | 0.06 | 0.9 | 2/2 | 3/3 | False |" in text
+    assert "| a | supervised_5x256 | 1 | 0.05 | 0.05 | 0.05 | 220 | 220 | 220 | inf | nan | nan | inf | nan | nan | nan | 0/1 | 1/2 | 1/3 | False |" in text
+    assert "| a | self_supervised | 1 | 0.1 | 0.1 | 0.1 | 110 | 110 | 110 | 0.02 | 0.02 | 0.02 | 0.06 | 0.9 | 0.9 | 0.9 | 1/1 | 2/2 | 3/3 | False |" in text
+    assert "| a | supervised_5x256 | 1 | 1/1 | 100/40 | 100/100 | 1/1 | 0/1 | 1/1 (20) | 1/1 (20) |" in text  # Fig. 8 over seeds
     g = pd.read_csv(tmp_path / "glance.csv", keep_default_na=False)
     assert len(g) == 7 and set(g["method"]) == {"full_space", "self_supervised", "no_noise", "pca_reduced", "supervised_5x256"}
 
@@ -221,7 +222,7 @@ def test_table_pages_show_every_table_every_row(tmp_path):
     v = float(t1["integrate_ms"][0])  # 0.1 / 3, to the CSV's 6 digits: 4 shown, all in the tooltip
     assert rows[0][head.index("integrate_ms")] == "0.03333" and f'title="{v!r}"' in text
     md = (tmp_path / "s.md").read_text()
-    assert write_table_html(tmp_path / "s.md", tmp_path / "s.html") == md.count("## ") - md.count("(no rows)")  # a table per heading, but empty ones
+    assert write_table_html(tmp_path / "s.md", tmp_path / "s.html") == md.count("## ") - md.count("(no rows)") - 1  # a table per heading, but empty ones and the claims
     tables = _html_tables((tmp_path / "s.html").read_text())
     assert tables[0][1][0] == ["a", "0 (11) *", "0.001 (2) *", "0.02 (0.1) *", "diverged 1/2 (0.05)"]  # the glance grid
     assert tables[-1][0] == list(df.columns) and len(tables[-1][1]) == len(df)  # every method and test sequence

@@ -1,14 +1,14 @@
-# Autoencoder on the training frames (Li et al. sec. 3.2), PCA-initialised outer layers.
+# Autoencoder on the training frames (Li et al. sec. 3.2), PCA-initialised outer layers; one job per seed.
 rule train_autoencoder:
     input:
         trajectories="results/sim/{scene}/trajectories.h5",
     output:
-        model="results/autoencoder/{scene}/autoencoder.pt",
-        latents="results/autoencoder/{scene}/latents.h5",
+        model="results/autoencoder/{scene}/seed{seed}/autoencoder.pt",
+        latents="results/autoencoder/{scene}/seed{seed}/latents.h5",
     log:
-        "logs/autoencoder/{scene}.log",
+        "logs/autoencoder/{scene}/seed{seed}.log",
     benchmark:
-        "results/benchmarks/autoencoder/{scene}.tsv"
+        "results/benchmarks/autoencoder/{scene}/seed{seed}.tsv"
     conda:
         "../../envs/latentsim.yaml"
     threads: 1
@@ -25,11 +25,11 @@ rule train_autoencoder:
 # A variant that is a whole model of another size (integrator_variants.<name>.autoencoder) trains its own.
 use rule train_autoencoder as train_variant_autoencoder with:
     output:
-        model="results/autoencoder/{scene}/{method}/autoencoder.pt",
-        latents="results/autoencoder/{scene}/{method}/latents.h5",
+        model="results/autoencoder/{scene}/{method}/seed{seed}/autoencoder.pt",
+        latents="results/autoencoder/{scene}/{method}/seed{seed}/latents.h5",
     log:
-        "logs/autoencoder/{scene}/{method}.log",
+        "logs/autoencoder/{scene}/{method}/seed{seed}.log",
     benchmark:
-        "results/benchmarks/autoencoder/{scene}/{method}.tsv"
+        "results/benchmarks/autoencoder/{scene}/{method}/seed{seed}.tsv"
     wildcard_constraints:
         method="|".join(SIZED_METHODS) if SIZED_METHODS else "NO_METHOD",

@@ -4,7 +4,7 @@ import json
 from snakemake.exceptions import WorkflowError
 
 from latentsim.stages import neural_modes as nm_pipeline
-from latentsim.stages.baselines import BASELINES
+from latentsim.stages.baselines import BASELINES, SEEDED_BASELINES
 from latentsim.report.tables import layers_text
 from latentsim.latent.sweep import parse_label, point_label
 from latentsim.mesh import MeshError
@@ -16,6 +16,8 @@ from latentsim.config import (
     integrator_settings,
     own_autoencoder,
     scene_methods,
+    scene_seeds,
+    seed_dir,
     sweep_point_settings,
     validate_config,
 )
@@ -47,6 +49,7 @@ wildcard_constraints:
     scene="|".join(SCENES) if SCENES else "NO_SCENE",
     method="|".join(METHODS),
     point=r"r\d+_s\d+",
+    seed=r"\d+",
 
 
 def canonical(obj):
@@ -83,17 +86,19 @@ def autoencoder_params(wildcards):
     return canonical(
         {
             "settings": autoencoder_settings(config, wildcards.scene, method),
-            "seed": config["seed"],
+            "seed": int(wildcards.seed),
             "device": config["device"],
         }
     )
 
 
 def method_autoencoder(*names):
-    """Input function: the named files (autoencoder, latents) of the autoencoder that ``method`` decodes with."""
+    """Input function: the named files (autoencoder, latents) of the autoencoder that ``method`` decodes with,
+    of the job's seed (the scene's first seed where the job has none)."""
 
     def get(wildcards):
-        d = autoencoder_dir(config, wildcards.scene, wildcards.method)
+        seed = int(wildcards.seed) if "seed" in wildcards.keys() else None
+        d = autoencoder_dir(config, wildcards.scene, wildcards.method, seed)
         files = {"autoencoder": f"{d}/autoencoder.pt", "latents": f"{d}/latents.h5"}
         return {n: files[n] for n in names}
 
@@ -105,16 +110,36 @@ def integrator_params(wildcards):
     return canonical(
         {
             "settings": integrator_settings(config, wildcards.scene, wildcards.method),
-            "seed": config["seed"],
+            "seed": int(wildcards.seed),
             "device": config["device"],
         }
     )
 
 
+def seeded(method):
+    """Whether ``method`` is trained (or reduces with a model trained) once per seed."""
+    return method in INTEGRATOR_METHODS or method in SEEDED_BASELINES
+
+
+def rollout_path(scene, method, seed):
+    """A method's rollout for one seed: in the seed's folder, or the method's own where no seed changes it."""
+    d = f"results/rollout/{scene}/{method}"
+    return f"{d}/{seed_dir(seed)}/rollout.h5" if seeded(method) else f"{d}/rollout.h5"
+
+
 def rollout_paths(scene):
-    """The rollout of every method of a scene: its latent integrators and its reduced baselines."""
+    """The rollout of every method of a scene for every seed: its latent integrators and its reduced baselines."""
     methods = scene_methods(config, scene) + config["scenes"][scene]["baselines"]
-    return [f"results/rollout/{scene}/{m}/rollout.h5" for m in methods]
+    paths = [
+        rollout_path(scene, m, s) for m in methods for s in scene_seeds(config, scene)
+    ]
+    return list(dict.fromkeys(paths))
+
+
+def first_seed_rollouts(scene):
+    """The rollout of every method of a scene for the scene's first seed (what the pictures show)."""
+    methods = scene_methods(config, scene) + config["scenes"][scene]["baselines"]
+    return [rollout_path(scene, m, scene_seeds(config, scene)[0]) for m in methods]
 
 
 def scene_rollouts(wildcards):
@@ -139,7 +164,7 @@ def sweep_params(wildcards):
             **sweep_point_settings(config, wildcards.scene, r, i),
             "rollout": sc["rollout"],
             "stress": sc["sweep"]["stress"],
-            "seed": config["seed"],
+            "seed": int(wildcards.seed),
             "device": config["device"],
         }
     )
@@ -150,9 +175,11 @@ def sweep_tolerance(wildcards):
 
 
 def sweep_results(wildcards):
+    """Every point of a scene's sweep, for every seed of the scene."""
     return [
-        f"results/sweep/{wildcards.scene}/{p}/metrics.csv"
+        f"results/sweep/{wildcards.scene}/{p}/{seed_dir(s)}/metrics.csv"
         for p in sweep_points(wildcards.scene)
+        for s in scene_seeds(config, wildcards.scene)
     ]
 
 
@@ -205,12 +232,11 @@ def scene_artefacts(scene):
     """
     out = [f"results/mesh/{scene}/mesh.h5", f"results/sim/{scene}/trajectories.h5"]
     for m in scene_methods(config, scene):
-        d = autoencoder_dir(config, scene, m)
-        out += [f"{d}/autoencoder.pt", f"{d}/latents.h5"]
-        out += [
-            f"results/integrator/{scene}/{m}/integrator.pt",
-            f"results/integrator/{scene}/{m}/history.h5",
-        ]
+        for seed in scene_seeds(config, scene):
+            d = autoencoder_dir(config, scene, m, seed)
+            i = f"results/integrator/{scene}/{m}/{seed_dir(seed)}"
+            out += [f"{d}/autoencoder.pt", f"{d}/latents.h5"]
+            out += [f"{i}/integrator.pt", f"{i}/history.h5"]
     return list(dict.fromkeys(out))
 
 

@@ -1,9 +1,13 @@
-# Evaluation: errors of each rollout against the full simulation, speed-ups, and the summary tables.
+# Evaluation: errors of each rollout (every method and seed) against the full simulation, speed-ups, and the
+# summary tables with the spread over seeds.
 rule evaluate:
     input:
         trajectories="results/sim/{scene}/trajectories.h5",
         rollouts=scene_rollouts,
-        latents="results/autoencoder/{scene}/latents.h5",
+        latents=lambda w: [
+            f"{autoencoder_dir(config, w.scene, 'self_supervised', s)}/latents.h5"
+            for s in scene_seeds(config, w.scene)
+        ],
     output:
         metrics="results/evaluation/{scene}/metrics.csv",
         reconstruction="results/evaluation/{scene}/reconstruction.csv",
@@ -33,12 +37,12 @@ rule evaluate:
         "../scripts/evaluate.py"
 
 
-# Pictures of the first test sequence: frames of every method beside the ground truth, a clip of the
-# most telling failure and success, and XDMF series for ParaView.
+# Pictures of the first test sequence: frames of every method (its first seed) beside the ground truth, a
+# clip of the most telling failure and success, and XDMF series for ParaView.
 rule render:
     input:
         trajectories="results/sim/{scene}/trajectories.h5",
-        rollouts=scene_rollouts,
+        rollouts=lambda w: first_seed_rollouts(w.scene),
     output:
         frames=report(
             "results/evaluation/{scene}/frames.png",
@@ -84,6 +88,8 @@ rule summary:
         stability="results/evaluation/stability.csv",
         stress="results/evaluation/stress.csv",
         sizes="results/evaluation/sizes.csv",
+        divergence="results/evaluation/divergence.csv",
+        claims="results/evaluation/claims.md",
         stress_map=report(
             "results/evaluation/stress_map.png",
             caption="../report/stress_map.rst",

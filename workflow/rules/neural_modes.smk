@@ -52,7 +52,7 @@ rule nm_train:
         runtime=240,
     params:
         nm=nm_train_params,
-        seed=config["seed"],
+        seed=lambda w: scene_seeds(config, w.scene)[0],
     script:
         "../scripts/nm_train.py"
 

@@ -11,6 +11,7 @@ rule report_summary_pages:
         table1="results/evaluation/table1.csv",
         table2="results/evaluation/table2.csv",
         stability="results/evaluation/stability.csv",
+        divergence="results/evaluation/divergence.csv",
         sizes="results/evaluation/sizes.csv",
         summary="results/evaluation/summary.md",
     output:
@@ -35,6 +36,11 @@ rule report_summary_pages:
             caption="../report/stability.rst",
             category="Summary",
         ),
+        divergence=report(
+            "results/evaluation/divergence.html",
+            caption="../report/divergence.rst",
+            category="Summary",
+        ),
         sizes=report(
             "results/evaluation/sizes.html",
             caption="../report/sizes.rst",
@@ -54,7 +60,8 @@ rule report_summary_pages:
             "glance": "At a glance: every method on every scene",
             "table1": "Li et al. Table 1: full space against the latent integrator",
             "table2": "Li et al. Table 2: single-vertex Jvp and one latent step",
-            "stability": "Stability: frames survived per method and test sequence",
+            "stability": "Stability: frames survived per method, seed and test sequence",
+            "divergence": "Divergence over seeds (Li et al. Fig. 8): how often each method diverged",
             "sizes": "Model size per scene: ours, the paper's, the sizing sweep",
             "summary": "Summary: every table of the evaluation",
         },

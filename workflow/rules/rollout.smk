@@ -3,15 +3,15 @@ rule rollout:
     input:
         unpack(method_autoencoder("autoencoder")),
         trajectories="results/sim/{scene}/trajectories.h5",
-        integrator="results/integrator/{scene}/{method}/integrator.pt",
+        integrator="results/integrator/{scene}/{method}/seed{seed}/integrator.pt",
     output:
-        rollout="results/rollout/{scene}/{method}/rollout.h5",
-        runtime="results/rollout/{scene}/{method}/runtime.npz",
-        torch_export="results/rollout/{scene}/{method}/runtime.pt",
+        rollout="results/rollout/{scene}/{method}/seed{seed}/rollout.h5",
+        runtime="results/rollout/{scene}/{method}/seed{seed}/runtime.npz",
+        torch_export="results/rollout/{scene}/{method}/seed{seed}/runtime.pt",
     log:
-        "logs/rollout/{scene}/{method}.log",
+        "logs/rollout/{scene}/{method}/seed{seed}.log",
     benchmark:
-        "results/benchmarks/rollout/{scene}/{method}.tsv"
+        "results/benchmarks/rollout/{scene}/{method}/seed{seed}.tsv"
     wildcard_constraints:
         method="|".join(INTEGRATOR_METHODS),
     conda:
@@ -23,5 +23,6 @@ rule rollout:
     params:
         rollout=scene_cfg("rollout"),
         method="{method}",
+        seed="{seed}",
     script:
         "../scripts/rollout.py"

@@ -1,13 +1,13 @@
-# Sizing sweep, one point: train the autoencoder and integrator at one latent dimension and size, roll out, measure.
+# Sizing sweep, one point and seed: train the autoencoder and integrator at one latent dimension and size, roll out, measure.
 rule sweep_point:
     input:
         trajectories="results/sim/{scene}/trajectories.h5",
     output:
-        metrics="results/sweep/{scene}/{point}/metrics.csv",
+        metrics="results/sweep/{scene}/{point}/seed{seed}/metrics.csv",
     log:
-        "logs/sweep/{scene}/{point}.log",
+        "logs/sweep/{scene}/{point}/seed{seed}.log",
     benchmark:
-        "results/benchmarks/sweep/{scene}/{point}.tsv"
+        "results/benchmarks/sweep/{scene}/{point}/seed{seed}.tsv"
     conda:
         "../../envs/latentsim.yaml"
     threads: 1
@@ -21,7 +21,8 @@ rule sweep_point:
         "../scripts/sweep_point.py"
 
 
-# Sizing sweep, summary: the smallest model within the scene's tolerance, and the chart of error and speed against size.
+# Sizing sweep, summary: the smallest model within the scene's tolerance in (a fraction of) its seeds, and the chart
+# of error and speed against size with the seeds' spread.
 rule sweep_summary:
     input:
         points=sweep_results,
@@ -39,6 +40,7 @@ rule sweep_summary:
         "../../envs/latentsim.yaml"
     params:
         tolerance=sweep_tolerance,
+        pass_fraction=lambda w: config["scenes"][w.scene]["sweep"]["pass_fraction"],
         method=lambda w: config["scenes"][w.scene]["sweep"]["method"],
     script:
         "../scripts/sweep_summary.py"

@@ -6,7 +6,7 @@ from latentsim.utils import run_stage
 def main(smk):
     nm = list(smk.input.get("neural_modes", []))
     baseline_rollouts(smk.input.trajectories, smk.input.autoencoder, smk.params.method, smk.params.reduced["reduced"], smk.output.rollout,
-                      neural_modes=nm[0] if nm else None)  # fmt: skip
+                      neural_modes=nm[0] if nm else None, seed=int(smk.params.seed))  # fmt: skip
 
 
 run_stage(snakemake, main)  # noqa: F821 (injected by Snakemake)

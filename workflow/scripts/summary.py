@@ -20,6 +20,8 @@ def main(smk):
         sweep_choices=dict(smk.params.sweep_choices),
         sizes_path=out.sizes,
         glance_path=out.glance,
+        divergence_path=out.divergence,
+        claims_path=out.claims,
     )
 
 

@@ -8,7 +8,7 @@ from latentsim.utils import run_stage
 
 def main(smk):
     df = pd.concat([pd.read_csv(p) for p in smk.input.points], ignore_index=True)
-    table = choose(df, float(smk.params.tolerance)).assign(method=smk.params.method)
+    table = choose(df, float(smk.params.tolerance), float(smk.params.pass_fraction)).assign(method=smk.params.method)
     write_table(table, smk.output.choice)
     sweep_chart(table, float(smk.params.tolerance), smk.wildcards.scene, smk.output.chart, method=smk.params.method)
 

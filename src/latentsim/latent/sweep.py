@@ -12,7 +12,9 @@ sequence alone cannot tell a model that holds from one that fails at twice the
 boundary speed (the armadillo's 64-wide latent-12 point did).  The summary
 picks the smallest model (fewest parameters) whose mean vertex error stays
 within the scene's tolerance on every test sequence without diverging, and
-that survives every stress condition.
+that survives every stress condition, in every seed it was trained with (or in
+the config's ``sweep.pass_fraction`` of them): one lucky training run does not
+choose a model.
 """
 
 from __future__ import annotations
@@ -79,9 +81,10 @@ def sweep_point(trajectories, autoencoder: dict, integrator: dict, rollout: dict
         that says ``enabled: false``) on the first test sequence.  Every row
         gets ``stress_conditions`` (how many ran), ``stress_failed`` (how many
         the model did not survive) and ``stress_failures`` (``name@frame``).
+    seed : the seed of every stochastic step of the training, in the rows' ``seed`` column.
     """
     point = train_point(trajectories, autoencoder, integrator, seed, device=device)
-    df = measure_point(point, rollout, stress=stress)
+    df = measure_point(point, rollout, stress=stress).assign(seed=int(seed))
     write_table(df, out_csv)
     return df
 
@@ -156,31 +159,52 @@ def measure_point(point: dict, rollout: dict, stress: bool = True) -> pd.DataFra
     return df
 
 
-def choose(df: pd.DataFrame, tolerance: float) -> pd.DataFrame:
-    """One row per sweep point (worst sequence), with ``passes`` and the ``chosen`` smallest passing point.
+def choose(df: pd.DataFrame, tolerance: float, pass_fraction: float = 1.0) -> pd.DataFrame:
+    """One row per sweep point over its seeds, with ``passes`` and the ``chosen`` smallest passing point.
 
-    A point passes when no test sequence diverged, every sequence's mean
-    vertex error / bbox diagonal is at most ``tolerance`` and it failed no
-    stress condition (points measured without them, ``stress_conditions`` 0
-    or the columns absent, are judged on the test sequences alone); among
-    passing points the one with the fewest parameters (then the lowest latent
+    A point passes in one seed when no test sequence diverged, every sequence's mean vertex error / bbox
+    diagonal is at most ``tolerance`` and it failed no stress condition (points measured without them,
+    ``stress_conditions`` 0 or the columns absent, are judged on the test sequences alone).  A point
+    passes when it passes in at least ``pass_fraction`` of its seeds (rows without a ``seed`` column are
+    one seed); among passing points the one with the fewest parameters (then the lowest latent
     dimension, then the fastest step) is chosen.
+
+    Columns: the point's ``latent_dim``, ``autoencoder_widths``, ``integrator_widths``, ``parameters``;
+    over its seeds ``seeds``, ``seeds_passing``, the median (``mean_error``), least and largest
+    (``mean_error_min``, ``mean_error_max``) of the worst sequence's mean error, ``max_error`` (largest),
+    ``diverged`` (in any seed), ``diverged_seeds``, ``step_ms`` and ``train_seconds`` (medians), the
+    stress conditions (``stress_failed``: failures summed over seeds, ``stress_failures``: each seed's
+    list, ``;``-separated), ``within_tolerance`` (in every seed), ``passes``, ``chosen``.
     """
+    if not 0 < pass_fraction <= 1:
+        raise ValueError(f"choose: pass_fraction {pass_fraction!r} must be in (0, 1]")
     df = df.copy()
     for col in ("stress_conditions", "stress_failed"):
         df[col] = df[col].fillna(0).astype(int) if col in df else 0
     # a CSV reads back an empty failure list as NaN (a float column when every entry is empty)
     df["stress_failures"] = df["stress_failures"].astype("string").fillna("") if "stress_failures" in df else ""
+    df["seed"] = df["seed"].astype(int) if "seed" in df else 0
     keys = ["latent_dim", "autoencoder_widths", "integrator_widths"]
     for k in keys[1:]:  # "16" reads back from a CSV as a number, "32 32" as a string
         df[k] = df[k].astype(str)
-    g = df.groupby(keys, sort=False, dropna=False).agg(
+    per_seed = df.groupby(keys + ["seed"], sort=False, dropna=False).agg(
         parameters=("parameters", "first"), mean_error=("mean_error", "max"), max_error=("max_error", "max"),
         diverged=("diverged_frame", lambda d: bool((d >= 0).any())), step_ms=("step_ms", "median"), train_seconds=("train_seconds", "first"),
         stress_conditions=("stress_conditions", "first"), stress_failed=("stress_failed", "first"), stress_failures=("stress_failures", "first"),
     ).reset_index()  # fmt: skip
-    g["within_tolerance"] = (~g["diverged"]) & (g["mean_error"] <= tolerance)
-    g["passes"] = g["within_tolerance"] & (g["stress_failed"] == 0)
+    per_seed["within_tolerance"] = (~per_seed["diverged"]) & (per_seed["mean_error"] <= tolerance)
+    per_seed["passes"] = per_seed["within_tolerance"] & (per_seed["stress_failed"] == 0)
+    g = per_seed.groupby(keys, sort=False, dropna=False).agg(
+        parameters=("parameters", "first"), seeds=("seed", "nunique"), seeds_passing=("passes", "sum"),
+        mean_error=("mean_error", "median"), mean_error_min=("mean_error", "min"), mean_error_max=("mean_error", "max"),
+        max_error=("max_error", "max"), diverged=("diverged", "any"), diverged_seeds=("diverged", "sum"),
+        step_ms=("step_ms", "median"), train_seconds=("train_seconds", "median"), stress_conditions=("stress_conditions", "first"),
+        stress_failed=("stress_failed", "sum"), stress_failures=("stress_failures", lambda f: "; ".join(f)),
+        within_tolerance=("within_tolerance", "all"),
+    ).reset_index()  # fmt: skip
+    g["seeds_passing"] = g["seeds_passing"].astype(int)
+    g["diverged_seeds"] = g["diverged_seeds"].astype(int)
+    g["passes"] = g["seeds_passing"] >= np.ceil(pass_fraction * g["seeds"] - 1e-9)
     g["chosen"] = False
     ok = g[g["passes"]].sort_values(["parameters", "latent_dim", "step_ms"])
     if len(ok):
@@ -199,6 +223,11 @@ def sweep_chart(table: pd.DataFrame, tolerance: float, scene: str, path, method:
         for diverged, h in g.groupby("diverged"):
             axes[0].scatter(h["parameters"], h["mean_error"].clip(lower=1e-12), edgecolors=colour,
                             facecolors="none" if diverged else colour, label=f"latent {r}" + (" (diverged)" if diverged else ""))  # fmt: skip
+        if "mean_error_min" in g and (g.get("seeds", 1) > 1).any():  # the seeds' spread: least to largest
+            lo, hi, mid = (g[c].clip(lower=1e-12).to_numpy(float) for c in ("mean_error_min", "mean_error_max", "mean_error"))
+            finite = np.isfinite(lo) & np.isfinite(hi) & np.isfinite(mid)
+            axes[0].errorbar(g["parameters"].to_numpy(float)[finite], mid[finite], yerr=[mid[finite] - lo[finite], hi[finite] - mid[finite]],
+                             fmt="none", ecolor=colour, capsize=3, lw=1)  # fmt: skip
         axes[1].scatter(g["parameters"], g["step_ms"], color=colour, label=f"latent {r}")
     stressed = table[table["stress_failed"] > 0] if "stress_failed" in table else table.iloc[:0]
     if len(stressed):
@@ -221,6 +250,9 @@ def sweep_chart(table: pd.DataFrame, tolerance: float, scene: str, path, method:
         ax.set_xlabel("parameters (decoder + integrator)")
         ax.set_ylabel(ylabel)
         ax.legend(fontsize=7)
-    fig.suptitle(f"{scene}: sizing sweep, {method} loss (hollow: diverged on a test sequence; x: failed a stress condition)")
+    seeds = int(table["seeds"].max()) if "seeds" in table else 1
+    spread = f"median of {seeds} seeds, bars least to largest; " if seeds > 1 else ""
+    fig.suptitle(f"{scene}: sizing sweep, {method} loss ({spread}hollow: diverged on a test sequence in a seed; x: failed a stress condition)",
+                 fontsize=9)  # fmt: skip
     fig.tight_layout()
     save_figure(fig, path)

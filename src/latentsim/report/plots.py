@@ -77,7 +77,10 @@ def method_colours(methods) -> dict:
 
 
 def _aggregate_methods(df: pd.DataFrame, error: str) -> pd.DataFrame:
-    """One row per (scene, method): median ms, mean error, earliest divergence."""
+    """One row per (scene, method): median ms, mean error, earliest divergence; with a ``seed`` column, first
+    per seed, then the median over seeds with the error's least and largest over the seeds that stayed
+    stable (``error_min``, ``error_max``), ``seeds`` and ``diverged_seeds``."""
+    df = df.assign(seed=df["seed"].fillna(-1).astype(int) if "seed" in df.columns else -1)
     agg = {"ms_per_frame": ("ms_per_frame", "median"), error: (error, lambda s: s.mean(skipna=False))}
     if "diverged_frame" in df.columns:
         agg["diverged_frame"] = ("diverged_frame", lambda s: int(s[s >= 0].min()) if (s >= 0).any() else -1)
@@ -85,10 +88,19 @@ def _aggregate_methods(df: pd.DataFrame, error: str) -> pd.DataFrame:
         agg["max_error"] = ("max_error", lambda s: s.max(skipna=False))
     if "sequence" in df.columns:
         agg["sequences"] = ("sequence", "nunique")
-    out = df.groupby(["scene", "method"], sort=True).agg(**agg).reset_index()
-    if "diverged_frame" not in out.columns:
-        out["diverged_frame"] = -1
-    return out
+    ps = df.groupby(["scene", "method", "seed"], sort=True).agg(**agg).reset_index()
+    if "diverged_frame" not in ps.columns:
+        ps["diverged_frame"] = -1
+    ps["stable_error"] = ps[error].where(ps["diverged_frame"] < 0)
+    over = {"ms_per_frame": ("ms_per_frame", "median"), error: (error, "median"),
+            "diverged_frame": ("diverged_frame", lambda s: int(s[s >= 0].min()) if (s >= 0).any() else -1),
+            "error_min": ("stable_error", "min"), "error_max": ("stable_error", "max"), "seeds": ("seed", "nunique"),
+            "diverged_seeds": ("diverged_frame", lambda s: int((s >= 0).sum()))}  # fmt: skip
+    if "max_error" in ps.columns:
+        over["max_error"] = ("max_error", lambda s: s.max(skipna=False))
+    if "sequences" in ps.columns:
+        over["sequences"] = ("sequences", "max")
+    return ps.groupby(["scene", "method"], sort=True).agg(**over).reset_index()
 
 
 def _draw_speed_accuracy(ax, pts: pd.DataFrame, error: str, colours: dict, annotate=True):
@@ -103,6 +115,9 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, error: str, colours: dict, annot
     positive = np.isfinite(e) & (e > 0)
     floor = np.nanmin(e[positive]) / 3 if positive.any() else 1e-6
     emax = pts["max_error"].to_numpy(float) if "max_error" in pts.columns else np.full(len(pts), np.nan)
+    seeds = pts["seeds"].to_numpy(int) if "seeds" in pts.columns else np.ones(len(pts), dtype=int)
+    lo = pts["error_min"].to_numpy(float) if "error_min" in pts.columns else np.full(len(pts), np.nan)
+    hi = pts["error_max"].to_numpy(float) if "error_max" in pts.columns else np.full(len(pts), np.nan)
     top = np.concatenate([e[positive], emax[np.isfinite(emax) & (emax > 0)]])
     ceil = top.max() * 3 if len(top) else 1.0
     # exact (zero-error) rows sit in a shaded band at the bottom (a log axis has no 0), wholly inside the
@@ -118,7 +133,11 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, error: str, colours: dict, annot
         marker = "o" if positive[i] else ("v" if e[i] == 0 else "X")
         face = "none" if diverged[i] else c
         ax.scatter([t[i]], [y[i]], s=60, marker=marker, facecolors=face, edgecolors=[c], linewidths=1.5, zorder=3, clip_on=False)
-        if positive[i] and np.isfinite(emax[i]) and emax[i] > e[i]:
+        if positive[i] and seeds[i] > 1 and np.isfinite(lo[i]) and np.isfinite(hi[i]) and lo[i] > 0:
+            # several seeds: a bar from the least to the largest mean error of the stable seeds
+            ax.errorbar([t[i]], [e[i]], yerr=[[max(e[i] - lo[i], 0.0)], [max(hi[i] - e[i], 0.0)]], fmt="none", ecolor=c, capsize=4,
+                        lw=1.6, zorder=2)  # fmt: skip
+        elif positive[i] and np.isfinite(emax[i]) and emax[i] > e[i]:
             # whisker up to the max error (over frames and vertices)
             ax.plot([t[i], t[i]], [e[i], emax[i]], color=c, lw=1.0, alpha=0.6, zorder=1)
             ax.plot([t[i]], [emax[i]], marker="_", ms=8, color=c, alpha=0.8, zorder=1)
@@ -126,7 +145,10 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, error: str, colours: dict, annot
             ax.scatter([t[i]], [y[i]], s=190, marker="o", facecolors="none", edgecolors="k", linewidths=1.0, zorder=2, clip_on=False)
         # small multiples name only the divergences (colours name the methods)
         label = str(r.method) if annotate else ""
-        if diverged[i]:
+        if diverged[i] and seeds[i] > 1:
+            n_div = int(pts["diverged_seeds"].iloc[i])
+            label += f" (diverged in {n_div}/{seeds[i]} seeds)" if annotate else f"diverged {n_div}/{seeds[i]}"
+        elif diverged[i]:
             label += f" (diverged @ {int(r.diverged_frame)})" if annotate else f"diverged @ {int(r.diverged_frame)}"
         elif e[i] == 0 and annotate:
             label += " (exact)"
@@ -173,9 +195,14 @@ def speed_accuracy_chart(df: pd.DataFrame, path, scene=None, error="mean_error",
       the Pareto front (whatever their error column says);
     - ``sequence`` (str, optional).
 
-    Several rows of one (scene, method) are aggregated: median ms per frame,
-    mean of the error and max of ``max_error`` (NaN if any is NaN), earliest
-    divergence.  The Pareto front is computed on the error column only.
+    - ``seed`` (int, optional): the training seed (-1 or NaN: a method no seed changes).
+
+    Several rows of one (scene, method) are aggregated: per seed the median ms per
+    frame, mean of the error and max of ``max_error`` (NaN if any is NaN), earliest
+    divergence; then the medians over the seeds, drawn with a bar from the least to
+    the largest error of the seeds that stayed stable (a single seed's point has the
+    whisker up to its max error instead).  A method that diverged in any seed is
+    hollow and off the front.  The Pareto front is computed on the error column only.
 
     Parameters
     ----------
@@ -225,7 +252,8 @@ def speed_accuracy_chart(df: pd.DataFrame, path, scene=None, error="mean_error",
         ax.set_visible(False)
     handles = [Line2D([], [], marker="o", ls="", color=c, label=m) for m, c in colours.items() if m in set(pts["method"])]
     handles += [
-        Line2D([0, 0], [0, 1], color="0.4", marker="_", ms=8, label="vertical whisker: up to the max vertex error"),
+        Line2D([0, 0], [0, 1], color="0.4", marker="_", ms=8, label="vertical whisker: up to the max vertex error (one seed)"),
+        Line2D([0, 0], [0, 1], color="0.4", marker="_", ms=8, lw=1.6, label="bar: least to largest error over the seeds"),
         Line2D([], [], marker="o", ls="", mfc="none", mec="k", ms=11, label="on the Pareto front"),
         Line2D([], [], marker="o", ls="", mfc="none", mec="grey", label="diverged (hollow)"),
         Line2D([], [], color="k", ls="--", label="Pareto front"),
@@ -257,7 +285,10 @@ def stability_heatmap(df: pd.DataFrame, path, title="stability: frames survived"
     - ``bc_error`` (float, optional): Dirichlet error at the last surviving
       frame (relative to the bbox diagonal), printed under the count;
     - ``diverged`` (bool, optional): otherwise ``diverged_frame >= 0`` when that
-      column exists, otherwise ``frames_survived < frames``.
+      column exists, otherwise ``frames_survived < frames``;
+    - ``seeds`` and ``seeds_survived`` (int, optional): a row that stands for
+      several seeds (``frames_survived`` then the least of them): the colour is
+      the fraction of seeds that survived, and the cell reads ``k/n seeds``.
 
     Diverged cells are hatched and their count is printed with a cross;
     method/condition pairs with no row are grey and marked ``n/a``.
@@ -283,6 +314,8 @@ def stability_heatmap(df: pd.DataFrame, path, title="stability: frames survived"
     total = np.full((R, C), np.nan)
     bc = np.full((R, C), np.nan)
     diverged = np.zeros((R, C), dtype=bool)
+    by_seed = {"seeds", "seeds_survived"} <= set(df.columns)
+    n_seeds, k_seeds = np.full((R, C), np.nan), np.full((R, C), np.nan)
     for r in df.itertuples(index=False):
         i, j = methods.index(str(r.method)), conditions.index(str(r.condition))
         frames[i, j] = float(r.frames_survived)
@@ -290,14 +323,16 @@ def stability_heatmap(df: pd.DataFrame, path, title="stability: frames survived"
             total[i, j] = float(r.frames)
         if "bc_error" in df.columns:
             bc[i, j] = float(r.bc_error)
+        if by_seed:
+            n_seeds[i, j], k_seeds[i, j] = float(r.seeds), float(r.seeds_survived)
         if "diverged" in df.columns:
             diverged[i, j] = bool(r.diverged)
         elif "diverged_frame" in df.columns:
             diverged[i, j] = int(r.diverged_frame) >= 0
         elif "frames" in df.columns:
             diverged[i, j] = r.frames_survived < r.frames
-    relative = "frames" in df.columns
-    colour = frames / total if relative else frames
+    relative = "frames" in df.columns or by_seed
+    colour = k_seeds / n_seeds if by_seed else (frames / total if relative else frames)
     fig, ax = plt.subplots(figsize=(3.0 + 1.3 * C, 2.2 + 0.75 * R), layout="constrained")
     cmap = plt.get_cmap("viridis").with_extremes(bad="0.85")
     vmax = 1.0 if relative else np.nanmax(frames)
@@ -311,6 +346,8 @@ def stability_heatmap(df: pd.DataFrame, path, title="stability: frames survived"
                 ax.add_patch(plt.Rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, hatch="//", edgecolor="red", lw=1.5))
             dark = colour[i, j] < 0.6 * vmax
             text = f"{'✗ ' if diverged[i, j] else ''}{int(frames[i, j])}"
+            if by_seed:
+                text = f"{int(k_seeds[i, j])}/{int(n_seeds[i, j])} seeds" + (f"\nleast {int(frames[i, j])}" if diverged[i, j] else "")
             if not np.isnan(bc[i, j]):
                 text += f"\nBC {bc[i, j]:.1e}"
             ax.text(
@@ -321,7 +358,8 @@ def stability_heatmap(df: pd.DataFrame, path, title="stability: frames survived"
     ax.set_yticks(range(R), methods, fontsize=8)
     ax.set_title(title)
     fig.colorbar(
-        im, ax=ax, label="fraction of frames survived" if relative else "frames survived", fraction=0.04, pad=0.02
+        im, ax=ax, label="fraction of seeds that survived" if by_seed else ("fraction of frames survived" if relative else "frames survived"),
+        fraction=0.04, pad=0.02,
     )
     save_figure(fig, path, dpi=dpi)
     return {"methods": methods, "conditions": conditions, "frames": frames, "colour": colour, "bc_error": bc, "diverged": diverged}

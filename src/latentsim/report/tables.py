@@ -34,8 +34,12 @@ from latentsim.report.paper import li2025_table1, li2025_table2
 
 __all__ = [
     "GLANCE_METHODS",
+    "claims",
+    "divergence_table",
     "glance_grid",
     "glance_table",
+    "over_seeds",
+    "per_seed",
     "html_table",
     "layers_text",
     "markdown",
@@ -43,6 +47,7 @@ __all__ = [
     "sizes_table",
     "speed_accuracy_rows",
     "stability_table",
+    "stress_over_seeds",
     "stress_table",
     "table1",
     "table2",
@@ -58,43 +63,60 @@ def write_table(df: pd.DataFrame, path):
         df.to_csv(tmp, index=False, float_format="%.6g")
 
 
+def stress_over_seeds(stress: pd.DataFrame) -> pd.DataFrame:
+    """The stress rows (:func:`stress_table`) as one row per scene, method and condition over the seeds:
+    ``frames``, ``frames_survived`` (the least), ``diverged`` (in any seed), ``seeds``, ``seeds_survived``,
+    ``bc_error`` (the largest); what :func:`latentsim.report.plots.stability_heatmap` colours by seed."""
+    st = stress.assign(seed=_seeds(stress), diverged=stress["diverged"].astype(bool))
+    return st.groupby(["scene", "method", "condition"], sort=False).agg(
+        frames=("frames", "max"), frames_survived=("frames_survived", "min"), diverged=("diverged", "any"), seeds=("seed", "nunique"),
+        seeds_survived=("diverged", lambda d: int((~d).sum())), bc_error=("bc_error", "max")).reset_index()  # fmt: skip
+
+
 def stress_table(scene: str, rollouts) -> pd.DataFrame:
     """Stability map rows (method x stress condition) from the rollouts' ``stability`` groups.
 
-    Columns: scene, method, condition, frames, frames_survived, diverged,
+    Columns: scene, method, seed (-1: no seed changes the method), condition, frames, frames_survived, diverged,
     bc_error (mean Dirichlet error / bbox diagonal at the last surviving frame).
     """
     rows = []
     for path in rollouts:
         with open_artefact(path) as f:
-            method = str(f.attrs.get("method", "self_supervised"))
+            method, seed = str(f.attrs.get("method", "self_supervised")), int(f.attrs.get("seed", -1))
             for cond, g in f.get("stability", {}).items():
                 frames, survived = int(g.attrs["frames"]), int(g.attrs["survived"])
-                rows.append(dict(scene=scene, method=method, condition=cond, frames=frames, frames_survived=survived,
+                rows.append(dict(scene=scene, method=method, seed=seed, condition=cond, frames=frames, frames_survived=survived,
                                  diverged=survived < frames, bc_error=float(g.attrs["dirichlet_error_end"])))  # fmt: skip
-    return pd.DataFrame(rows, columns=["scene", "method", "condition", "frames", "frames_survived", "diverged", "bc_error"])
+    return pd.DataFrame(rows, columns=["scene", "method", "seed", "condition", "frames", "frames_survived", "diverged", "bc_error"])
 
 
 def speed_accuracy_rows(df: pd.DataFrame) -> pd.DataFrame:
     """Rows for :func:`latentsim.report.plots.speed_accuracy_chart`: every method, plus the full-space solver at error 0."""
-    pts = df.assign(ms_per_frame=df["latent_ms"])[["scene", "method", "sequence", "ms_per_frame", "mean_error", "max_error", "diverged_frame"]]
+    pts = df.assign(ms_per_frame=df["latent_ms"], seed=_seeds(df))[["scene", "method", "seed", "sequence", "ms_per_frame", "mean_error",
+                                                                     "max_error", "diverged_frame"]]  # fmt: skip
     full = df.groupby(["scene", "sequence"], sort=False)["full_ms"].first().reset_index()
-    full = full.assign(method="full_space", ms_per_frame=full["full_ms"], mean_error=0.0, max_error=0.0, diverged_frame=-1)
+    full = full.assign(method="full_space", seed=-1, ms_per_frame=full["full_ms"], mean_error=0.0, max_error=0.0, diverged_frame=-1)
     return pd.concat([full[pts.columns], pts], ignore_index=True)
 
 
 def reconstruction_table(scene: str, latents) -> pd.DataFrame:
-    """Autoencoder reconstruction error per sequence (mean and max vertex error / bbox diagonal) from ``latents.h5``."""
+    """Autoencoder reconstruction error per seed and sequence (mean and max vertex error / bbox diagonal) from
+    one ``latents.h5`` or a list of them (one per seed; column ``seed`` from the file's attribute)."""
     rows = []
-    with open_artefact(latents) as f:
-        for name, g in require(f, "sequences").items():
-            rows.append(dict(scene=scene, sequence=name, split=str(g.attrs["split"]),
-                             mean_error=float(g.attrs["mean_error"]), max_error=float(g.attrs["max_error"])))  # fmt: skip
+    for path in [latents] if isinstance(latents, (str, bytes)) or hasattr(latents, "__fspath__") else latents:
+        with open_artefact(path) as f:
+            seed = int(f.attrs.get("seed", -1))
+            for name, g in require(f, "sequences").items():
+                rows.append(dict(scene=scene, seed=seed, sequence=name, split=str(g.attrs["split"]),
+                                 mean_error=float(g.attrs["mean_error"]), max_error=float(g.attrs["max_error"])))  # fmt: skip
     return pd.DataFrame(rows)
 
 
 def table1(df: pd.DataFrame, sized=()) -> pd.DataFrame:
     """Li et al. Table 1: ours (self-supervised integrator, mean over test sequences) next to the paper's.
+
+    With several seeds (column ``seed``) each timing is the median over seeds of the seed's mean, and
+    ``total_ms`` and ``speedup`` have their least and largest over seeds beside them (``_min``, ``_max``).
 
     sized : variants that are whole models of another size (their own autoencoder); each gets a row of
         its own below its scene's, so the table shows the speed of the model a scene needs beside the
@@ -103,19 +125,28 @@ def table1(df: pd.DataFrame, sized=()) -> pd.DataFrame:
     rows = []
     for scene, method, _, g in _own_models(df, sized):
         paper = li2025_table1(scene)
+        # each seed's mean over the test sequences, then the median over seeds (least and largest beside it)
+        cols = ["full_ms", "integrate_ms", "decode_ms", "latent_ms"] + (["numpy_step_ms"] if "numpy_step_ms" in g else [])
+        ps = g.assign(seed=_seeds(g)).groupby("seed")[cols].mean()
+        ps["speedup"] = ps["full_ms"] / ps["latent_ms"]
         row = dict(
             scene=scene,
             method=method,
+            seeds=len(ps),
             dof=int(g["dof"].iloc[0]),
             latent_dof=int(g["latent_dim"].iloc[0]),
-            full_ms=g["full_ms"].mean(),
-            integrate_ms=g["integrate_ms"].mean(),
-            decode_ms=g["decode_ms"].mean(),
-            total_ms=g["latent_ms"].mean(),
+            full_ms=ps["full_ms"].median(),
+            integrate_ms=ps["integrate_ms"].median(),
+            decode_ms=ps["decode_ms"].median(),
+            total_ms=ps["latent_ms"].median(),
+            total_ms_min=ps["latent_ms"].min(),
+            total_ms_max=ps["latent_ms"].max(),
             runtime=" ".join(sorted(set(g["runtime"].astype(str)))) if "runtime" in g else "",
-            numpy_ms=g["numpy_step_ms"].mean() if "numpy_step_ms" in g else np.nan,
+            numpy_ms=ps["numpy_step_ms"].median() if "numpy_step_ms" in ps else np.nan,
+            speedup=ps["speedup"].median(),
+            speedup_min=ps["speedup"].min(),
+            speedup_max=ps["speedup"].max(),
         )
-        row["speedup"] = row["full_ms"] / row["total_ms"]
         if paper is not None:
             row.update(paper_dof=paper[0], paper_latent=paper[1], paper_full_ms=paper[2], paper_integrate_ms=paper[3],
                        paper_decode_ms=paper[4], paper_total_ms=paper[5], paper_speedup=paper[2] / paper[5])  # fmt: skip
@@ -126,9 +157,15 @@ def table1(df: pd.DataFrame, sized=()) -> pd.DataFrame:
 
 def _with_divergence(method: str, own: pd.DataFrame) -> str:
     """Tables 1-2's name of a method whose rows are ``own``: ``method``, or ``method (diverged on k/N test
-    sequences)`` where some rollout diverged (the table times a step whose rollout failed)."""
+    rollouts)`` where some rollout diverged (the table times a step whose rollout failed); N counts every
+    test sequence of every seed."""
     n = int((own["diverged_frame"] >= 0).sum()) if "diverged_frame" in own else 0
-    return method if n == 0 else f"{method} (diverged on {n}/{len(own)} test sequences)"
+    return method if n == 0 else f"{method} (diverged on {n}/{len(own)} test rollouts)"
+
+
+def _seeds(df: pd.DataFrame) -> pd.Series:
+    """The rows' seeds (-1, one unseeded run, where the table has no ``seed`` column)."""
+    return df["seed"].fillna(-1).astype(int) if "seed" in df else pd.Series(-1, index=df.index)
 
 
 def _own_models(df: pd.DataFrame, sized=()):
@@ -156,7 +193,8 @@ def table2(df: pd.DataFrame, layers: dict | None = None, sized=()) -> pd.DataFra
 
 def _table2_row(scene: str, method: str, g: pd.DataFrame, own: pd.DataFrame, layers) -> dict:
     """One row of :func:`table2`: ``own``, the method's rows of the scene's metrics ``g``; ``layers`` its layer strings."""
-    row = dict(scene=scene, method=_with_divergence(method, own), dof=int(own["dof"].iloc[0]), latent_dof=int(own["latent_dim"].iloc[0]))
+    row = dict(scene=scene, method=_with_divergence(method, own), seeds=int(_seeds(own).nunique()), dof=int(own["dof"].iloc[0]),
+               latent_dof=int(own["latent_dim"].iloc[0]))  # fmt: skip
     if layers:
         row["decoder_layers"], row["integrator_layers"] = layers
     row.update(jvp_torch_ms=own["jvp_torch_ms"].median(), jvp_forward_ms=own["jvp_forward_ms"].median(), ours_ms=own["latent_ms"].median())
@@ -225,9 +263,9 @@ def sizes_table(sizes: dict, choices: dict | None = None) -> pd.DataFrame:
 
 
 def stability_table(df: pd.DataFrame) -> pd.DataFrame:
-    """Frames survived per scene, method and test sequence (Li et al. Fig. 8), with the errors and KE ratio."""
-    out = df[["scene", "method", "sequence", "frames", "diverged_frame", "mean_error", "dirichlet_error", "kinetic_ratio",
-              "end_error", "end_motion", "end_motion_truth"]].copy()  # fmt: skip
+    """Frames survived per scene, method, seed and test sequence (Li et al. Fig. 8), with the errors and KE ratio."""
+    out = df.assign(seed=_seeds(df))[["scene", "method", "seed", "sequence", "frames", "diverged_frame", "mean_error", "dirichlet_error",
+                                      "kinetic_ratio", "end_error", "end_motion", "end_motion_truth"]].copy()  # fmt: skip
     out["survived"] = np.where(out["diverged_frame"] < 0, out["frames"], out["diverged_frame"])
     return out
 
@@ -237,48 +275,99 @@ GLANCE_METHODS = ("full_space", "newton_1it", "pca_reduced", "modes_reduced", "f
                   "self_supervised", "supervised_5x256")  # fmt: skip
 
 
+def per_seed(df: pd.DataFrame) -> pd.DataFrame:
+    """One row per scene, method and seed: the seed's test sequences together.
+
+    Columns: ``scene``, ``method``, ``seed`` (-1: a method no seed changes), ``ms_per_frame`` (median over
+    the sequences), ``full_ms`` and ``latent_ms`` (means), ``speedup`` (their ratio), ``mean_error`` (mean;
+    infinite where a sequence diverged), ``max_error`` (max), ``kinetic_ratio`` (mean; NaN where a sequence
+    diverged), ``sequences``, ``survived`` (test sequences stable to the end).
+    """
+    g = df.assign(seed=_seeds(df)).groupby(["scene", "method", "seed"], sort=False)
+    out = g.agg(ms_per_frame=("latent_ms", "median"), full_ms=("full_ms", "mean"), latent_ms=("latent_ms", "mean"),
+                mean_error=("mean_error", lambda v: v.mean(skipna=False)), max_error=("max_error", lambda v: v.max(skipna=False)),
+                kinetic_ratio=("kinetic_ratio", lambda v: v.mean(skipna=False)), sequences=("sequence", "nunique"),
+                survived=("diverged_frame", lambda v: int((v < 0).sum()))).reset_index()  # fmt: skip
+    out["speedup"] = out["full_ms"] / out["latent_ms"]
+    return out
+
+
+def over_seeds(ps: pd.DataFrame) -> pd.DataFrame:
+    """One row per scene and method from :func:`per_seed`'s rows: the spread of each metric over the seeds.
+
+    Columns: ``scene``, ``method``, ``seeds`` (how many), ``seeds_stable`` (seeds whose every test sequence
+    survived); ``ms_per_frame``, ``speedup``, ``mean_error``, ``kinetic_ratio``: the median over seeds, with
+    ``<name>_min`` and ``<name>_max`` the least and largest (the mean error's over the stable seeds alone,
+    NaN where none was); ``max_error``: the largest; ``test_survived``: ``k/N`` test rollouts (sequences
+    times seeds) stable to the end.
+    """
+    rows = []
+    for (scene, method), g in ps.groupby(["scene", "method"], sort=False):
+        stable = g["survived"] == g["sequences"]
+        row = dict(scene=scene, method=method, seeds=len(g), seeds_stable=int(stable.sum()))
+        for c in ("ms_per_frame", "speedup", "mean_error", "kinetic_ratio"):
+            v = g.loc[stable, c] if c == "mean_error" else g[c]
+            row[c] = g[c].median()
+            row[f"{c}_min"], row[f"{c}_max"] = (v.min(), v.max()) if len(v) else (np.nan, np.nan)
+        row["max_error"] = g["max_error"].max(skipna=False)
+        row["test_survived"] = f"{int(g['survived'].sum())}/{int(g['sequences'].sum())}"
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
 def glance_table(df: pd.DataFrame, pts: pd.DataFrame, stress: pd.DataFrame | None = None) -> pd.DataFrame:
-    """One row per scene and method: what the speed-accuracy chart and the stability map show, as numbers.
+    """One row per scene and method: what the speed-accuracy chart and the stability map show, as numbers,
+    over the seeds.
 
-    ``df``: the per-sequence metrics (:func:`latentsim.stages.evaluate.summarise`'s table); ``pts``: the chart's points
-    (:func:`latentsim.report.plots.speed_accuracy_chart`'s return, with the ``full_space`` rows); ``stress``: the
-    stress-condition rows (:func:`stress_table`), optional.
+    ``df``: the per-sequence metrics (:func:`latentsim.stages.evaluate.summarise`'s table, column ``seed``); ``pts``:
+    the chart's points (:func:`latentsim.report.plots.speed_accuracy_chart`'s return, with the ``full_space`` rows);
+    ``stress``: the stress-condition rows (:func:`stress_table`), optional.
 
-    Columns: ``scene``, ``method``, ``ms_per_frame`` (median over test sequences), ``speedup`` (full-space
-    over latent or reduced ms, both means timed in the method's own job, as Table 1), ``mean_error``
-    (mean), ``max_error`` (max; both infinite where a test sequence diverged: the frames from the divergence
-    on count as failed, see :mod:`latentsim.report.metrics`), ``kinetic_ratio`` (mean; 1 for the full space,
-    NaN where a test sequence diverged), ``test_survived`` (test sequences stable to the end, ``k/N``),
-    ``stress_survived`` (stress conditions survived, ``k/N``, empty where none ran), ``on_front`` (the chart's
-    Pareto front; never a method that diverged).
+    Columns: ``scene``, ``method``, ``seeds``; over the seeds (:func:`over_seeds`), median with least and largest:
+    ``ms_per_frame`` (each seed's median over test sequences), ``speedup`` (full-space over latent or reduced ms,
+    both timed in the method's own job, as Table 1), ``mean_error`` (each seed's mean; infinite where a test
+    sequence diverged: the frames from the divergence on count as failed, see :mod:`latentsim.report.metrics`;
+    least and largest over the stable seeds), ``kinetic_ratio`` (1 for the full space, NaN where a test sequence
+    diverged); ``max_error`` (largest); ``seeds_stable`` (``k/n`` seeds whose every test sequence survived),
+    ``test_survived`` (``k/N`` test rollouts, sequences times seeds, stable to the end), ``stress_survived``
+    (stress conditions survived, ``k/N`` over conditions times seeds, empty where none ran), ``on_front`` (the
+    chart's Pareto front over the medians; never a method that diverged in any seed).
     Sorted by scene, then ms per frame.
     """
-    g = pts.copy()
-    own = df.groupby(["scene", "method"], sort=False)
-    # each method's job timed full-space frames in its own process: the speed-up is that ratio
-    ratio = own["full_ms"].mean() / own["latent_ms"].mean()
-    ke = own["kinetic_ratio"].agg(lambda s: s.mean(skipna=False))  # NaN where a sequence diverged (not measurable)
-    ok = own["diverged_frame"].agg(lambda s: f"{int((s < 0).sum())}/{len(s)}")
+    spread = over_seeds(per_seed(df)).set_index(["scene", "method"])
+    g = pts[["scene", "method", "on_front"]].copy()
     key = list(zip(g["scene"], g["method"]))
-    g["speedup"] = [1.0 if k[1] == "full_space" else ratio.get(k, np.nan) for k in key]
-    g["kinetic_ratio"] = [1.0 if k[1] == "full_space" else ke.get(k, np.nan) for k in key]
+    full = {k[0]: df[df["scene"] == k[0]].groupby("sequence")["full_ms"].first().median() for k in key if k[1] == "full_space"}
     n_seq = df.groupby("scene")["sequence"].nunique()
-    g["test_survived"] = [f"{n_seq.get(k[0], 0)}/{n_seq.get(k[0], 0)}" if k[1] == "full_space" else ok.get(k, "") for k in key]
     surv = {}
     if stress is not None and not stress.empty:
-        for k, s in stress.groupby(["scene", "method"], sort=False):
-            surv[k] = f"{int((~s['diverged'].astype(bool)).sum())}/{len(s)}"
-    g["stress_survived"] = [surv.get(k, "") for k in key]
-    cols = ["scene", "method", "ms_per_frame", "speedup", "mean_error", "max_error", "kinetic_ratio", "test_survived",
-            "stress_survived", "on_front"]  # fmt: skip
-    return g[cols].sort_values(["scene", "ms_per_frame"], kind="stable").reset_index(drop=True)
+        for k, st in stress.groupby(["scene", "method"], sort=False):
+            surv[k] = f"{int((~st['diverged'].astype(bool)).sum())}/{len(st)}"
+    cols = ["seeds", "ms_per_frame", "ms_per_frame_min", "ms_per_frame_max", "speedup", "speedup_min", "speedup_max", "mean_error",
+            "mean_error_min", "mean_error_max", "max_error", "kinetic_ratio", "kinetic_ratio_min", "kinetic_ratio_max"]  # fmt: skip
+    out = []
+    for (scene, method), front in zip(key, g["on_front"]):
+        if method == "full_space":
+            ms = full.get(scene, np.nan)
+            row = dict(seeds=1, ms_per_frame=ms, ms_per_frame_min=ms, ms_per_frame_max=ms, speedup=1.0, speedup_min=1.0, speedup_max=1.0,
+                       mean_error=0.0, mean_error_min=0.0, mean_error_max=0.0, max_error=0.0, kinetic_ratio=1.0, kinetic_ratio_min=1.0,
+                       kinetic_ratio_max=1.0, seeds_stable="1/1", test_survived=f"{n_seq.get(scene, 0)}/{n_seq.get(scene, 0)}")  # fmt: skip
+        else:
+            r = spread.loc[(scene, method)]
+            row = {c: r[c] for c in cols}
+            row.update(seeds=int(r["seeds"]), seeds_stable=f"{int(r['seeds_stable'])}/{int(r['seeds'])}", test_survived=r["test_survived"])
+        out.append(dict(scene=scene, method=method, **row, stress_survived=surv.get((scene, method), ""), on_front=bool(front)))
+    order = ["scene", "method", *cols, "seeds_stable", "test_survived", "stress_survived", "on_front"]
+    return pd.DataFrame(out, columns=order).sort_values(["scene", "ms_per_frame"], kind="stable").reset_index(drop=True)
 
 
 def glance_grid(glance: pd.DataFrame, methods=GLANCE_METHODS) -> pd.DataFrame:
-    """Scenes x the comparison's methods, each cell ``mean error (ms per frame)``; ``*`` marks the Pareto
-    front of these methods alone (the long table's ``on_front`` also counts the scene's variants), ``-`` a
-    method the scene did not run.  A method that diverged on a test sequence (infinite error) reads
-    ``diverged k/N (ms per frame)``, k of its N test sequences survived, and is never on the front."""
+    """Scenes x the comparison's methods, each cell ``mean error (ms per frame)``, medians over seeds, with
+    ``[least-largest]`` over the seeds where there are several; ``*`` marks the Pareto front of these methods
+    alone (the long table's ``on_front`` also counts the scene's variants), ``-`` a method the scene did not
+    run.  A method that diverged on a test sequence (infinite error) reads ``diverged k/N (ms per frame)``
+    (k of its N test rollouts survived) or, over several seeds, ``diverged in j/n seeds``, and is never on
+    the front."""
     present = [m for m in methods if m in set(glance["method"])]
     rows = []
     for scene, g in glance.groupby("scene", sort=True):
@@ -291,10 +380,87 @@ def glance_grid(glance: pd.DataFrame, methods=GLANCE_METHODS) -> pd.DataFrame:
                 row[m] = "-"
                 continue
             r, i = by.loc[m], by.index.get_loc(m)
-            error = f"{r['mean_error']:.3g}" if stable[i] else f"diverged {r['test_survived']}"
+            n = int(r["seeds"]) if "seeds" in r and pd.notna(r["seeds"]) else 1
+            if stable[i]:
+                error = f"{r['mean_error']:.3g}"
+                if n > 1:
+                    error += f" [{r['mean_error_min']:.3g}-{r['mean_error_max']:.3g}]"
+            elif n > 1:
+                k = int(str(r["seeds_stable"]).split("/")[0])
+                error = f"diverged in {n - k}/{n} seeds"
+            else:
+                error = f"diverged {r['test_survived']}"
             row[m] = f"{error} ({r['ms_per_frame']:.3g})" + (" *" if front[i] else "")
         rows.append(row)
     return pd.DataFrame(rows, columns=["scene", *present])
+
+
+def divergence_table(df: pd.DataFrame, stress: pd.DataFrame | None = None) -> pd.DataFrame:
+    """Li et al. Fig. 8 over seeds: per scene and method, how often it diverged and the frames each seed survived.
+
+    Columns: ``scene``, ``method``, ``seeds``, ``test_diverged`` (seeds in which a test sequence diverged),
+    ``frames_survived`` (per seed, in seed order, ``seed:frames``, or the frames alone for a method no seed
+    changes; several test sequences' frames joined by ``/``), ``frames`` (of the test sequences, ``/``-joined), ``stress_failed`` (seeds that failed a stress
+    condition, empty where none ran), and per stress condition ``stress: <condition>`` (seeds that failed
+    it, and the frames each failing seed survived).  Each count reads ``k/n``, k of the n seeds.
+    """
+    d = df.assign(seed=_seeds(df))
+    st = stress.assign(seed=_seeds(stress)) if stress is not None and not stress.empty else None
+    conditions = list(dict.fromkeys(st["condition"])) if st is not None else []
+    rows = []
+    for (scene, method), g in d.groupby(["scene", "method"], sort=False):
+        seeds = sorted(g["seed"].unique())
+        n = len(seeds)
+        per = {s: g[g["seed"] == s] for s in seeds}
+        survived = {s: "/".join(str(int(f if dv < 0 else dv)) for f, dv in zip(h["frames"], h["diverged_frame"])) for s, h in per.items()}
+        row = dict(scene=scene, method=method, seeds=n, test_diverged=f"{sum(int((h['diverged_frame'] >= 0).any()) for h in per.values())}/{n}",
+                   frames_survived=" ".join(survived[s] if s < 0 else f"{s}:{survived[s]}" for s in seeds),
+                   frames="/".join(str(int(f)) for f in per[seeds[0]]["frames"]))  # fmt: skip
+        own = st[(st["scene"] == scene) & (st["method"] == method)] if st is not None else None
+        if own is not None and len(own):
+            failed = own[own["diverged"].astype(bool)]
+            row["stress_failed"] = f"{failed['seed'].nunique()}/{n}"
+            for c in conditions:
+                fc = failed[failed["condition"] == c].sort_values("seed")
+                ran = own[own["condition"] == c]
+                row[f"stress: {c}"] = "" if ran.empty else f"{len(fc)}/{ran['seed'].nunique()}" + (
+                    " (" + " ".join(f"{int(f)}" if s < 0 else f"{int(s)}:{int(f)}" for s, f in zip(fc["seed"], fc["frames_survived"])) + ")" if len(fc) else "")
+        else:
+            row["stress_failed"] = ""
+        rows.append(row)
+    return pd.DataFrame(rows).fillna("")
+
+
+def claims(glance: pd.DataFrame, divergence: pd.DataFrame) -> str:
+    """The comparison's claims as sentences, each with its seed count and spread, from the glance table and
+    :func:`divergence_table` (for the README and the report: generated, never typed).
+
+    One line per scene and learned method (several seeds): its mean error (median, least and largest over
+    the stable seeds), how many seeds survived the test sequences, and the stress conditions it failed in
+    how many seeds."""
+    out = []
+    dv = divergence.set_index(["scene", "method"])
+    for r in glance.itertuples(index=False):
+        if r.method == "full_space" or (r.scene, r.method) not in dv.index or int(r.seeds) < 2:
+            continue
+        d = dv.loc[(r.scene, r.method)]
+        n = int(r.seeds)
+        k = int(str(r.seeds_stable).split("/")[0])
+        error = (f"mean error {r.mean_error:.3g} (median of {n} seeds; {r.mean_error_min:.3g} to {r.mean_error_max:.3g} over the "
+                 f"{k} stable)" if k else "no seed stable")  # fmt: skip
+        test = (f"survives every test sequence in {k} of {n} seeds" if k == n else
+                f"diverges on a test sequence in {n - k} of {n} seeds (frames survived per seed {d['frames_survived']} of {d['frames']})")  # fmt: skip
+        stress_cols = [c for c in dv.columns if c.startswith("stress: ") and isinstance(d[c], str) and d[c]]
+        failed = [f"{c.removeprefix('stress: ')} in {d[c].split(' ')[0].split('/')[0]} of {n}" for c in stress_cols
+                  if d[c].split("/")[0] != "0"]  # fmt: skip
+        if not stress_cols:
+            stress_text = ""
+        elif failed:
+            stress_text = "; fails " + ", ".join(failed)
+        else:
+            stress_text = f"; survives every stress condition in {n} of {n} seeds"
+        out.append(f"- {r.scene}, {r.method}: {error}; {test}{stress_text}.")
+    return "\n".join(out) + ("\n" if out else "")
 
 
 def markdown(df: pd.DataFrame) -> str:

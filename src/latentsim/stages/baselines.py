@@ -58,6 +58,9 @@ from latentsim.latent.timing import time_full_space
 log = logging.getLogger(__name__)
 
 BASELINES = ("pca_reduced", "modes_reduced", "fulton_reduced", "neural_modes_reduced", "newton_1it")
+# the baselines whose subspace is a network trained per seed (the autoencoder's decoder): rolled out once per
+# seed; the others (linear subspaces, the full-space Newton, the Neural Modes of the scene's first seed) once
+SEEDED_BASELINES = ("fulton_reduced",)
 
 
 def newton_rollout(potential_free, x0, x1, dirichlet_positions, iterations: int = 1, tolerance: float = 1e-6) -> dict:
@@ -140,7 +143,7 @@ def fit_subspace_cubature(potential, subspace, train: dict, settings: dict):
     return fit_cubature(potential.terms, subspace, q, float(settings["cubature_tolerance"]), int(settings.get("cubature_max_elements", 1000)), xD=XD[pick])
 
 
-def baseline_rollouts(trajectories, ae_path, method: str, settings: dict, out, progress: bool = False, neural_modes=None):
+def baseline_rollouts(trajectories, ae_path, method: str, settings: dict, out, progress: bool = False, neural_modes=None, seed: int = -1):
     """Roll out every test sequence of a scene with a reduced baseline.
 
     Parameters
@@ -152,6 +155,8 @@ def baseline_rollouts(trajectories, ae_path, method: str, settings: dict, out, p
         for ``neural_modes_reduced``), ``max_iterations``, ``tolerance``, ``pca_dim``.
     out : rollout file to write.
     neural_modes : the scene's trained Neural Modes (``neural_modes_reduced`` only).
+    seed : the seed of the learned model it reduces with (:data:`SEEDED_BASELINES`), recorded in
+        ``out``; -1 for the others, whose rollout no seed changes.
     """
     ae = latent.load_autoencoder(ae_path)
     with open_artefact(trajectories) as f:
@@ -177,7 +182,7 @@ def baseline_rollouts(trajectories, ae_path, method: str, settings: dict, out, p
             log.info("%s: cubature of %d of %d elements, force error %.4f on the training poses (%.1f s)",
                      method, len(cub.index), cub.n_elements, cub.train_error, cub.fit_seconds)  # fmt: skip
         solver = reduced.ReducedImplicitEuler(subspace, step_potential, rs)
-    with atomic_h5(out, config=settings) as g:
+    with atomic_h5(out, config=settings, seed=seed) as g:
         for k, v in attrs.items():
             g.attrs[k] = v
         g.attrs["method"] = method

@@ -28,6 +28,8 @@ from latentsim.report.paraview import write_xdmf_series
 from latentsim.report.plots import empty_figure, rollout_curves, speed_accuracy_chart, stability_heatmap
 from latentsim.report.render import render_clip, render_frames
 from latentsim.report.tables import (
+    claims,
+    divergence_table,
     glance_grid,
     glance_table,
     markdown,
@@ -35,6 +37,7 @@ from latentsim.report.tables import (
     sizes_table,
     speed_accuracy_rows,
     stability_table,
+    stress_over_seeds,
     stress_table,
     table1,
     table2,
@@ -56,17 +59,19 @@ def evaluate_scene(scene: str, trajectories, rollouts):
     scene : scene name (a column of the table).
     trajectories : the simulator's ``trajectories.h5`` (ground truth).
     rollouts : one path or a list of rollout files (trajectory layout, attrs
-        ``method``); each holds some of the ground truth's sequences.
+        ``method`` and ``seed``, -1 for a method no seed changes); each holds some of the ground
+        truth's sequences; a method may have one file per seed.
 
     Returns
     -------
-    table : one row per (method, sequence): the metrics of
+    table : one row per (method, seed, sequence): the metrics of
         :func:`latentsim.report.metrics.rollout_metrics` (over the whole sequence: infinite errors for a
         rollout that diverged, at any frame),
         full_ms (the simulator's median ms/frame, or the rollout job's own full-space timing),
         latent_ms (one latent step) and its parts, runtime, speedup, dof, latent_dim and the
         training seconds.
-    curves : {method: {sequence: per-frame arrays}} for :func:`latentsim.report.plots.rollout_curves`.
+    curves : {method: {sequence: per-frame arrays}} for :func:`latentsim.report.plots.rollout_curves`
+        (of each method's first rollout file, i.e. its first seed).
     """
     if isinstance(rollouts, (str, bytes)) or hasattr(rollouts, "__fspath__"):
         rollouts = [rollouts]
@@ -80,6 +85,7 @@ def evaluate_scene(scene: str, trajectories, rollouts):
         for path in rollouts:
             with open_artefact(path) as fr:
                 method = str(fr.attrs.get("method", "self_supervised"))
+                seed = int(fr.attrs.get("seed", -1))
                 train_s = {k: float(fr.attrs.get(k, np.nan)) for k in _TRAIN_SECONDS}
                 for name, g in require(fr, "sequences").items():
                     gt = require(ft["sequences"], name)
@@ -92,12 +98,12 @@ def evaluate_scene(scene: str, trajectories, rollouts):
                                                          int(g.attrs["diverged_frame"]))  # fmt: skip
                     except ValueError as e:
                         raise ValueError(f"{path}: sequence {name!r}: {e}") from e
-                    curves.setdefault(method, {})[name] = curve
+                    curves.setdefault(method, {}).setdefault(name, curve)  # the curves of the method's first seed
                     # same-run timing of full-space frames when the rollout stage measured it
                     full_ms = float(fr.attrs.get("full_ms", np.median(gt["frame_ms"][1:])))
                     latent_ms = float(g.attrs["step_ms"])
                     parts = {k: float(g.attrs.get(k, np.nan)) for k in _STEP_PARTS}
-                    rows.append(dict(scene=scene, method=method, sequence=name, **metrics, full_ms=full_ms, latent_ms=latent_ms,
+                    rows.append(dict(scene=scene, method=method, seed=seed, sequence=name, **metrics, full_ms=full_ms, latent_ms=latent_ms,
                                      runtime=str(g.attrs.get("runtime", "")), **parts, speedup=full_ms / latent_ms,
                                      dof=int(rest.size), latent_dim=int(g["latents"].shape[-1]), **train_s))  # fmt: skip
     return pd.DataFrame(rows), curves
@@ -138,20 +144,30 @@ def _sized_layers(sizes: dict | None):
 # how the tables score a rollout that diverged (:mod:`latentsim.report.metrics`), under the summary's first heading
 _DIVERGENCE_NOTE = ("A rollout that diverged (non-finite, or beyond `rollout.max_extent` times the rest diagonal) fails every frame "
                     "from its first diverged frame on: its errors are infinite (`inf`), the grid reads `diverged k/N` (k of N test "
-                    "sequences survived), `diverged_frame` gives the frames it survived, and it is never on a Pareto front.")  # fmt: skip
+                    "sequences survived) or, over several seeds, `diverged in j/n seeds`, `diverged_frame` gives the frames it "
+                    "survived, and it is never on a Pareto front (nor is a method that diverged in any seed).")  # fmt: skip
 
 
-def _summary_markdown(glance, t1, t2, st, sz, rec, df) -> str:
-    """The summary's Markdown: the glance tables first, then Tables 1-2, stability, sizes, reconstruction, every row."""
-    text = ["## At a glance: mean error / bbox diagonal (ms per frame) of the compared methods; * on their Pareto front", "",
-            _DIVERGENCE_NOTE, "",
+_SEEDS_NOTE = ("Every learned method runs once per seed (config `seeds`). Each number is the median over the seeds, with the "
+               "least and largest beside it ([least-largest], `_min`, `_max`); divergence counts read k/n, k of the n seeds. "
+               "Methods no seed changes (the linear baselines, the full-space Newton) ran once.")  # fmt: skip
+
+
+def _summary_markdown(glance, t1, t2, st, sz, rec, df, dv=None, said="") -> str:
+    """The summary's Markdown: the claims and glance tables first, then the divergence over seeds, Tables 1-2,
+    stability, sizes, reconstruction, every row."""
+    text = ["## What the tables say, with the seeds' spread (generated from the tables below)", "", said.strip() or "(no method ran with several seeds)", "",
+            "## At a glance: mean error / bbox diagonal (ms per frame) of the compared methods; * on their Pareto front", "",
+            _SEEDS_NOTE, "", _DIVERGENCE_NOTE, "",
             markdown(glance_grid(glance)), "",
+            "## Divergence over seeds (Li et al. Fig. 8): seeds that diverged, frames each seed survived (seed:frames)", "",
+            markdown(dv if dv is not None else pd.DataFrame()), "",
             "## Every method per scene: median ms per frame, speed-up over the full space, errors, kinetic energy ratio, "
             "test sequences and stress conditions survived, Pareto front", "", markdown(glance), "",
             "## Li et al. Table 1: full space vs latent integrator (ours, then the paper's)", "", markdown(t1), "",
             "## Li et al. Table 2: single-vertex Jvp (torch.func.jvp, forward mode), our latent step, a Fulton-style reduced step", "",
             markdown(t2), "",
-            "## Stability: frames survived per method (Li et al. Fig. 8-11)", "", markdown(st), "",
+            "## Stability: frames survived per method, seed and test sequence (Li et al. Fig. 8-11)", "", markdown(st), "",
             "## Model size per scene: ours, the paper's, and the sizing sweep (smallest model within the tolerance)", "",
             markdown(sz), "",
             "## Autoencoder reconstruction error / bbox diagonal (train and test frames)", "", markdown(rec), "",
@@ -160,13 +176,17 @@ def _summary_markdown(glance, t1, t2, st, sz, rec, df) -> str:
 
 
 def summarise(tables: list, csv_path, md_path, fig_path, table1_path=None, stability_path=None, reconstruction=(), stress=(), stress_paths=None,
-              table2_path=None, sizes=None, sweep_choices=None, sizes_path=None, glance_path=None):  # fmt: skip
+              table2_path=None, sizes=None, sweep_choices=None, sizes_path=None, glance_path=None, divergence_path=None,
+              claims_path=None):  # fmt: skip
     """Concatenate the scene tables; Tables 1-2, the stability, reconstruction and model-size tables;
     Markdown copy, opening with the glance tables (:func:`~latentsim.report.tables.glance_grid`,
     :func:`~latentsim.report.tables.glance_table`; the latter also to ``glance_path``); speed-accuracy chart.
     ``sizes`` and ``sweep_choices``: see :func:`~latentsim.report.tables.sizes_table`; a scene's
     ``sizes[scene]["variants"]`` ({method: latent_dim, decoder_layers, integrator_layers}) names the
-    variants that are models of their own size, which get rows of their own in Tables 1-2."""
+    variants that are models of their own size, which get rows of their own in Tables 1-2.  With several
+    seeds every table states the spread over them; ``divergence_path`` gets
+    :func:`~latentsim.report.tables.divergence_table` and ``claims_path`` the sentences of
+    :func:`~latentsim.report.tables.claims` (also the summary's first section)."""
     df = pd.concat([pd.read_csv(t) for t in tables], ignore_index=True)
     rec = _reconstruction_summary(reconstruction)
     write_table(df, csv_path)
@@ -180,16 +200,24 @@ def summarise(tables: list, csv_path, md_path, fig_path, table1_path=None, stabi
     st_all = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
     pts = speed_accuracy_chart(speed_accuracy_rows(df), fig_path, scene=None, title="speed vs accuracy, every scene (full space at error 0)")
     glance = glance_table(df, pts, st_all)
+    dv = divergence_table(df, st_all)
+    said = claims(glance, dv)
     if glance_path is not None:
         write_table(glance, glance_path)
+    if divergence_path is not None:
+        write_table(dv, divergence_path)
+    if claims_path is not None:
+        with atomic_path(claims_path) as tmp:
+            tmp.write_text(said)
     with atomic_path(md_path) as tmp:
-        tmp.write_text(_summary_markdown(glance, t1, t2, st, sz, rec, df))
+        tmp.write_text(_summary_markdown(glance, t1, t2, st, sz, rec, df, dv, said))
     if stress_paths is not None:
         csv, png = stress_paths
         write_table(st_all, csv)
         if not st_all.empty:
-            st_all = st_all.assign(method=st_all["scene"] + " / " + st_all["method"])
-            stability_heatmap(st_all, png, title="stress conditions: frames survived (fraction coloured)")
+            agg = stress_over_seeds(st_all)
+            agg = agg.assign(method=agg["scene"] + " / " + agg["method"])
+            stability_heatmap(agg, png, title="stress conditions: seeds that survived (fraction coloured)")
         else:
             empty_figure(png, "no stress conditions were run")
     return df

@@ -33,7 +33,7 @@ import pandas as pd
 import torch
 
 from latentsim import neural_modes as nm
-from latentsim.config import with_defaults
+from latentsim.config import scene_seeds, with_defaults
 from latentsim.io import ArtefactError, atomic_h5, atomic_path, open_artefact, read_tree, require, write_dataset, write_tree
 from latentsim.latent import save_module
 from latentsim.neural_modes import aspect as nm_aspect
@@ -113,7 +113,7 @@ def ground_truth_params(config: dict, scene: str, study: str) -> dict:
     return _canonical(
         {
             "model": sc["model"], "material": sc["material"], "neural_modes": {k: sc["neural_modes"][k] for k in GROUND_TRUTH_KEYS},
-            "sets": {k: st[k] for k in SET_KEYS[study]}, "max_iterations": st["gt_max_iterations"], "seed": config["seed"],
+            "sets": {k: st[k] for k in SET_KEYS[study]}, "max_iterations": st["gt_max_iterations"], "seed": scene_seeds(config, scene)[0],
         }
     )  # fmt: skip
 
@@ -122,7 +122,7 @@ def study_params(config: dict, scene: str, study: str) -> dict:
     """The params of a study's rule: its ``nm_study`` block, the seed, and what else it reads of the scene."""
     sc = config["scenes"][scene]
     nmc = sc["neural_modes"]
-    out = {"study": sc["nm_study"][study], "seed": config["seed"]}
+    out = {"study": sc["nm_study"][study], "seed": scene_seeds(config, scene)[0]}
     if study == "sheet":
         out.update(model=sc["model"], material=sc["material"], neural_modes={k: v for k, v in nmc.items() if k not in STUDY_SETS})
     elif study == "energy":

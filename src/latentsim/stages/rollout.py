@@ -31,11 +31,12 @@ SCENE_ARRAYS = ("rest_positions", "masses", "dirichlet", "edges", "triangles", "
 SCENE_ATTRS = ("model", "dt", "gravity", "scene")
 
 
-def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out, method: str = "self_supervised", runtime_paths=None):
+def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out, method: str = "self_supervised", runtime_paths=None,
+                  seed: int = -1):
     """Autoregressive rollout of every test sequence, in the trajectory layout.
 
     ``settings``: the scene's ``rollout`` block (keys absent take the schema's defaults), which
-    ``out`` records as its config.  ``method`` names the integrator (self_supervised or a config
+    ``out`` records as its config, with ``seed`` (the seed the models were trained with).  ``method`` names the integrator (self_supervised or a config
     variant) in the file's ``method`` attribute; ``mode`` records its loss.
     ``runtime_paths``: (``.npz``, ``.pt``) files to export the deployable
     runtime to (:mod:`latentsim.runtime`): the ``.npz`` holds the encoder too (a user encodes a new
@@ -49,7 +50,7 @@ def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out, m
     extra, ae_extra = load_extra(integrator_path), load_extra(ae_path)
     scene = _read_scene(trajectories, ae_extra.get("coordinates"), cfg)
     steppers = _steppers(ae, integ, scene["coords"], runtime_paths)
-    with atomic_h5(out, config=settings) as g:
+    with atomic_h5(out, config=settings, seed=seed) as g:
         for k, v in {**scene["attrs"], **scene["full"]}.items():
             g.attrs[k] = v
         g.attrs["method"] = method
