@@ -88,6 +88,28 @@ def glance_block(results: Path, commit: str) -> str:
     return "\n".join(text)
 
 
+def replace_block(readme: Path, begin: str, end: str, block: str, check: bool, source: str) -> int:
+    """Put ``block`` (markers included) in place of the README's text from ``begin`` to ``end``; with
+    ``check`` only compare (1 where it differs).  Written atomically."""
+    text = readme.read_text()
+    if begin not in text or end not in text:
+        sys.exit(f"{readme}: no markers ({begin!r} ... {end!r})")
+    head, rest = text.split(begin, 1)
+    _, tail = rest.split(end, 1)
+    new = head + block + tail
+    if check:
+        if new != text:
+            print(f"{readme}: the block is not the one {source} gives", file=sys.stderr)
+            return 1
+        return 0
+    if new != text:
+        tmp = readme.with_name(f".{readme.name}.tmp")
+        tmp.write_text(new)
+        tmp.replace(readme)
+    print(f"{readme}: block from {source}")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--results", type=Path, default=Path("results"), help="the run's results folder")
@@ -95,23 +117,10 @@ def main(argv=None) -> int:
     ap.add_argument("--commit", help="the run's commit (default: read from the results' checkout)")
     ap.add_argument("--check", action="store_true", help="only compare; exit 1 if the README differs")
     args = ap.parse_args(argv)
-    readme = args.readme.read_text()
-    if BEGIN not in readme or END not in readme:
+    if BEGIN not in args.readme.read_text():
         sys.exit(f"{args.readme}: no glance markers ({BEGIN!r} ... {END!r})")
-    head, rest = readme.split(BEGIN, 1)
-    _, tail = rest.split(END, 1)
-    new = head + glance_block(args.results, args.commit or run_commit(args.results)) + tail
-    if args.check:
-        if new != readme:
-            print(f"{args.readme}: the glance table is not the one {args.results} gives", file=sys.stderr)
-            return 1
-        return 0
-    if new != readme:
-        tmp = args.readme.with_name(f".{args.readme.name}.tmp")
-        tmp.write_text(new)
-        tmp.replace(args.readme)
-    print(f"{args.readme}: glance table from {args.results}")
-    return 0
+    block = glance_block(args.results, args.commit or run_commit(args.results))
+    return replace_block(args.readme, BEGIN, END, block, args.check, str(args.results))
 
 
 if __name__ == "__main__":

@@ -64,12 +64,33 @@ def _describe(error: jsonschema.ValidationError) -> str:
     return f"config key '{path}': {error.message}"
 
 
+def _seed_list(value):
+    """``seeds`` as written on the command line too: an integer k stands for [k], and the list items that
+    ``--config "seeds=[0,1]"`` passes as strings are read as integers (anything else is left to the schema)."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        return [value]
+    if isinstance(value, list):
+        return [int(v) if isinstance(v, str) and v.strip().isdigit() else v for v in value]
+    return value
+
+
+def _normalise_seeds(config) -> None:
+    if not isinstance(config, dict):
+        return
+    if "seeds" in config:
+        config["seeds"] = _seed_list(config["seeds"])
+    for scene in (config.get("scenes") or {}).values():
+        if isinstance(scene, dict) and scene.get("seeds") is not None:
+            scene["seeds"] = _seed_list(scene["seeds"])
+
+
 def validate_config(config: dict, schema_path=SCHEMA) -> dict:
     """Validate ``config`` in place (filling defaults) and return it."""
     _check_finite(config)
     if isinstance(config, dict) and "seed" in config:
         raise ConfigError(f"config key 'seed': {config['seed']!r}: the single seed was replaced by a list of seeds, "
                           f"'seeds' (e.g. seeds: [{config['seed']!r}]); every learned method runs once per seed")  # fmt: skip
+    _normalise_seeds(config)
     with open(schema_path) as fh:
         schema = yaml.safe_load(fh)
     validator = _Validator(schema)

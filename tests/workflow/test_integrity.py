@@ -51,7 +51,7 @@ def test_a_truncated_trajectories_file_stops_its_reader_and_the_next_run_rewrite
     second = run(command, work)
     assert second.returncode == 0, second.stderr[-3000:]
     assert "rule simulate:" in second.stdout + second.stderr  # the producer reran, then its readers
-    for rel_out in ("results/autoencoder/tiny_rods/autoencoder.pt", "results/evaluation/summary.csv"):
+    for rel_out in ("results/autoencoder/tiny_rods/seed0/autoencoder.pt", "results/evaluation/summary.csv"):
         assert (work / rel_out).exists(), rel_out
     with open_artefact(path) as f:
         after = f["sequences/test_mid/positions"][()]

@@ -37,7 +37,8 @@ RUN = [
     "snakemake --report report.html --configfile config/tiny.yaml",
     "snakemake -n all",
     "python tools/readme_glance.py",
-    "snakemake -n all --configfile config/tiny.yaml --config seed=nan",
+    "python tools/readme_claims.py",
+    "snakemake -n all --configfile config/tiny.yaml --config seeds=nan",
     "snakemake --unlock",
     "python examples/step_trained_model.py",
     "python config/examples/make_mesh.py",
@@ -82,10 +83,10 @@ def test_readme_quick_commands_run_as_written(tiny_run, tmp_path):
                    shell=True, cwd=work, check=True, capture_output=True)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=work, capture_output=True, text=True).stdout.strip()
     for command in RUN[1:]:
-        fails = "seed=nan" in command  # shown as an example of the error
+        fails = "seeds=nan" in command  # shown as an example of the error
         out = shell(command, work, check=not fails)
         if fails:
-            assert out.returncode != 0 and "config key 'seed': nan is not a finite number" in out.stdout + out.stderr
+            assert out.returncode != 0 and "config key 'seeds': nan is not a finite number" in out.stdout + out.stderr
             assert "Job stats" not in out.stdout + out.stderr  # stopped before planning any job
         elif "--report" in command:
             html = (work / "report.html").read_text(errors="replace")
@@ -98,6 +99,12 @@ def test_readme_quick_commands_run_as_written(tiny_run, tmp_path):
             assert f"at commit {commit}" in block
             assert all(s in block for s in ("| tiny_cloth |", "| tiny_rods |", "| tiny_nm |"))
             assert shell("python tools/readme_glance.py --check", work).returncode == 0
+        elif "readme_claims" in command:  # tiny_rods runs two seeds
+            block = (work / "README.md").read_text().split("claims: begin", 1)[1].split("claims: end", 1)[0]
+            assert f"at commit {commit}" in block and "results/evaluation/tiny_rods/metrics.csv" in block
+            assert "| tiny_rods | self_supervised | 2 | 0/2 | 0:60 1:60 |" in block and "- tiny_rods, self_supervised: mean error" in block
+            assert "tiny_cloth" not in block  # one seed: nothing to state over seeds
+            assert shell("python tools/readme_claims.py --check", work).returncode == 0
         elif "make_mesh" in command:
             assert shell("git diff --quiet -- config/examples/ring.stl", work).returncode == 0  # the same bytes
         elif command == "snakemake --unlock":

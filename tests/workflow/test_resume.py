@@ -21,7 +21,7 @@ import yaml
 from workflow_support import HANG_SECONDS, ROOT
 
 TINY = ROOT / "config" / "tiny.yaml"
-INTEGRATOR = "results/integrator/tiny_rods/self_supervised"
+INTEGRATOR = "results/integrator/tiny_rods/self_supervised/seed0"
 
 
 def snakemake(work, *args, check=True):
@@ -43,7 +43,7 @@ def rods(tmp_path_factory):
     scene["integrator"]["epochs"] = 600
     config.update(scenes={"tiny_rods": scene}, integrator_variants={}, progress=False)
     (work / "config.yaml").write_text(yaml.safe_dump(config))
-    snakemake(work, "results/autoencoder/tiny_rods/autoencoder.pt")
+    snakemake(work, "results/autoencoder/tiny_rods/seed0/autoencoder.pt")
     return work
 
 
@@ -79,7 +79,7 @@ def test_a_killed_training_resumes_to_the_uninterrupted_result(rods):
     assert refused.returncode != 0 and "--unlock" in refused.stdout + refused.stderr
     snakemake(work, "--unlock")
     resumed = snakemake(work, f"{INTEGRATOR}/integrator.pt")
-    log = (work / "logs/integrator/tiny_rods/self_supervised.log").read_text()
+    log = (work / "logs/integrator/tiny_rods/self_supervised/seed0.log").read_text()
     assert f"at epoch {killed['epoch']} (" in log
     assert not (out / "checkpoint.pt").exists()  # served its purpose
     with h5py.File(out / "history.h5") as f:
@@ -106,7 +106,7 @@ def test_a_diverged_training_writes_no_output(rods, tmp_path):
 
     config = yaml.safe_load((rods / "config.yaml").read_text())
     settings = {**config["scenes"]["tiny_rods"]["integrator"], "lr": 1e3}
-    args = (rods / "results/sim/tiny_rods/trajectories.h5", rods / "results/autoencoder/tiny_rods/autoencoder.pt", settings, 0, "cpu")
+    args = (rods / "results/sim/tiny_rods/trajectories.h5", rods / "results/autoencoder/tiny_rods/seed0/autoencoder.pt", settings, 0, "cpu")
     with pytest.raises(TrainingDiverged, match=r"^scene tiny_rods, method self_supervised: training diverged in epoch 1: loss \S+ far above its start"):
         train_integrator(*args, tmp_path / "integrator.pt", tmp_path / "history.h5", checkpoint=tmp_path / "checkpoint.pt", label="scene tiny_rods, method self_supervised")
     assert not any(tmp_path.iterdir())

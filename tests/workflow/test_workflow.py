@@ -23,7 +23,7 @@ import torch
 import yaml
 
 from latentsim.checksum import KEY as CHECKSUM
-from latentsim.config import scene_methods, validate_config
+from latentsim.config import scene_methods, scene_seeds, validate_config
 
 from workflow_support import HANG_SECONDS, snakemake
 
@@ -99,12 +99,15 @@ def test_dry_run_of_default_config_lists_every_stage_for_every_scene(tmp_path):
     jobs = planned_jobs(out, methods=True)
     for stage in STAGES:
         assert sorted({s for r, s, _ in jobs if r == stage}) == scenes, stage
-    for stage in ("train_integrator", "rollout"):  # one job per method of each scene
+    for stage in ("train_integrator", "rollout"):  # one job per method and seed of each scene
         for scene in scenes:
-            assert sorted(m for r, s, m in jobs if r == stage and s == scene) == sorted(scene_methods(cfg, scene)), (stage, scene)
+            want = sorted(m for m in scene_methods(cfg, scene) for _ in scene_seeds(cfg, scene))
+            assert sorted(m for r, s, m in jobs if r == stage and s == scene) == want, (stage, scene)
+    # Fig. 8's paper-size scenes run five seeds, the other Li et al. scenes three
+    assert [scene_seeds(cfg, s) for s in ("cloth_paper", "cantilever_paper", "cloth")] == [[0, 1, 2, 3, 4]] * 2 + [[0, 1, 2]]
     assert ("summary", None, None) in jobs
     assert sorted(((r, s) for r, s, _ in jobs if r.startswith("nm_")), key=str) == sorted(NM_JOBS_DEFAULT, key=str)
-    # the same jobs, with the same outputs, as the commit before the restructuring planned
+    # the same jobs, with the same outputs, as recorded (its header says what changed since the restructuring)
     recorded = [line for line in (ROOT / "tests/workflow/data/default_jobs.txt").read_text().splitlines() if not line.startswith("#")]
     assert planned_outputs(out) == recorded
 
@@ -160,9 +163,9 @@ def test_malformed_config_stops_before_any_job(tmp_path, edit, key):
 def test_a_non_finite_number_on_the_command_line_stops_before_any_job(tmp_path):
     """``--config key=nan`` reaches the config as a float NaN (YAML files give ``.nan``)."""
     for value in ("nan", "inf"):
-        proc = snakemake("all", "--cores", "1", "--configfile", str(TINY), "--config", f"seed={value}", "--directory", str(tmp_path), check=False)
+        proc = snakemake("all", "--cores", "1", "--configfile", str(TINY), "--config", f"seeds={value}", "--directory", str(tmp_path), check=False)
         assert proc.returncode != 0
-        assert f"config key 'seed': {value} is not a finite number" in proc.stdout + proc.stderr
+        assert f"config key 'seeds': {value} is not a finite number" in proc.stdout + proc.stderr
     assert not (tmp_path / "results").exists()
 
 
@@ -207,7 +210,7 @@ def test_reduced_baselines_step_with_a_cubature(tiny_run):
     work, _ = tiny_run
     with h5py.File(work / "results/sim/tiny_cloth/trajectories.h5") as f:
         n_tri = len(f["triangles"])
-    for method in ("pca_reduced", "modes_reduced", "fulton_reduced"):
+    for method in ("pca_reduced", "modes_reduced", "fulton_reduced/seed0"):  # the decoder's baseline: once per seed
         with h5py.File(work / f"results/rollout/tiny_cloth/{method}/rollout.h5") as g:
             assert g.attrs["cubature_force_error"] <= 0.01
             k = int(g.attrs["cubature_elements"])
@@ -220,11 +223,11 @@ def test_hard_mean_coordinates_hold_the_prescribed_vertices_in_every_learned_fra
     """tiny_nm's autoencoder encodes its free vertices only (coordinates: hard_mean): the autoencoder
     records it, and every frame the integrator rolls out puts the held edges exactly on their targets."""
     work, _ = tiny_run
-    extra = torch.load(work / "results/autoencoder/tiny_nm/autoencoder.pt", weights_only=True)["extra"]
+    extra = torch.load(work / "results/autoencoder/tiny_nm/seed0/autoencoder.pt", weights_only=True)["extra"]
     assert extra["coordinates"] == "hard_mean"
     with h5py.File(work / "results/sim/tiny_nm/trajectories.h5") as f:
         D = f["dirichlet"][()]
-    with h5py.File(work / "results/rollout/tiny_nm/self_supervised/rollout.h5") as f:
+    with h5py.File(work / "results/rollout/tiny_nm/self_supervised/seed0/rollout.h5") as f:
         seq = f["sequences/bounce"]
         x, xD = seq["positions"][()], seq["dirichlet_positions"][()]
     ok = np.isfinite(x).all(axis=(1, 2))
@@ -359,13 +362,45 @@ def test_report_shows_every_table_as_html_and_names_both_papers(tiny_run, tmp_pa
     assert grid and grid[0][0][0] == "scene" and sorted(r[0] for r in grid[0][1]) == SCENES_TINY  # the glance grid, one row per scene
 
 
+def test_every_table_states_the_spread_over_the_seeds(tiny_run):
+    """tiny_rods runs two seeds: each learned method trained and rolled out once per seed, and every table
+    states them: the glance's medians with least and largest equal to the per-seed rows', divergence counts
+    as k/n seeds, the claims generated from those tables, the stress map by seed."""
+    import pandas as pd
+
+    work, _ = tiny_run
+    df = pd.read_csv(work / "results/evaluation/summary.csv")
+    rods = df[df["scene"] == "tiny_rods"]
+    assert sorted(rods.groupby("method")["seed"].apply(lambda s: sorted(set(s))).map(tuple).unique()) == [(0, 1)]
+    own = rods[rods["method"] == "self_supervised"].groupby("seed")["mean_error"].mean()
+    assert own[0] != own[1]  # two trainings, not one copied
+    glance = pd.read_csv(work / "results/evaluation/glance.csv", keep_default_na=False).set_index(["scene", "method"])
+    row = glance.loc[("tiny_rods", "self_supervised")]
+    assert int(row["seeds"]) == 2 and row["seeds_stable"] == "2/2" and row["test_survived"] == "2/2"
+    assert np.isclose(float(row["mean_error"]), own.median()) and np.isclose(float(row["mean_error_min"]), own.min())
+    assert np.isclose(float(row["mean_error_max"]), own.max())
+    assert int(glance.loc[("tiny_cloth", "self_supervised"), "seeds"]) == 1
+    div = pd.read_csv(work / "results/evaluation/divergence.csv", keep_default_na=False).set_index(["scene", "method"])
+    d = div.loc[("tiny_rods", "self_supervised")]
+    assert d["test_diverged"] == "0/2" and d["frames_survived"] == "0:60 1:60"
+    stress = pd.read_csv(work / "results/evaluation/stress.csv")
+    failed = stress[(stress["scene"] == "tiny_rods") & (stress["method"] == "self_supervised")].groupby("seed")["diverged"].any()
+    assert d["stress_failed"] == f"{int(failed.sum())}/2"
+    claims = (work / "results/evaluation/claims.md").read_text()
+    line = next(ln for ln in claims.splitlines() if ln.startswith("- tiny_rods, self_supervised:"))
+    assert f"median of 2 seeds; {own.min():.3g} to {own.max():.3g}" in line and "every test sequence in 2 of 2 seeds" in line
+    assert "tiny_cloth" not in claims  # one seed: no claim of a spread
+    assert claims.strip() in (work / "results/evaluation/summary.md").read_text()
+
+
 def test_artefacts_record_config_version_and_seed(tiny_run):
     work, _ = tiny_run
     with h5py.File(work / "results/sim/tiny_rods/trajectories.h5") as f:
         assert '"youngs_modulus"' in f.attrs["config"] and f.attrs["latentsim_version"]
         assert f["sequences/test_mid"].attrs["split"] == "test"
-    with h5py.File(work / "results/autoencoder/tiny_rods/latents.h5") as f:
-        assert f.attrs["seed"] == 0 and '"latent_dim"' in f.attrs["config"]
+    for seed in (0, 1):
+        with h5py.File(work / f"results/autoencoder/tiny_rods/seed{seed}/latents.h5") as f:
+            assert f.attrs["seed"] == seed and '"latent_dim"' in f.attrs["config"]
 
 
 def test_editing_one_scenes_integrator_reruns_only_its_downstream_jobs(tiny_run, tmp_path):
@@ -379,9 +414,9 @@ def test_editing_one_scenes_integrator_reruns_only_its_downstream_jobs(tiny_run,
     quiet = planned_jobs(snakemake("-n", "all", "--configfile", str(TINY), "--config", "progress=False", "--directory", str(work)).stdout)
     assert quiet == [], f"progress bars must not trigger reruns: {quiet}"
     jobs = planned_jobs(snakemake("-n", "all", "--configfile", str(edited), "--directory", str(work)).stdout)
-    methods = ("self_supervised", "supervised", "small")
+    methods, seeds = ("self_supervised", "supervised", "small"), (0, 1)
     assert sorted(jobs, key=str) == sorted(
-        [(stage, "tiny_rods") for stage in ("train_integrator", "rollout") for _ in methods]
+        [(stage, "tiny_rods") for stage in ("train_integrator", "rollout") for _ in methods for _ in seeds]
         + [("evaluate", "tiny_rods"), ("render", "tiny_rods"), ("summary", None), ("report_summary_pages", None), ("all", None)],
         key=str,
     )
@@ -526,7 +561,7 @@ def test_a_rollout_that_diverges_at_frame_0_is_scored_as_failed_and_the_scene_st
     edited = tmp_path / "edited.yaml"
     edited.write_text(yaml.safe_dump(cfg))
     snakemake("--cores", "2", "all", "--configfile", str(edited), "--directory", str(work))
-    with h5py.File(work / "results/rollout/tiny_cloth/self_supervised/rollout.h5") as f:
+    with h5py.File(work / "results/rollout/tiny_cloth/self_supervised/seed0/rollout.h5") as f:
         assert f["sequences/line"].attrs["diverged_frame"] == 0
     before = pd.read_csv(tiny_run[0] / "results/evaluation/tiny_cloth/metrics.csv").set_index("method")
     after = pd.read_csv(work / "results/evaluation/tiny_cloth/metrics.csv").set_index("method")
@@ -546,7 +581,7 @@ def test_a_rollout_that_diverges_at_frame_0_is_scored_as_failed_and_the_scene_st
     summary = (work / "results/evaluation/summary.md").read_text()
     assert re.search(r"\| tiny_cloth \|.*\| diverged 0/1 \([0-9.e-]+\) \|", summary)
     t1 = pd.read_csv(work / "results/evaluation/table1.csv")
-    assert "self_supervised (diverged on 1/1 test sequences)" in set(t1.loc[t1["scene"] == "tiny_cloth", "method"])
+    assert "self_supervised (diverged on 1/1 test rollouts)" in set(t1.loc[t1["scene"] == "tiny_cloth", "method"])
     assert "self_supervised" in set(t1.loc[t1["scene"] == "tiny_rods", "method"])  # the other scenes as before
 
 
@@ -555,12 +590,14 @@ def test_a_variant_of_another_size_trains_and_decodes_with_its_own_autoencoder(t
     import pandas as pd
 
     work, _ = tiny_run
-    own = torch.load(work / "results/autoencoder/tiny_rods/autoencoder.pt", weights_only=True)["hparams"]
-    small = torch.load(work / "results/autoencoder/tiny_rods/small/autoencoder.pt", weights_only=True)["hparams"]
-    assert (own["latent_dim"], small["latent_dim"]) == (4, 2)
-    for method, r in (("self_supervised", 4), ("supervised", 4), ("small", 2)):
-        with h5py.File(work / f"results/rollout/tiny_rods/{method}/rollout.h5") as f:
-            assert {g["latents"].shape[-1] for g in f["sequences"].values()} == {r}, method
+    for seed in (0, 1):  # tiny_rods runs two seeds
+        own = torch.load(work / f"results/autoencoder/tiny_rods/seed{seed}/autoencoder.pt", weights_only=True)["hparams"]
+        small = torch.load(work / f"results/autoencoder/tiny_rods/small/seed{seed}/autoencoder.pt", weights_only=True)["hparams"]
+        assert (own["latent_dim"], small["latent_dim"]) == (4, 2)
+        for method, r in (("self_supervised", 4), ("supervised", 4), ("small", 2)):
+            with h5py.File(work / f"results/rollout/tiny_rods/{method}/seed{seed}/rollout.h5") as f:
+                assert {g["latents"].shape[-1] for g in f["sequences"].values()} == {r}, method
+                assert f.attrs["seed"] == seed
     t1 = pd.read_csv(work / "results/evaluation/table1.csv").set_index(["scene", "method"])
     assert t1.loc[("tiny_rods", "small"), "latent_dof"] == 2 and t1.loc[("tiny_rods", "self_supervised"), "latent_dof"] == 4
     assert ("tiny_rods", "supervised") not in t1.index  # variants of the scene's own size stay out of Table 1
@@ -568,16 +605,16 @@ def test_a_variant_of_another_size_trains_and_decodes_with_its_own_autoencoder(t
     assert t2.loc[("tiny_rods", "small"), "decoder_layers"] == "16" and t2.loc[("tiny_rods", "small"), "integrator_layers"] == "16"
     sizes = pd.read_csv(work / "results/evaluation/sizes.csv").set_index("scene")
     assert sizes.loc["tiny_rods", "variant_models"] == "small: latent 2, 16 / 16"
-    # its autoencoder is its own: editing it reruns the variant's jobs only
+    # its autoencoder is its own: editing it reruns the variant's jobs only, once per seed of the scene
     cfg = yaml.safe_load(TINY.read_text())
     cfg["integrator_variants"]["small"]["autoencoder"]["latent_dim"] = 3
     edited = tmp_path / "edited.yaml"
     edited.write_text(yaml.safe_dump(cfg))
     jobs = planned_jobs(snakemake("-n", "all", "--configfile", str(edited), "--directory", str(work)).stdout, methods=True)
     assert sorted(jobs, key=str) == sorted(
-        [("train_variant_autoencoder", "tiny_rods", "small"), ("train_integrator", "tiny_rods", "small"), ("rollout", "tiny_rods", "small"),
-         ("evaluate", "tiny_rods", None), ("render", "tiny_rods", None), ("summary", None, None), ("report_summary_pages", None, None),
-         ("all", None, None)],
+        2 * [("train_variant_autoencoder", "tiny_rods", "small"), ("train_integrator", "tiny_rods", "small"), ("rollout", "tiny_rods", "small")]
+        + [("evaluate", "tiny_rods", None), ("render", "tiny_rods", None), ("summary", None, None), ("report_summary_pages", None, None),
+           ("all", None, None)],
         key=str,
     )  # fmt: skip
 
@@ -626,7 +663,9 @@ def test_same_seed_gives_identical_artefacts(tiny_run, tmp_path):
 
 # The tiny config's artefacts as the commit before the package was restructured by domain (6a0f0f0)
 # wrote them: `python -m latentsim.fingerprint record RESULTS tests/workflow/data/tiny_reference.json`.
-# Re-record it (and say so in the commit) when a change is meant to change results.
+# Re-recorded when seeds became a pipeline dimension (the per-seed paths, tiny_rods' second seed, the
+# tables' seed columns); every seed-0 file that is not a table was first checked equal to the old
+# reference to the bit.  Re-record it (and say so in the commit) when a change is meant to change results.
 REFERENCE = ROOT / "tests" / "workflow" / "data" / "tiny_reference.json"
 
 
@@ -740,7 +779,7 @@ def test_compiled_runtime_replays_the_rollout_and_is_timed(tiny_run, scene):
     from latentsim.runtime import compiled as runtime_compiled
 
     work, _ = tiny_run
-    out = work / f"results/rollout/{scene}/self_supervised"
+    out = work / f"results/rollout/{scene}/self_supervised/seed0"
     with h5py.File(out / "rollout.h5") as g:
         name, seq = next(iter(g["sequences"].items()))
         assert seq.attrs["runtime"] in ("numpy", "compiled", "torch_export", "eager")
@@ -797,7 +836,7 @@ def test_the_example_encodes_and_steps_the_trained_model_as_the_rollout(tiny_run
 
     work, _ = tiny_run
     example = ROOT / "examples" / "step_trained_model.py"
-    args = [f"results/rollout/{scene}/self_supervised", "--trajectories", f"results/sim/{scene}/trajectories.h5"]
+    args = [f"results/rollout/{scene}/self_supervised/seed0", "--trajectories", f"results/sim/{scene}/trajectories.h5"]
     check = ("import runpy, sys; sys.argv = sys.argv[1:]; runpy.run_path(sys.argv[0], run_name='__main__'); "
              "print('training modules:', sorted(m for m in sys.modules if m.startswith('latentsim.') and not m.startswith(('latentsim.runtime', 'latentsim.checksum', 'latentsim.provenance'))))")  # fmt: skip
     env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
@@ -809,7 +848,7 @@ def test_the_example_encodes_and_steps_the_trained_model_as_the_rollout(tiny_run
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     out = module.main([str(work / args[0]), "--trajectories", str(work / args[2])])
-    with h5py.File(work / f"results/autoencoder/{scene}/latents.h5") as f:
+    with h5py.File(work / f"results/autoencoder/{scene}/seed0/latents.h5") as f:
         stored = f["sequences"][out["sequence"]]["latents"][:2]
     assert np.abs(out["latents"] - stored).max() < 1e-5 * np.abs(stored).max()
     with h5py.File(work / args[0] / "rollout.h5") as g:
