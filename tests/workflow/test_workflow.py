@@ -39,7 +39,7 @@ TIMING_ATTRS = {"train_seconds", "rollout_seconds", "step_ms", "integrate_ms", "
 # the Neural Modes stages of the default config: (rule, scene) of every job, beside those of every scene (STAGES)
 NM_JOBS_DEFAULT = (
     [(r, s) for r in ("nm_linear_modes", "nm_train") for s in ("nm_armadillo", "nm_bunny", "nm_giraffe", "nm_sheet")]
-    + [("nm_ground_truth", "nm_sheet"), ("nm_sheet_study", "nm_sheet"), ("nm_sheet_tables", "nm_sheet")]
+    + [("nm_ground_truth", "nm_sheet"), ("nm_sheet_tables", "nm_sheet")] + 3 * [("nm_sheet_study", "nm_sheet")]  # one per seed
     + [("nm_ground_truth", "nm_armadillo"), ("nm_energy_table", "nm_armadillo")]
     + [("nm_dynamics", s) for s in ("nm_armadillo", "nm_bunny", "nm_giraffe")]
     + [("nm_keyframes", "nm_giraffe"), ("nm_aspect_ratio", "nm_sheet"), ("nm_summary", None)]

@@ -281,6 +281,7 @@ def nm_study_params(study):
     """Input function: a study's nm_study block, the seed and what else it reads of the scene."""
 
     def get(wildcards):
-        return nm_pipeline.study_params(config, wildcards.scene, study)
+        seed = int(wildcards.seed) if "seed" in wildcards.keys() else None
+        return nm_pipeline.study_params(config, wildcards.scene, study, seed)
 
     return get

@@ -103,18 +103,19 @@ rule nm_ground_truth:
         "../scripts/nm_ground_truth.py"
 
 
-# Sheet study (Sec. 4.1-4.4): every method trained, and evaluated on validation and test along its training.
+# Sheet study (Sec. 4.1-4.4): every method trained, and evaluated on validation and test along its training;
+# once per seed of the scene (the ground truth's sample sets are the first seed's, shared).
 rule nm_sheet_study:
     input:
         mesh="results/mesh/{scene}/mesh.h5",
         modes="results/neural_modes/{scene}/linear_modes.h5",
         ground_truth="results/neural_modes/{scene}/sheet/ground_truth.h5",
     output:
-        study="results/neural_modes/{scene}/sheet/study.h5",
+        study="results/neural_modes/{scene}/sheet/seed{seed}/study.h5",
     log:
-        "logs/neural_modes/{scene}_sheet_study.log",
+        "logs/neural_modes/{scene}_sheet_study_seed{seed}.log",
     benchmark:
-        "results/benchmarks/neural_modes/{scene}_sheet_study.tsv"
+        "results/benchmarks/neural_modes/{scene}_sheet_study_seed{seed}.tsv"
     conda:
         "../../envs/latentsim.yaml"
     threads: 1
@@ -127,10 +128,14 @@ rule nm_sheet_study:
         "../scripts/nm_sheet_study.py"
 
 
-# Tables 2, 3, 4, A1 (ours beside the paper's) and Figs. 2, 3, 4 of the sheet study.
+# Tables 2, 3, 4, A1 (ours beside the paper's, medians over the seeds with the spread) and Figs. 2, 3, 4
+# of the sheet study.
 rule nm_sheet_tables:
     input:
-        study="results/neural_modes/{scene}/sheet/study.h5",
+        study=lambda w: [
+            f"results/neural_modes/{w.scene}/sheet/{seed_dir(s)}/study.h5"
+            for s in scene_seeds(config, w.scene)
+        ],
     output:
         markdown="results/neural_modes/{scene}/sheet/tables.md",
         table2="results/neural_modes/{scene}/sheet/table2.csv",

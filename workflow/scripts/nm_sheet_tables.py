@@ -4,7 +4,7 @@ from latentsim.utils import run_stage
 
 
 def main(smk):
-    sheet_tables_stage(smk.input.study, dict(smk.output.items()))
+    sheet_tables_stage(list(smk.input.study), dict(smk.output.items()))
 
 
 run_stage(snakemake, main)  # noqa: F821 (injected by Snakemake)

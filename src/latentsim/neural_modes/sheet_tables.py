@@ -2,7 +2,9 @@ r"""Tables of the Neural Modes sheet study (Wang et al. 2024, Tables 2, 3, 4, A1
 
 :func:`tables` turns a ``sheet.run_sheet_study`` result into pandas DataFrames: each method at the
 checkpoint its stopping criterion chose (the supervised methods at the least validation L2, Neural
-Modes at the last epoch), with the paper's numbers in adjacent ``*_paper*`` columns.
+Modes at the last epoch), with the paper's numbers in adjacent ``*_paper*`` columns;
+:func:`tables_over_seeds` puts the tables of several seeds' studies together: medians, and the headline
+errors' least and largest over the seeds.
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ import pandas as pd
 from latentsim.neural_modes.metrics import METRICS, STOPPING
 from latentsim.neural_modes.sheet import SUPERVISED
 
-__all__ = ["PAPER_TABLE2", "PAPER_TABLE3", "PAPER_TABLE4", "PAPER_TABLEA1", "STOPPING_LABEL", "tables"]
+__all__ = ["PAPER_TABLE2", "PAPER_TABLE3", "PAPER_TABLE4", "PAPER_TABLEA1", "SPREAD_COLUMNS", "STOPPING_LABEL", "tables", "tables_over_seeds"]
 
 # Paper numbers (Wang et al. 2024), for the adjacent columns.
 PAPER_TABLE2 = {  # method: (val dE_avg, dE_max, dE_std, E_avg, test dE_avg, dE_max, dE_std, E_avg)
@@ -134,3 +136,48 @@ def tables(study: dict) -> dict:
         "table2": pd.DataFrame(t2), "table3": pd.DataFrame(t3), "table4": pd.DataFrame(t4), "tableA1": pd.DataFrame(ta1),
         "correlation": pd.DataFrame(corr), "structure": pd.DataFrame(structure),
     }  # fmt: skip
+
+
+# the headline errors of each table, which get their least and largest over the seeds beside the median
+SPREAD_COLUMNS = {
+    "table2": ("val_dE_avg", "test_dE_avg", "test_dE_max", "test_E_avg"),
+    "table3": ("test_E_avg_val_l2", "test_E_avg_val_energy"),
+    "table4": ("stress_weighted_dS_avg", "stress_max_dS_avg"),
+    "tableA1": ("dF_l1", "dF_l2"),
+    "correlation": ("min",),
+    "structure": ("symmetry error mean",),
+}
+
+
+def tables_over_seeds(per_seed: list, seeds) -> dict:
+    """:func:`tables` of several seeds' studies as one set of tables: one row per method (in the first seed's
+    order), every number the median over the seeds (the paper's columns are the same in each), a column
+    ``seeds``, and the :data:`SPREAD_COLUMNS` with their least and largest (``<name>_min``, ``<name>_max``)
+    right after them.  Text columns are the first seed's (the correlation's ``eigenvalues``: the first seed's
+    list).  One seed: its tables, with ``seeds`` 1 and no spread columns."""
+    seeds = list(seeds)
+    if len(per_seed) != len(seeds) or not per_seed:
+        raise ValueError(f"tables_over_seeds: {len(per_seed)} seeds' tables for seeds {seeds}")
+    out = {}
+    for name, first in per_seed[0].items():
+        if first.empty:
+            out[name] = first
+            continue
+        tabs = [p[name] for p in per_seed]
+        for k, t in enumerate(tabs[1:], 1):
+            if list(t["method"]) != list(first["method"]):
+                raise ValueError(f"{name}: seed {seeds[k]} has the methods {list(t['method'])}, seed {seeds[0]} {list(first['method'])}")
+        rows = []
+        for i in range(len(first)):
+            row = {}
+            for col in first.columns:
+                values = [t.iloc[i][col] for t in tabs]
+                numeric = all(isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) for v in values)
+                row[col] = float(np.median(np.asarray(values, dtype=float))) if numeric and len(tabs) > 1 else values[0]
+                if col == "method":
+                    row["seeds"] = len(tabs)
+                if len(tabs) > 1 and col in SPREAD_COLUMNS.get(name, ()):
+                    row[f"{col}_min"], row[f"{col}_max"] = float(np.min(values)), float(np.max(values))
+            rows.append(row)
+        out[name] = pd.DataFrame(rows)
+    return out

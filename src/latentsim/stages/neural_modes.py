@@ -41,6 +41,7 @@ from latentsim.neural_modes import dynamics as nm_dynamics
 from latentsim.neural_modes import energy_study as nm_energy
 from latentsim.neural_modes import sheet as nm_sheet
 from latentsim.neural_modes.sheet_tables import tables as sheet_tables
+from latentsim.neural_modes.sheet_tables import tables_over_seeds
 from latentsim.neural_modes.symmetry import half_turn
 from latentsim.neural_modes import figures as nm_figures
 from latentsim.report.paraview import write_xdmf_series
@@ -118,11 +119,12 @@ def ground_truth_params(config: dict, scene: str, study: str) -> dict:
     )  # fmt: skip
 
 
-def study_params(config: dict, scene: str, study: str) -> dict:
-    """The params of a study's rule: its ``nm_study`` block, the seed, and what else it reads of the scene."""
+def study_params(config: dict, scene: str, study: str, seed: int | None = None) -> dict:
+    """The params of a study's rule: its ``nm_study`` block, the seed (default: the scene's first; the sheet
+    study runs once per seed of the scene), and what else it reads of the scene."""
     sc = config["scenes"][scene]
     nmc = sc["neural_modes"]
-    out = {"study": sc["nm_study"][study], "seed": scene_seeds(config, scene)[0]}
+    out = {"study": sc["nm_study"][study], "seed": scene_seeds(config, scene)[0] if seed is None else int(seed)}
     if study == "sheet":
         out.update(model=sc["model"], material=sc["material"], neural_modes={k: v for k, v in nmc.items() if k not in STUDY_SETS})
     elif study == "energy":
@@ -354,17 +356,27 @@ SHEET_HEADINGS = {
 
 
 def sheet_tables_stage(study_h5, out: dict):
-    """Stage ``nm_sheet_tables``: the tables (CSV each, all in one Markdown) and Figs. 2, 3, 4 of ``study.h5``.
+    """Stage ``nm_sheet_tables``: the tables (CSV each, all in one Markdown) and Figs. 2, 3, 4 of the sheet
+    study, over its seeds.
 
+    ``study_h5``: one ``study.h5`` or a list, one per seed: each table is the median over the seeds with the
+    headline errors' least and largest (:func:`latentsim.neural_modes.sheet_tables.tables_over_seeds`); the
+    figures show the first seed's study.
     ``out``: paths by name: the keys of :data:`SHEET_TABLES`, ``markdown``, ``learning_curves``,
     ``latent_walk``, ``correlation_figure``.
     """
-    with open_artefact(study_h5) as f:
-        study = read_tree(f)
-    for key in ("methods", "walk", "correlation", "rest_positions", "triangles"):
-        if key not in study:
-            raise ArtefactError(f"{study_h5}: missing '{key}'; rerun nm_sheet_study")
-    tabs = sheet_tables(study)
+    paths = [study_h5] if isinstance(study_h5, (str, bytes)) or hasattr(study_h5, "__fspath__") else list(study_h5)
+    studies = []
+    for path in paths:
+        with open_artefact(path) as f:
+            one = read_tree(f)
+            one["seed"] = int(f.attrs.get("seed", -1))
+        for key in ("methods", "walk", "correlation", "rest_positions", "triangles"):
+            if key not in one:
+                raise ArtefactError(f"{path}: missing '{key}'; rerun nm_sheet_study")
+        studies.append(one)
+    study = studies[0]
+    tabs = tables_over_seeds([sheet_tables(s) for s in studies], [s["seed"] for s in studies])
     for name in SHEET_TABLES:
         write_table(tabs[name], out[name])
     cfg = json.loads(study["config"])
@@ -375,7 +387,10 @@ def sheet_tables_stage(study_h5, out: dict):
         f"test {st['test_grid']}^m grid (the paper: 9^3, 729, 7^3, 11^3). Neural Modes {st['epochs']} L-BFGS epochs, "
         f"L2 supervised {st['l2_epochs']}, PCA+AE {st['ae_epochs']} Adam epochs. {energy_note(cfg['model'], cfg['material'])} Ground truth on the test set (constrained Newton, at most "
         f"{st['gt_max_iterations']} iterations): KKT residual relative to the force at X + l, median {g['residual_median']:.1e}, "
-        f"90th percentile {g['residual_p90']:.1e}; {g['iterations_mean']:.1f} iterations on average.\n"
+        f"90th percentile {g['residual_p90']:.1e}; {g['iterations_mean']:.1f} iterations on average. "
+        + (f"Every method trained with {len(studies)} seeds ({', '.join(str(s['seed']) for s in studies)}): each number is the median "
+           f"over them, the headline errors with their least and largest (`_min`, `_max`); the figures show seed {study['seed']}.\n"
+           if len(studies) > 1 else f"One seed ({study['seed']}).\n")
     )
     write_markdown(out["markdown"], {SHEET_HEADINGS[k]: tabs[k] for k in SHEET_TABLES}, preamble)
     nm_figures.learning_curves(study, out["learning_curves"])
