@@ -3,7 +3,8 @@ and against a whole Fulton-style reduced implicit-Euler step.
 
 For every Li et al. scene, at our mesh's DoF count and with the paper's network sizes
 (Table 2: decoder and integrator layers; Table 1: latent dimension), random weights (no
-trained model needed; ``--networks trained`` takes the pipeline's ``results/`` models):
+trained model needed; ``--networks trained`` takes the pipeline's ``results/`` models of seed ``--seed``,
+``results/autoencoder/{scene}/seed{k}/`` and ``results/integrator/{scene}/self_supervised/seed{k}/``):
 
 - Jvp of one decoded vertex w.r.t. the latent: as the paper did (``torch.func.jvp`` of the
   eager decoder, restricted to the vertex), the same on the folded layers (BatchNorm folded,
@@ -54,7 +55,7 @@ import pandas as pd
 import torch
 
 from latentsim import runtime as rt
-from latentsim.config import load_config
+from latentsim.config import autoencoder_dir, load_config, seed_dir
 from latentsim.latent import (
     Autoencoder,
     LatentIntegrator,
@@ -167,9 +168,8 @@ def bench_scene(name, sc, cfg, args, reading):
     dec_text, int_text, paper_jvp, paper_total = LI2025_TABLE2[name]
     r = LI2025_TABLE1[name][1]
     if args.networks == "trained":
-        ae = load_autoencoder(ROOT / "results" / "autoencoder" / name / "autoencoder.pt")
-        folder = ROOT / "results" / "integrator" / name
-        integ = load_integrator(next(p for p in (folder / "self_supervised" / "integrator.pt", folder / "integrator.pt") if p.exists()))
+        ae = load_autoencoder(ROOT / autoencoder_dir(cfg, name, "self_supervised", args.seed) / "autoencoder.pt")
+        integ = load_integrator(ROOT / "results" / "integrator" / name / "self_supervised" / seed_dir(args.seed) / "integrator.pt")
         r = ae.latent_dim
         dec_text = ", ".join(str(w) for w in ae.hparams["widths"])
         int_text = ", ".join(str(w) for w in integ.hparams["widths"])
@@ -289,7 +289,8 @@ def main():
     ap.add_argument("--kernels", choices=["auto", "off"], default="auto",
                     help="full-space gradients/Hessians of the reduced step: the solver's compiled kernels where it has them, or its reference path")
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=0,
+                    help="the random networks' and inputs' seed; with --networks trained, also the seed of the trained models")
     ap.add_argument("--markdown", help="also write the table to this file")
     ap.add_argument("--csv", help="also write the table to this CSV file")
     args = ap.parse_args()
@@ -302,8 +303,8 @@ def main():
             t0 = time.perf_counter()
             try:
                 rows.append(bench_scene(name, sc, cfg, args, reading))
-            except (FileNotFoundError, StopIteration):
-                print(f"# {name}: no trained model in results/, skipped", file=sys.stderr, flush=True)
+            except FileNotFoundError:
+                print(f"# {name}: no trained model of seed {args.seed} in results/, skipped", file=sys.stderr, flush=True)
                 continue
             print(f"# {name} ({reading}): {time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
     df = pd.DataFrame(rows)

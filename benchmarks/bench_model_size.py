@@ -1,11 +1,11 @@
 """One model size of a scene, trained, measured and timed against the full space in one process.
 
     python benchmarks/bench_model_size.py armadillo --latent 8 --autoencoder 64 64 --integrator 64 64 \\
-        --variant hybrid_w1e4 --against results/rollout/armadillo/self_supervised/runtime.npz
+        --variant hybrid_w1e4 --against results/rollout/armadillo/self_supervised/seed0/runtime.npz
 
 Trains the scene's autoencoder and integrator at the given sizes (the integrator with the loss of
 ``--variant``, or the paper's self-supervised loss without it) on ``results/sim/<scene>/trajectories.h5``
-exactly as a sizing-sweep point does (``sweep.train_point``, the config's seed), measures it as the
+exactly as a sizing-sweep point does (``sweep.train_point``, the scene's first seed), measures it as the
 sweep does (``sweep.measure_point``: mean and max vertex error over the bounding-box diagonal on every
 test sequence, the stress conditions), then times, in interleaved rounds and on one thread, full-space
 Newton frames of the first test sequence (``latent.timing.time_full_space``, as the rollout stage does), its
@@ -24,7 +24,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from latentsim import runtime  # noqa: E402
-from latentsim.config import integrator_settings, load_config  # noqa: E402
+from latentsim.config import integrator_settings, load_config, scene_seeds  # noqa: E402
 from latentsim.latent.sweep import measure_point, train_point  # noqa: E402
 from latentsim.latent.timing import time_full_space  # noqa: E402
 
@@ -55,7 +55,7 @@ def main():
     ae_cfg = dict(sc["autoencoder"], latent_dim=args.latent, widths=args.autoencoder)
     integ_cfg = dict(integrator_settings(cfg, args.scene, args.variant), widths=args.integrator)
 
-    point = train_point(traj, ae_cfg, integ_cfg, cfg["seed"])
+    point = train_point(traj, ae_cfg, integ_cfg, scene_seeds(cfg, args.scene)[0])
     print(f"{args.scene}, latent {args.latent}, {args.autoencoder} / {args.integrator}, {args.variant}: trained in "
           f"{point['train_seconds']:.0f} s")  # fmt: skip
     df = measure_point(point, sc["rollout"], stress=not args.no_stress)

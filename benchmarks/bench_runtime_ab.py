@@ -4,13 +4,14 @@ Loads the runtime package ``src/latentsim/runtime/`` as it was at ``--against`` 
 the layout by domain, ``src/latentsim/runtime.py`` and ``runtime_compiled.py``) beside the working
 tree's, its NumPy stepper (``--runtime numpy``, the default) or its compiled one (``--runtime compiled``),
 and times one whole latent step (integration + decoding to every vertex) of each scene's exported
-runtime (``<results>/rollout/<scene>/<method>/runtime.npz``, or the files given with ``--npz``)
+runtime (``<results>/rollout/<scene>/<method>/seed<k>/runtime.npz`` of seed ``--seed``, default 0, or the files
+given with ``--npz``)
 with both.  The two alternate in rounds, so that the shared machine's noise hits both alike; the
 figures are medians over the rounds of each round's median.  One thread, float32 networks, as the
 rollout stage times them.
 
     python benchmarks/bench_runtime_ab.py --against 068298f [--results results] [--scenes armadillo cloth]
-    python benchmarks/bench_runtime_ab.py --against HEAD~1 --rounds 7 --repeats 2000
+    python benchmarks/bench_runtime_ab.py --against HEAD~1 --rounds 7 --repeats 2000 [--seed 1]
     python benchmarks/bench_step_floor.py bunny_ears hair_rotation --export floors   # untrained floor networks
     python benchmarks/bench_runtime_ab.py --runtime compiled --against 9e32a90 --npz floors/*.npz
 
@@ -38,6 +39,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from latentsim import runtime as current  # noqa: E402
+from latentsim.config import seed_dir  # noqa: E402
 from latentsim.runtime import compiled as current_compiled  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -119,6 +121,7 @@ def main(argv=None) -> pd.DataFrame:
     ap.add_argument("--against", required=True, help="git revision whose runtime is the baseline")
     ap.add_argument("--results", default="results", help="the pipeline's results folder")
     ap.add_argument("--method", default="self_supervised")
+    ap.add_argument("--seed", type=int, default=0, help="the seed of the trained runtimes (default: %(default)s)")
     ap.add_argument("--scenes", nargs="*", help="default: every scene with a runtime file")
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--repeats", type=int, default=1000)
@@ -128,11 +131,11 @@ def main(argv=None) -> pd.DataFrame:
     if args.npz:
         files = {p.stem: p for p in args.npz}
     else:
-        base = Path(args.results) / "rollout"
-        scenes = args.scenes or sorted(p.parent.parent.name for p in base.glob(f"*/{args.method}/runtime.npz"))
+        base, seed = Path(args.results) / "rollout", seed_dir(args.seed)
+        scenes = args.scenes or sorted(p.parents[2].name for p in base.glob(f"*/{args.method}/{seed}/runtime.npz"))
         if not scenes:
-            raise SystemExit(f"no {base}/<scene>/{args.method}/runtime.npz: run the rollout stage first")
-        files = {scene: base / scene / args.method / "runtime.npz" for scene in scenes}
+            raise SystemExit(f"no {base}/<scene>/{args.method}/{seed}/runtime.npz: run the rollout stage first")
+        files = {scene: base / scene / args.method / seed / "runtime.npz" for scene in scenes}
     old, new = load_revision(args.against, kind=args.runtime), current_module(args.runtime)
     rows = []
     for scene, npz in files.items():

@@ -1,15 +1,16 @@
 """Render the looking-at-results figures from whatever results/ holds now.
 
-    python benchmarks/demo_plots.py [--scene cloth] [--out results/demo_plots]
+    python benchmarks/demo_plots.py [--scene cloth] [--seed 0] [--out results/demo_plots]
 
 For one scene (default cloth) with ``results/sim/{scene}/trajectories.h5``: ground
-truth against the rollout side by side at a few frames, a GIF clip, the
+truth against the rollouts of seed ``--seed`` (default 0; the methods no seed changes
+have one) side by side at a few frames, a GIF clip, the
 kinetic energy over time and an XDMF series of the rollout with its per-vertex
 error (open ``paraview/<scene>_<sequence>_<method>.xdmf`` in ParaView, then *Warp By Vector* on
 ``displacement``).  Across scenes, where the files exist: the speed-accuracy
 chart and a stability map from ``results/evaluation/summary.csv`` (every
-method against the full-space solver), and the training histories of
-``results/integrator/*/history.h5``.
+method against the full-space solver; the stability map of seed ``--seed``), and the
+training histories of ``results/integrator/*/*/seed{k}/history.h5``.
 Nothing here is part of the workflow; it shows what the functions draw.
 """
 
@@ -24,6 +25,7 @@ import h5py
 import numpy as np
 import pandas as pd
 
+from latentsim.config import seed_dir
 from latentsim.report import paraview, plots, render
 from latentsim.report.tables import speed_accuracy_rows, stability_table
 
@@ -36,23 +38,22 @@ def _frames_to_show(T: int, diverged: int, k=4) -> list[int]:
     return sorted(frames)
 
 
-def _rollouts(scene: str) -> dict:
-    """Method name -> rollout file: ``results/rollout/{scene}/{method}/rollout.h5`` (or the older
-    ``results/rollout/{scene}/rollout.h5``, named by its ``method`` attribute)."""
-    found = {p.parent.name: p for p in sorted(Path(f"results/rollout/{scene}").glob("*/rollout.h5"))}
-    old = Path(f"results/rollout/{scene}/rollout.h5")
-    if old.exists():
-        with h5py.File(old, "r") as f:
-            found[str(f.attrs.get("method", "latent"))] = old
+def _rollouts(scene: str, seed: int = 0) -> dict:
+    """Method name -> rollout file of ``seed``: ``results/rollout/{scene}/{method}/seed{k}/rollout.h5`` of a
+    method trained (or reducing with a model trained) per seed, ``results/rollout/{scene}/{method}/rollout.h5``
+    of one no seed changes."""
+    base = Path(f"results/rollout/{scene}")
+    found = {p.parent.name: p for p in sorted(base.glob("*/rollout.h5"))}
+    found.update({p.parents[1].name: p for p in sorted(base.glob(f"*/{seed_dir(seed)}/rollout.h5"))})
     return found
 
 
-def scene_figures(scene: str, out: Path) -> None:
+def scene_figures(scene: str, out: Path, seed: int = 0) -> None:
     truth = Path(f"results/sim/{scene}/trajectories.h5")
     if not truth.exists():
         print(f"skip {scene}: {truth} missing")
         return
-    methods = _rollouts(scene)
+    methods = _rollouts(scene, seed)
     with h5py.File(truth, "r") as f:
         common = [n for n, g in f["sequences"].items() if g.attrs.get("split") == "test"]
     for p in methods.values():
@@ -84,7 +85,7 @@ def scene_figures(scene: str, out: Path) -> None:
         print(f"{scene}/{seq}/{name}: XDMF series, {r['frames']} steps, fields {r['fields']}")
 
 
-def summary_figures(out: Path) -> None:
+def summary_figures(out: Path, seed: int = 0) -> None:
     table = Path("results/evaluation/summary.csv")
     if table.exists():
         df = pd.read_csv(table)
@@ -94,6 +95,7 @@ def summary_figures(out: Path) -> None:
         for scene in sorted(df["scene"].unique())[:1]:
             plots.speed_accuracy_chart(both, out / f"speed_accuracy_{scene}.png", scene=scene)
         st = stability_table(df)
+        st = st[st["seed"].isin([seed, -1])]  # one row per method and sequence: the seed's, or the method's only run
         stab = pd.DataFrame(
             {
                 "method": st["scene"] + " / " + st["method"],
@@ -104,10 +106,10 @@ def summary_figures(out: Path) -> None:
                 "diverged_frame": st["diverged_frame"],
             }
         )
-        plots.stability_heatmap(stab, out / "stability.png", title="test sequences: frames survived (BC: mean Dirichlet error)")
+        plots.stability_heatmap(stab, out / "stability.png", title=f"test sequences, seed {seed}: frames survived (BC: mean Dirichlet error)")
     root = Path("results/integrator")
-    files = sorted(root.glob("*/history.h5")) + sorted(root.glob("*/*/history.h5"))
-    histories = {str(p.parent.relative_to(root)): p for p in files}
+    files = sorted(root.glob(f"*/*/{seed_dir(seed)}/history.h5"))
+    histories = {str(p.parents[1].relative_to(root)): p for p in files}
     if histories:
         r = plots.training_curves(histories, out / "training_integrator.png", title="latent integrator training")
         print(f"training curves: {len(histories)} runs, y axis {r['yscale']}")
@@ -116,11 +118,12 @@ def summary_figures(out: Path) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", default="cloth")
+    ap.add_argument("--seed", type=int, default=0, help="whose trained models to show (default: %(default)s)")
     ap.add_argument("--out", default="results/demo_plots", type=Path)
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    scene_figures(args.scene, args.out)
-    summary_figures(args.out)
+    scene_figures(args.scene, args.out, args.seed)
+    summary_figures(args.out, args.seed)
     print(f"written to {args.out}/")
     return 0
 

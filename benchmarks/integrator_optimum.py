@@ -1,7 +1,8 @@
 """Where a latent integrator's one-step predictions sit against its loss's own optimum.
 
 For every frame t of a scene's test sequences, from the ground-truth latents of t-1 and t-2 (the
-autoencoder's encodings), compare three latents with the ground-truth latent z_t:
+autoencoder's encodings), compare three latents with the ground-truth latent z_t (the models of seed
+``--seed``, default 0: ``results/autoencoder/{scene}/seed{k}/``, ``results/integrator/{scene}/{method}/seed{k}/``):
 
 - each integrator's one-step prediction I(z_{t-1}, z_{t-2}, p_t, p_{t-1}, p_{t-2});
 - the minimiser of the self-supervised loss itself, the incremental potential of the decoded state
@@ -14,7 +15,7 @@ optimum (a fitting or generalisation error); a minimiser far from z_t means the 
 this decoder.
 
     python benchmarks/integrator_optimum.py hair_translation --methods self_supervised supervised_5x256 \\
-        --ranges 2 100 300     # run in a working directory whose results/ hold the scene's stages
+        --ranges 2 100 300 [--seed 1]     # run in a working directory whose results/ hold the scene's stages
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import h5py
 import torch
 
 from latentsim import latent
+from latentsim.config import seed_dir
 from latentsim.report.metrics import bbox_diagonal
 from latentsim.scene import potential_from_artefact
 from latentsim.latent import autoencoder_coordinates, load_sequences
@@ -36,12 +38,13 @@ def main(argv=None):
     ap.add_argument("scene")
     ap.add_argument("--results", default="results")
     ap.add_argument("--methods", nargs="+", default=["self_supervised"])
+    ap.add_argument("--seed", type=int, default=0, help="the seed of the trained models (default: %(default)s)")
     ap.add_argument("--ranges", nargs="+", type=int, default=[2, 100, 300], help="frame boundaries of the rows")
     ap.add_argument("--lbfgs-steps", type=int, default=5, help="L-BFGS steps (200 iterations each) for the minimiser")
     args = ap.parse_args(argv)
     torch.set_num_threads(2)
     res = Path(args.results)
-    ae_path = res / "autoencoder" / args.scene / "autoencoder.pt"
+    ae_path = res / "autoencoder" / args.scene / seed_dir(args.seed) / "autoencoder.pt"
     with h5py.File(res / "sim" / args.scene / "trajectories.h5", "r") as f:
         coords = autoencoder_coordinates(f, ae_path)
         test = load_sequences(f, "test")
@@ -60,7 +63,7 @@ def main(argv=None):
     latents = {}
     with torch.no_grad():
         for m in args.methods:
-            integ = latent.load_integrator(res / "integrator" / args.scene / m / "integrator.pt").double()
+            integ = latent.load_integrator(res / "integrator" / args.scene / m / seed_dir(args.seed) / "integrator.pt").double()
             latents[f"{m}, one step"] = integ(b["z_prev"], b["z_prev2"], b["p"], b["p_prev"], b["p_prev2"])
     z = b["z"].clone().requires_grad_(True)
     opt = torch.optim.LBFGS([z], max_iter=200, line_search_fn="strong_wolfe")

@@ -1,8 +1,9 @@
 """Reduced implicit Euler with every element against cubatures of several tolerances.
 
-    nice python benchmarks/reduced_cubature.py cantilever [--tolerances 0 0.1 0.03 0.01 0.003]
+    nice python benchmarks/reduced_cubature.py cantilever [--tolerances 0 0.1 0.03 0.01 0.003] [--seed 0]
 
-Needs the scene's full simulation and autoencoder (rules simulate, train_autoencoder).  For the PCA
+Needs the scene's full simulation and its autoencoder of seed ``--seed`` (default 0,
+``results/autoencoder/{scene}/seed{k}/autoencoder.pt``; rules simulate, train_autoencoder).  For the PCA
 subspace and the autoencoder's decoder (Fulton et al. 2019), fits a cubature of the elastic forces
 (latentsim.solve.cubature) at the projections of the training frames, as the pipeline's baselines do with
 ``reduced.cubature_tolerance``, and rolls the first test sequence out from its first two frames.
@@ -27,6 +28,7 @@ import numpy as np
 import torch
 
 from latentsim import latent
+from latentsim.config import seed_dir
 from latentsim.solve import reduced
 from latentsim.stages.baselines import fit_subspace_cubature, make_subspace
 from latentsim.solve.cubature import cubature_potential
@@ -44,6 +46,7 @@ def main():
     ap.add_argument("--tolerances", type=float, nargs="+", default=[0.0, 0.1, 0.03, 0.01, 0.003])
     ap.add_argument("--methods", nargs="+", default=["pca_reduced", "fulton_reduced"])
     ap.add_argument("--frames", type=int, default=0, help="first frames of the test sequence (0: all)")
+    ap.add_argument("--seed", type=int, default=0, help="the seed of the autoencoder (default: %(default)s)")
     args = ap.parse_args()
     torch.set_num_threads(1)
     with h5py.File(ROOT / "results" / "sim" / args.scene / "trajectories.h5", "r") as f:
@@ -53,7 +56,7 @@ def main():
         name = next(iter(tests))
         full = time_full_space(f, name)
         X = f["rest_positions"][()]
-    ae = latent.load_autoencoder(ROOT / "results" / "autoencoder" / args.scene / "autoencoder.pt")
+    ae = latent.load_autoencoder(ROOT / "results" / "autoencoder" / args.scene / seed_dir(args.seed) / "autoencoder.pt")
     seq = tests[name]
     T = args.frames or len(seq["positions"])
     ref, xD = seq["positions"][:T], seq["dirichlet_positions"][:T]

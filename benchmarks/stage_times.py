@@ -3,9 +3,10 @@
     python benchmarks/stage_times.py [results/benchmarks]
 
 Every rule that simulates, trains, rolls out, sweeps or evaluates writes
-``results/benchmarks/<stage>/<scene>[/<method or point>].tsv`` (Snakemake's ``benchmark:``: the
-job's wall seconds and CPU seconds); the Neural Modes rules write ``neural_modes/<scene>[_<job>].tsv``
-and are split back into their stages here.  Prints one Markdown row per stage: the number of jobs, the
+``results/benchmarks/<stage>/<scene>[/<method or point>][/seed<k>].tsv`` (Snakemake's ``benchmark:``:
+the job's wall seconds and CPU seconds; a learned stage writes one per seed, all counted under its
+scene); the Neural Modes rules write ``neural_modes/<scene>[_<job>].tsv`` and are split back into their
+stages here.  Prints one Markdown row per stage: the number of jobs, the
 wall seconds of each scene's jobs summed, and the stage total; then the grand total.  Jobs run two
 at a time on 2 cores, so the sum of job times exceeds the run's elapsed time.
 """

@@ -1,7 +1,7 @@
 """Step a trained latent model outside the pipeline: encode two frames, then step with the boundary conditions.
 
-The rollout stage leaves the trained model of each scene and method, folded into plain arrays, in
-``results/rollout/{scene}/{method}/runtime.npz`` (and the same step as a ``torch.export`` program,
+The rollout stage leaves the trained model of each scene, method and seed, folded into plain arrays, in
+``results/rollout/{scene}/{method}/seed{k}/runtime.npz`` (and the same step as a ``torch.export`` program,
 ``runtime.pt``).  This script loads it with ``latentsim.runtime.load`` (NumPy only: no training
 code), encodes the first two full-space frames of a test sequence of the scene's
 ``trajectories.h5``, steps the remaining frames with that sequence's boundary-condition parameters
@@ -9,7 +9,7 @@ and Dirichlet positions, and prints the error against the simulated frames and t
 then it steps the same frames with the ``torch.export`` program.
 
     python examples/step_trained_model.py                      # the tiny run's tiny_rods, from the workflow directory
-    python examples/step_trained_model.py results/rollout/cantilever/self_supervised \\
+    python examples/step_trained_model.py results/rollout/cantilever/self_supervised/seed0 \\
         --trajectories results/sim/cantilever/trajectories.h5 --frames 50
 """
 
@@ -82,7 +82,7 @@ def vertex_error(x: np.ndarray, reference: np.ndarray, diagonal: float) -> tuple
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter,
                                      epilog=__doc__.split("\n\n", 1)[1])  # fmt: skip
-    parser.add_argument("rollout", nargs="?", default="results/rollout/tiny_rods/self_supervised",
+    parser.add_argument("rollout", nargs="?", default="results/rollout/tiny_rods/self_supervised/seed0",
                         help="a rollout folder holding runtime.npz (and runtime.pt), or the runtime.npz (default: %(default)s)")  # fmt: skip
     parser.add_argument("--trajectories", default="results/sim/tiny_rods/trajectories.h5", help="the scene's simulated sequences (default: %(default)s)")
     parser.add_argument("--sequence", help="the sequence to step (default: the first test sequence)")

@@ -1,10 +1,10 @@
 """Deployable latent runtime: encode and step a trained model of Li et al. 2025 without the training code.
 
 A user's entry point is :func:`load` (:mod:`~latentsim.runtime.model`): the rollout stage leaves each
-trained model as ``results/rollout/{scene}/{method}/runtime.npz``, and::
+trained model as ``results/rollout/{scene}/{method}/seed{k}/runtime.npz`` (one per seed), and::
 
     from latentsim import runtime
-    model = runtime.load("results/rollout/tiny_rods/self_supervised")   # a TrainedModel
+    model = runtime.load("results/rollout/tiny_rods/self_supervised/seed0")   # a TrainedModel
     model.encode(x0, x1, xD[:2], p[:2])     # two frames' positions (n, 3), Dirichlet positions, parameters (2, k)
     x2 = model.step(p[2], xD[2])            # the next frame's positions (n, 3), float64
     x3 = model.step(p[3], xD[3])            # ...

@@ -1,11 +1,11 @@
 """A trained model as a user steps it: encode two full-space frames, then step frame after frame.
 
-:func:`load` reads a rollout folder's ``runtime.npz`` (``results/rollout/{scene}/{method}/``)
+:func:`load` reads a rollout folder's ``runtime.npz`` (``results/rollout/{scene}/{method}/seed{k}/``)
 into a :class:`TrainedModel`, which keeps the latent state that a
 :class:`latentsim.runtime.Stepper` takes as arguments (the two previous latents and boundary
 parameters) and speaks in full-space positions::
 
-    model = latentsim.runtime.load("results/rollout/tiny_rods/self_supervised")
+    model = latentsim.runtime.load("results/rollout/tiny_rods/self_supervised/seed0")
     model.encode(x0, x1, xD[:2], p[:2])          # frames 0 and 1: (n, 3) each
     for t in range(2, T):
         x = model.step(p[t], xD[t])               # frame t: (n, 3) float64
@@ -38,7 +38,7 @@ def load(path, dtype=np.float32) -> TrainedModel:
 
     Parameters
     ----------
-    path : ``results/rollout/{scene}/{method}/`` or the ``runtime.npz`` in it.
+    path : ``results/rollout/{scene}/{method}/seed{k}/`` or the ``runtime.npz`` in it.
     dtype : the networks' dtype, ``np.float32`` (default, as trained) or ``np.float64``.
 
     Steps with :class:`latentsim.runtime.NumpyStepper`; for one numba kernel call per frame,
@@ -48,7 +48,7 @@ def load(path, dtype=np.float32) -> TrainedModel:
     if os.path.isdir(path):
         path = os.path.join(path, RUNTIME_FILE)
     if not os.path.isfile(path):
-        raise FileNotFoundError(f"{path}: no such runtime file (the rollout stage writes results/rollout/<scene>/<method>/{RUNTIME_FILE})")
+        raise FileNotFoundError(f"{path}: no such runtime file (the rollout stage writes results/rollout/<scene>/<method>/seed<k>/{RUNTIME_FILE})")
     if not path.endswith(".npz"):
         raise ValueError(f"{path}: a runtime is a .npz file (a .pt/.pt2 torch.export program is the step alone: torch.export.load(path).module())")
     return TrainedModel(NumpyStepper(read_runtime(path), dtype, source=path))
