@@ -11,6 +11,7 @@ wall seconds of each scene's jobs summed, and the stage total; then the grand to
 at a time on 2 cores, so the sum of job times exceeds the run's elapsed time.
 """
 
+import re
 import sys
 from collections import defaultdict
 from pathlib import Path
@@ -18,7 +19,7 @@ from pathlib import Path
 import pandas as pd
 
 
-# Neural Modes benchmark names, neural_modes/<scene>[_<study>]<suffix>.tsv, by suffix (nm_train has none).
+# Neural Modes benchmark names, neural_modes/<scene>[_<study>]<suffix>[_seed<k>].tsv, by suffix (nm_train has none).
 NM_SUFFIXES = {
     "_dynamics": "nm_dynamics",
     "_energy_table": "nm_energy_table",
@@ -38,6 +39,7 @@ def split_stage(parts) -> tuple[str, str]:
         return stage, ACROSS
     if stage != "neural_modes" or len(parts) != 2:
         return stage, scene
+    scene = re.sub(r"_seed\d+$", "", scene)  # a study run once per seed: <scene>_<job>_seed<k>
     for suffix, nm_stage in NM_SUFFIXES.items():
         if scene.endswith(suffix):
             scene = scene[: -len(suffix)]

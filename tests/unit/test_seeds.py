@@ -173,3 +173,29 @@ def test_seeds_in_the_config():
         c["seeds"] = bad
         with pytest.raises(ConfigError, match=f"config key '{where}'"):
             validate_config(c)
+
+
+def test_sheet_tables_over_seeds_are_medians_with_the_headline_errors_spread():
+    """The Neural Modes sheet study's tables of three seeds: each number the median, the paper's columns as
+    they were, the headline error with its least and largest; one seed stays as it is."""
+    from latentsim.neural_modes.sheet_tables import tables_over_seeds
+
+    def one(errors, epoch):
+        t2 = pd.DataFrame({"method": ["Neural Modes (grid)", "L2 Supervised"], "stopping": ["last epoch", "validation L2"],
+                           "epoch": [50, epoch], "test_dE_avg": errors, "test_dE_avg_paper": [245.0, 2074.0]})  # fmt: skip
+        return {"table2": t2, "correlation": pd.DataFrame({"method": ["L2 Supervised"], "eigenvalues": [f"{epoch} 1"], "min": [epoch / 100]})}
+
+    seeds = [one([600.0, 3000.0], 40), one([700.0, 2000.0], 90), one([650.0, 9000.0], 10)]
+    t = tables_over_seeds(seeds, [0, 1, 2])
+    t2 = t["table2"].set_index("method")
+    assert list(t["table2"].columns[:2]) == ["method", "seeds"] and (t2["seeds"] == 3).all()
+    assert t2.loc["L2 Supervised", ["test_dE_avg", "test_dE_avg_min", "test_dE_avg_max"]].tolist() == [3000.0, 2000.0, 9000.0]
+    assert t2.loc["Neural Modes (grid)", "test_dE_avg"] == 650.0 and t2.loc["L2 Supervised", "epoch"] == 40.0
+    assert t2["test_dE_avg_paper"].tolist() == [245.0, 2074.0] and t2.loc["L2 Supervised", "stopping"] == "validation L2"
+    assert t["correlation"].loc[0, "eigenvalues"] == "40 1" and t["correlation"].loc[0, "min_max"] == 0.9
+    alone = tables_over_seeds(seeds[:1], [0])["table2"]
+    assert "test_dE_avg_min" not in alone and alone["test_dE_avg"].tolist() == [600.0, 3000.0]
+    bad = one([1.0, 2.0], 3)
+    bad["table2"] = bad["table2"].iloc[::-1]
+    with pytest.raises(ValueError, match="seed 1 has the methods"):
+        tables_over_seeds([seeds[0], bad], [0, 1])

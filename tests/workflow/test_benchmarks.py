@@ -25,7 +25,8 @@ def test_stage_times_put_every_benchmark_file_under_its_stage_and_scene(tmp_path
         "neural_modes/nm_armadillo_energy_table.tsv": (500.0, 495.0),
         "neural_modes/nm_armadillo_dynamics.tsv": (120.0, 118.0),
         "neural_modes/nm_sheet_sheet_ground_truth.tsv": (300.0, 299.0),
-        "neural_modes/nm_sheet_sheet_study.tsv": (400.0, 398.0),
+        "neural_modes/nm_sheet_sheet_study_seed0.tsv": (400.0, 398.0),
+        "neural_modes/nm_sheet_sheet_study_seed1.tsv": (410.0, 400.0),
         "neural_modes/nm_sheet_aspect_ratio.tsv": (450.0, 449.0),
         "summary/summary.tsv": (6.0, 5.0),
     }
@@ -42,6 +43,7 @@ def test_stage_times_put_every_benchmark_file_under_its_stage_and_scene(tmp_path
     ])  # fmt: skip
     assert df.loc[("integrator", "hair_rotation")].tolist() == [2, 150.0, 130.0]
     assert df.loc[("nm_ground_truth", "nm_armadillo"), "wall_s"] == 2000.0
+    assert df.loc[("nm_sheet_study", "nm_sheet")].tolist() == [2, 810.0, 798.0]  # one job per seed
 
 
 def test_runtime_ab_times_a_revisions_runtime_beside_the_working_trees(tmp_path):
