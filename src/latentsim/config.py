@@ -310,9 +310,12 @@ def autoencoder_settings(config: dict, scene: str, method: str = "self_supervise
 
 
 def scene_seeds(config: dict, scene: str) -> list[int]:
-    """The seeds a scene's learned methods run with: its own ``seeds``, else the config's."""
+    """The seeds a scene's learned methods run with: its own ``seeds``, else the config's; the first
+    ``max_seeds`` of them where the config caps them."""
     own = config["scenes"][scene].get("seeds")
-    return [int(s) for s in (own if own is not None else config["seeds"])]
+    seeds = [int(s) for s in (own if own is not None else config["seeds"])]
+    cap = config.get("max_seeds")
+    return seeds if cap is None else seeds[: int(cap)]
 
 
 def seed_dir(seed: int) -> str:

@@ -158,6 +158,7 @@ def test_seeds_in_the_config():
     cfg = yaml.safe_load((ROOT / "config" / "tiny.yaml").read_text())
     validate_config(cfg)
     assert scene_seeds(cfg, "tiny_rods") == [0, 1] and scene_seeds(cfg, "tiny_cloth") == [0]
+    assert scene_seeds(validate_config({**cfg, "max_seeds": 1}), "tiny_rods") == [0]  # --config max_seeds=1: one seed everywhere
     old = yaml.safe_load((ROOT / "config" / "tiny.yaml").read_text())
     old["seed"] = 3
     del old["seeds"]
