@@ -342,6 +342,21 @@ def sweep_point_settings(config: dict, scene: str, latent_dim: int, size_index: 
     }
 
 
+def sweep_point_method(config: dict, scene: str, latent_dim: int, size_index: int) -> str | None:
+    """The scene's method (its own integrator or a variant) whose trained model is exactly this sweep
+    point: the same autoencoder and integrator settings once the schema's defaults fill them in.  Its
+    autoencoder and integrator, trained with the same seed, are the point's to the bit on the CPU, so the
+    point measures them instead of training them again.  None when no method matches."""
+    point = sweep_point_settings(config, scene, latent_dim, size_index)
+    want = (with_defaults("autoencoder", point["autoencoder"], "sweep_point_method"), with_defaults("integrator", point["integrator"], "sweep_point_method"))
+    for method in scene_methods(config, scene):
+        have = (with_defaults("autoencoder", autoencoder_settings(config, scene, method), "sweep_point_method"),
+                with_defaults("integrator", integrator_settings(config, scene, method), "sweep_point_method"))  # fmt: skip
+        if have == want:
+            return method
+    return None
+
+
 def scene_methods(config: dict, scene: str) -> list[str]:
     """Latent-integrator methods trained for a scene: its own, then its variants."""
     return ["self_supervised"] + list(config["scenes"][scene].get("variants", []))

@@ -14,6 +14,7 @@ from latentsim.config import (
     integrator_settings,
     load_config,
     schema_defaults,
+    sweep_point_method,
     sweep_point_settings,
     validate_config,
     with_defaults,
@@ -113,16 +114,32 @@ def test_unknown_key_of_a_variants_autoencoder_is_named(tiny):
 def test_a_sweep_trains_its_points_with_the_method_it_names(tiny):
     cfg = validate_config(copy.deepcopy(tiny))
     own = sweep_point_settings(cfg, "tiny_cloth", 2, 0)
-    assert own["integrator"] == dict(cfg["scenes"]["tiny_cloth"]["integrator"], widths=[16, 16])
-    assert own["autoencoder"] == dict(cfg["scenes"]["tiny_cloth"]["autoencoder"], latent_dim=2, widths=[16, 16])
+    assert own["integrator"] == dict(cfg["scenes"]["tiny_cloth"]["integrator"], widths=[32, 32])
+    assert own["autoencoder"] == dict(cfg["scenes"]["tiny_cloth"]["autoencoder"], latent_dim=2, widths=[32, 32])
     tiny["integrator_variants"]["hybrid"] = {"supervised_weight": 3.0, "widths": [99], "autoencoder": {"latent_dim": 7, "epochs": 11}}
     tiny["scenes"]["tiny_cloth"]["variants"] = ["hybrid"]
     tiny["scenes"]["tiny_cloth"]["sweep"]["method"] = "hybrid"
     cfg = validate_config(tiny)
     point = sweep_point_settings(cfg, "tiny_cloth", 2, 0)
     # the variant's loss and settings, the point's latent size and widths
-    assert point["integrator"]["supervised_weight"] == 3.0 and point["integrator"]["widths"] == [16, 16]
-    assert point["autoencoder"]["epochs"] == 11 and point["autoencoder"]["latent_dim"] == 2 and point["autoencoder"]["widths"] == [16, 16]
+    assert point["integrator"]["supervised_weight"] == 3.0 and point["integrator"]["widths"] == [32, 32]
+    assert point["autoencoder"]["epochs"] == 11 and point["autoencoder"]["latent_dim"] == 2 and point["autoencoder"]["widths"] == [32, 32]
+
+
+def test_a_sweep_point_is_a_trained_method_only_where_every_setting_matches(tiny):
+    cfg = validate_config(copy.deepcopy(tiny))
+    assert sweep_point_method(cfg, "tiny_cloth", 4, 0) == "self_supervised"  # the scene's latent 4 at its own widths
+    assert sweep_point_method(cfg, "tiny_cloth", 2, 0) is None  # another latent size
+    tiny["scenes"]["tiny_cloth"]["sweep"]["sizes"] = [{"autoencoder": [32, 32], "integrator": [32]}]
+    assert sweep_point_method(validate_config(copy.deepcopy(tiny)), "tiny_cloth", 4, 0) is None  # other integrator widths
+    # a variant with its own autoencoder of the point's size, trained with the sweep's loss: the point is the variant
+    tiny["integrator_variants"]["small"] = {"widths": [32], "autoencoder": {"latent_dim": 2}}
+    tiny["scenes"]["tiny_cloth"]["variants"] = ["small"]
+    cfg = validate_config(copy.deepcopy(tiny))
+    assert sweep_point_method(cfg, "tiny_cloth", 2, 0) == "small"
+    tiny["scenes"]["tiny_cloth"]["integrator"]["lr"] = 2.0e-3  # now the sweep's loss differs from the variant's settings
+    tiny["integrator_variants"]["small"]["lr"] = 1.0e-3
+    assert sweep_point_method(validate_config(tiny), "tiny_cloth", 2, 0) is None
 
 
 def test_a_sweep_method_the_scene_does_not_run_is_named(tiny):

@@ -204,6 +204,36 @@ def test_tiny_run_writes_tables_and_figures(tiny_run):
     assert "Model size per scene" in (work / "results/evaluation/summary.md").read_text()
 
 
+def test_a_sweep_point_that_is_the_scenes_model_measures_it_instead_of_training_it_again(tiny_run):
+    """tiny_cloth's latent-4 point has the scene's own settings: its job measures the pipeline's trained model
+    (its training time is the two files' own), and training the point afresh, one thread as a job runs,
+    gives that model to the bit, so nothing the sweep reports changes."""
+    import pandas as pd
+
+    from latentsim.config import sweep_point_settings
+    from latentsim.latent.serialization import load_autoencoder, load_extra, load_integrator
+    from latentsim.latent.sweep import train_point
+
+    work = tiny_run[0]
+    cfg = validate_config(yaml.safe_load(TINY.read_text()))
+    ae_path = work / "results/autoencoder/tiny_cloth/seed0/autoencoder.pt"
+    integ_path = work / "results/integrator/tiny_cloth/self_supervised/seed0/integrator.pt"
+    reused = pd.read_csv(work / "results/sweep/tiny_cloth/r4_s0/seed0/metrics.csv")
+    assert np.allclose(reused["train_seconds"], load_extra(ae_path)["train_seconds"] + load_extra(integ_path)["train_seconds"])
+    trained = pd.read_csv(work / "results/sweep/tiny_cloth/r2_s0/seed0/metrics.csv")
+    assert (trained["train_seconds"] > 0).all()
+    point = sweep_point_settings(cfg, "tiny_cloth", 4, 0)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        fresh = train_point(work / "results/sim/tiny_cloth/trajectories.h5", point["autoencoder"], point["integrator"], seed=0)
+    finally:
+        torch.set_num_threads(threads)
+    for model, stored in ((fresh["ae"], load_autoencoder(ae_path)), (fresh["integrator"], load_integrator(integ_path))):
+        a, b = model.state_dict(), stored.state_dict()
+        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
 def test_reduced_baselines_step_with_a_cubature(tiny_run):
     """tiny_cloth asks for a 1% cubature: the PCA, linear-modes and Fulton rollouts record one that
     fits and leaves out most elements, and still finish their test sequence."""

@@ -19,6 +19,7 @@ from latentsim.config import (
     scene_seeds,
     seed_dir,
     sweep_point_settings,
+    sweep_point_method,
     validate_config,
 )
 
@@ -168,6 +169,21 @@ def sweep_params(wildcards):
             "device": config["device"],
         }
     )
+
+
+def sweep_point_models(wildcards):
+    """Input function: the autoencoder and integrator of the scene's method that is exactly this sweep point
+    (same settings, same seed), which the point measures instead of training again; none when no method is.
+    """
+    r, i = parse_label(wildcards.point)
+    method = sweep_point_method(config, wildcards.scene, r, i)
+    if method is None:
+        return {}
+    seed = int(wildcards.seed)
+    return {
+        "autoencoder": f"{autoencoder_dir(config, wildcards.scene, method, seed)}/autoencoder.pt",
+        "integrator": f"results/integrator/{wildcards.scene}/{method}/{seed_dir(seed)}/integrator.pt",
+    }
 
 
 def sweep_tolerance(wildcards):

@@ -1,6 +1,8 @@
 # Sizing sweep, one point and seed: train the autoencoder and integrator at one latent dimension and size, roll out, measure.
+# A point that is exactly one of the scene's methods (same settings and seed) measures that method's trained model instead.
 rule sweep_point:
     input:
+        unpack(sweep_point_models),
         trajectories="results/sim/{scene}/trajectories.h5",
     output:
         metrics="results/sweep/{scene}/{point}/seed{seed}/metrics.csv",

@@ -33,6 +33,7 @@ from latentsim.latent.autoencoder import encode_positions, fit_autoencoder
 from latentsim.latent.coordinates import coordinates_for
 from latentsim.latent.data import load_sequences
 from latentsim.latent.rollout import rollout as latent_rollout
+from latentsim.latent.serialization import autoencoder_coordinates, load_autoencoder, load_extra, load_integrator
 from latentsim.latent.stability import stress_test
 from latentsim.latent.timing import time_steppers
 from latentsim.latent.training import fit_integrator
@@ -67,7 +68,7 @@ def parameter_count(module: torch.nn.Module) -> int:
 
 
 def sweep_point(trajectories, autoencoder: dict, integrator: dict, rollout: dict, seed: int, out_csv, device="cpu",
-                stress: bool = True) -> pd.DataFrame:  # fmt: skip
+                stress: bool = True, trained: tuple | None = None) -> pd.DataFrame:  # fmt: skip
     """Train, roll out and measure one model size; one CSV row per test sequence.
 
     Parameters
@@ -82,11 +83,35 @@ def sweep_point(trajectories, autoencoder: dict, integrator: dict, rollout: dict
         gets ``stress_conditions`` (how many ran), ``stress_failed`` (how many
         the model did not survive) and ``stress_failures`` (``name@frame``).
     seed : the seed of every stochastic step of the training, in the rows' ``seed`` column.
+    trained : (autoencoder path, integrator path) of the scene's method that is this point, trained with
+        these settings and ``seed`` (:func:`latentsim.config.sweep_point_method`): measured, not trained
+        again (:func:`trained_point`).
     """
-    point = train_point(trajectories, autoencoder, integrator, seed, device=device)
+    point = trained_point(trajectories, *trained) if trained else train_point(trajectories, autoencoder, integrator, seed, device=device)
     df = measure_point(point, rollout, stress=stress).assign(seed=int(seed))
     write_table(df, out_csv)
     return df
+
+
+def trained_point(trajectories, autoencoder_path, integrator_path) -> dict:
+    """A sweep point whose model the pipeline has already trained (a method of the scene with exactly the
+    point's settings and seed, :func:`latentsim.config.sweep_point_method`): that autoencoder and
+    integrator, loaded, as :func:`train_point` returns a point; ``train_seconds`` is the two trainings' time
+    as their files record it."""
+    with open_artefact(trajectories) as f:
+        coords = autoencoder_coordinates(f, autoencoder_path)
+        scene = _scene_data(f)
+    ae, integ = load_autoencoder(autoencoder_path), load_integrator(integrator_path)
+    seconds = sum(float(load_extra(p).get("train_seconds", np.nan)) for p in (autoencoder_path, integrator_path))
+    return dict(ae=ae, integrator=integ, coords=coords, **scene, train_seconds=seconds, latent_dim=int(ae.hparams["latent_dim"]),
+                autoencoder_widths=list(ae.hparams["widths"]), integrator_widths=list(integ.hparams["widths"]))  # fmt: skip
+
+
+def _scene_data(f) -> dict:
+    """What a point needs of the open trajectories file ``f`` besides its model: the ``train`` and ``tests``
+    sequences, ``rest`` positions, ``dirichlet`` indices and ``dt``."""
+    return dict(train=load_sequences(f, "train"), tests=load_sequences(f, "test"), rest=f["rest_positions"][()], dirichlet=f["dirichlet"][()],
+                dt=float(f.attrs["dt"]))  # fmt: skip
 
 
 def train_point(trajectories, autoencoder: dict, integrator: dict, seed: int, device="cpu") -> dict:
@@ -101,18 +126,15 @@ def train_point(trajectories, autoencoder: dict, integrator: dict, seed: int, de
     int_cfg = with_defaults("integrator", integrator, "train_point")
     with open_artefact(trajectories) as f:
         coords = coordinates_for(f, ae_cfg["coordinates"])
-        train = load_sequences(f, "train")
-        tests = load_sequences(f, "test")
+        scene = _scene_data(f)
         potential = potential_from_artefact(f)
-        rest = f["rest_positions"][()]
-        dirichlet, dt = f["dirichlet"][()], float(f.attrs["dt"])
+    train = scene["train"]
     U = torch.cat([coords.encode(torch.as_tensor(s["positions"]), torch.as_tensor(s["dirichlet_positions"])) for s in train.values()])
     t0 = time.perf_counter()
     ae, _ = fit_autoencoder(U.to(torch.float32), ae_cfg, seed=seed, device=device)
     ae = ae.cpu().eval()
     integ, _ = fit_integrator(ae, coords, potential, list(train.values()), int_cfg, seed=seed, device=device)
-    return dict(ae=ae, integrator=integ.cpu().eval(), coords=coords, train=train, tests=tests, rest=rest, dirichlet=dirichlet, dt=dt,
-                train_seconds=time.perf_counter() - t0, latent_dim=int(ae_cfg["latent_dim"]),
+    return dict(ae=ae, integrator=integ.cpu().eval(), coords=coords, **scene, train_seconds=time.perf_counter() - t0, latent_dim=int(ae_cfg["latent_dim"]),
                 autoencoder_widths=list(ae_cfg["widths"]), integrator_widths=list(int_cfg["widths"]))  # fmt: skip
 
 
