@@ -154,6 +154,39 @@ def test_the_sweep_chooses_the_smallest_model_that_meets_the_tolerance_in_every_
     assert (tmp_path / "sweep.png").stat().st_size > 1000
 
 
+def test_pruning_a_points_later_seeds_leaves_the_choice_as_it_is_with_every_seed_trained(tmp_path):
+    """Seeds run in order: a point that failed a seed (pass_fraction 1), or two of three (pass_fraction 1/3 needs
+    one pass), trains no further seed; the choice over the pruned rows is the one over every seed trained, for
+    every pass_fraction, and the chart says so."""
+    from latentsim.latent.sweep import prune_reason, pruned_row
+
+    full = _sweep_rows({(2, 100): {0: 0.030, 1: 0.020, 2: 0.007}, (4, 200): {0: 0.006, 1: 0.007, 2: 0.009},
+                        (8, 300): {0: 0.004, 1: 0.020, 2: 0.003}})  # fmt: skip
+    for fraction in (1.0, 2 / 3, 1 / 3):
+        rows = []
+        for (r, _), point in full.groupby(["latent_dim", "parameters"]):
+            for seed in (0, 1, 2):
+                earlier = pd.concat(rows + [point.iloc[:0]])
+                earlier = earlier[earlier["latent_dim"] == r]
+                reason = prune_reason(earlier, 0.01, fraction, 3) if len(earlier) else None
+                rows.append(pruned_row(earlier, seed, reason) if reason else point[point["seed"] == seed])
+        pruned = pd.concat(rows, ignore_index=True)
+        cols = ["latent_dim", "seeds", "passes", "chosen"]
+        want, got = choose(full, 0.01, fraction)[cols], choose(pruned, 0.01, fraction)[cols]
+        assert want.equals(got), (fraction, want, got)
+        n_pruned = int(pruned["pruned"].fillna(False).astype(bool).sum()) if "pruned" in pruned else 0
+        assert n_pruned == {1.0: 3, 2 / 3: 1, 1 / 3: 0}[fraction]  # latent 2 fails seeds 0 and 1; latent 8 seed 1
+    assert prune_reason(full[(full["latent_dim"] == 2) & (full["seed"] == 0)], 0.01, 1.0, 3).startswith("failed in 1")
+    assert prune_reason(full[(full["latent_dim"] == 4) & (full["seed"] < 2)], 0.01, 1.0, 3) is None  # passed both: the last seed runs
+    first = full[(full["latent_dim"] == 2) & (full["seed"] == 0)]
+    table = choose(pd.concat([full[full["latent_dim"] > 2], first, pruned_row(first, 1, "x")]), 0.01).set_index("latent_dim")
+    assert table.loc[2, "seeds_pruned"] == 1 and table.loc[2, "seeds"] == 2 and table.loc[2, "mean_error"] == pytest.approx(0.030)
+    assert table.loc[4, "seeds_pruned"] == 0 and table.loc[4, "seeds"] == 3
+    table = table.reset_index()
+    sweep_chart(table.assign(method="self_supervised"), 0.01, "a", tmp_path / "sweep.png")
+    assert (tmp_path / "sweep.png").stat().st_size > 1000
+
+
 def test_seeds_in_the_config():
     cfg = yaml.safe_load((ROOT / "config" / "tiny.yaml").read_text())
     validate_config(cfg)

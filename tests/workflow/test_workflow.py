@@ -234,6 +234,38 @@ def test_a_sweep_point_that_is_the_scenes_model_measures_it_instead_of_training_
         assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
 
+def test_a_sweep_trains_a_points_second_seed_only_where_its_first_leaves_it_a_chance(tiny_run, tmp_path):
+    """tiny_cloth with seeds [0, 1], in a copy of the tiny run, the sweep alone: each point's seed 1 runs after
+    its seed 0 and is pruned exactly where seed 0 failed (pass_fraction 1); the choice counts both seeds."""
+    import shutil
+
+    import pandas as pd
+
+    from latentsim.latent.sweep import _normalised, _per_seed
+
+    work = tmp_path / "latentsim"
+    shutil.copytree(tiny_run[0], work, symlinks=True)
+    shared = ROOT.parent / "shared"
+    if shared.is_dir():
+        (tmp_path / "shared").symlink_to(shared.resolve(), target_is_directory=True)
+    cfg = yaml.safe_load(TINY.read_text())
+    cfg["scenes"]["tiny_cloth"]["seeds"] = [0, 1]
+    edited = tmp_path / "edited.yaml"
+    edited.write_text(yaml.safe_dump(cfg))
+    snakemake("--cores", "2", "results/sweep/tiny_cloth/choice.csv", "--configfile", str(edited), "--directory", str(work), "--config", "progress=False")
+    tolerance = cfg["scenes"]["tiny_cloth"]["sweep"]["tolerance"]
+    choice = pd.read_csv(work / "results/sweep/tiny_cloth/choice.csv")
+    assert (choice["seeds"] == 2).all()
+    for point in ("r2_s0", "r4_s0"):
+        first = pd.read_csv(work / f"results/sweep/tiny_cloth/{point}/seed0/metrics.csv")
+        second = pd.read_csv(work / f"results/sweep/tiny_cloth/{point}/seed1/metrics.csv")
+        passed = bool(_per_seed(_normalised(first), tolerance)["passes"].iloc[0])
+        pruned = bool(second["pruned"].iloc[0]) if "pruned" in second else False
+        assert pruned == (not passed), (point, passed, second)
+        assert pruned or (second["seed"] == 1).all() and np.isfinite(second["mean_error"]).all()
+    assert (choice["seeds_pruned"] == (~choice["seeds_passing"].astype(bool)).astype(int)).all()
+
+
 def test_reduced_baselines_step_with_a_cubature(tiny_run):
     """tiny_cloth asks for a 1% cubature: the PCA, linear-modes and Fulton rollouts record one that
     fits and leaves out most elements, and still finish their test sequence."""
@@ -696,7 +728,9 @@ def test_same_seed_gives_identical_artefacts(tiny_run, tmp_path):
 # wrote them: `python -m latentsim.fingerprint record RESULTS tests/workflow/data/tiny_reference.json`.
 # Re-recorded when seeds became a pipeline dimension (the per-seed paths, tiny_rods' second seed, the
 # tables' seed columns); every seed-0 file that is not a table was first checked equal to the old
-# reference to the bit.  Re-record it (and say so in the commit) when a change is meant to change results.
+# reference to the bit.  Re-recorded again when tiny_cloth's sweep moved to the scene's own widths (its points' rows
+# and the sizes table changed; every other file not derived from linear modes was equal to the bit).  Re-record it
+# (and say so in the commit) when a change is meant to change results.
 REFERENCE = ROOT / "tests" / "workflow" / "data" / "tiny_reference.json"
 
 

@@ -186,6 +186,36 @@ def sweep_point_models(wildcards):
     }
 
 
+def earlier_seeds(wildcards):
+    """The seeds of the scene that run before this one (none for the first, or with ``sweep.prune`` off)."""
+    seeds = scene_seeds(config, wildcards.scene)
+    if not config["scenes"][wildcards.scene]["sweep"]["prune"]:
+        return []
+    return seeds[: seeds.index(int(wildcards.seed))]
+
+
+def sweep_earlier_metrics(wildcards):
+    """Input function: the point's metrics of the seeds run before this one, which may decide that it cannot
+    pass (then this seed is not trained)."""
+    return [
+        f"results/sweep/{wildcards.scene}/{wildcards.point}/{seed_dir(s)}/metrics.csv"
+        for s in earlier_seeds(wildcards)
+    ]
+
+
+def sweep_prune_params(wildcards):
+    """Params: what decides whether the point's earlier seeds leave it a chance to pass; none for a seed
+    that runs whatever the others measured."""
+    if not earlier_seeds(wildcards):
+        return {}
+    sw = config["scenes"][wildcards.scene]["sweep"]
+    return {
+        "tolerance": sw["tolerance"],
+        "pass_fraction": sw["pass_fraction"],
+        "seeds": len(scene_seeds(config, wildcards.scene)),
+    }
+
+
 def sweep_tolerance(wildcards):
     return config["scenes"][wildcards.scene]["sweep"]["tolerance"]
 

@@ -1,9 +1,11 @@
 # Sizing sweep, one point and seed: train the autoencoder and integrator at one latent dimension and size, roll out, measure.
-# A point that is exactly one of the scene's methods (same settings and seed) measures that method's trained model instead.
+# A point that is exactly one of the scene's methods (same settings and seed) measures that method's trained model instead;
+# a point's seeds run in order, and a seed is not trained once the earlier ones decide that the point cannot pass.
 rule sweep_point:
     input:
         unpack(sweep_point_models),
         trajectories="results/sim/{scene}/trajectories.h5",
+        earlier=sweep_earlier_metrics,
     output:
         metrics="results/sweep/{scene}/{point}/seed{seed}/metrics.csv",
     log:
@@ -19,6 +21,7 @@ rule sweep_point:
         gpu=gpu_count,
     params:
         point=sweep_params,
+        prune=sweep_prune_params,
     script:
         "../scripts/sweep_point.py"
 

@@ -14,11 +14,15 @@ picks the smallest model (fewest parameters) whose mean vertex error stays
 within the scene's tolerance on every test sequence without diverging, and
 that survives every stress condition, in every seed it was trained with (or in
 the config's ``sweep.pass_fraction`` of them): one lucky training run does not
-choose a model.
+choose a model.  A point's seeds run one after another, and once the seeds measured
+already decide that the point cannot pass, the rest are not trained
+(:func:`prune_reason`; ``sweep.prune``): they are written as ``pruned`` rows, and the
+choice is the same as with every seed trained.
 """
 
 from __future__ import annotations
 
+import logging
 import time
 
 import matplotlib.pyplot as plt
@@ -42,6 +46,8 @@ from latentsim.report.tables import write_table
 from latentsim.report.plots import save_figure
 from latentsim.runtime import compiled as runtime_compiled
 from latentsim.scene import potential_from_artefact
+
+log = logging.getLogger(__name__)
 
 
 def point_label(latent_dim: int, size: int) -> str:
@@ -68,7 +74,7 @@ def parameter_count(module: torch.nn.Module) -> int:
 
 
 def sweep_point(trajectories, autoencoder: dict, integrator: dict, rollout: dict, seed: int, out_csv, device="cpu",
-                stress: bool = True, trained: tuple | None = None) -> pd.DataFrame:  # fmt: skip
+                stress: bool = True, trained: tuple | None = None, earlier: dict | None = None) -> pd.DataFrame:  # fmt: skip
     """Train, roll out and measure one model size; one CSV row per test sequence.
 
     Parameters
@@ -86,7 +92,19 @@ def sweep_point(trajectories, autoencoder: dict, integrator: dict, rollout: dict
     trained : (autoencoder path, integrator path) of the scene's method that is this point, trained with
         these settings and ``seed`` (:func:`latentsim.config.sweep_point_method`): measured, not trained
         again (:func:`trained_point`).
+    earlier : the point's seeds already run, as ``{"metrics": [their CSVs], "tolerance", "pass_fraction",
+        "seeds"}`` (the scene's tolerance, ``sweep.pass_fraction`` and number of seeds): when they decide
+        that the point cannot pass (:func:`prune_reason`), this seed is not trained and ``out_csv`` gets
+        its :func:`pruned_row`.
     """
+    if earlier:
+        before = pd.concat([pd.read_csv(p) for p in earlier["metrics"]], ignore_index=True)
+        reason = prune_reason(before, float(earlier["tolerance"]), float(earlier["pass_fraction"]), int(earlier["seeds"]))
+        if reason is not None:
+            log.info("seed %d not trained: the point %s", seed, reason)
+            df = pruned_row(before, seed, reason)
+            write_table(df, out_csv)
+            return df
     point = trained_point(trajectories, *trained) if trained else train_point(trajectories, autoencoder, integrator, seed, device=device)
     df = measure_point(point, rollout, stress=stress).assign(seed=int(seed))
     write_table(df, out_csv)
@@ -181,6 +199,69 @@ def measure_point(point: dict, rollout: dict, stress: bool = True) -> pd.DataFra
     return df
 
 
+KEYS = ["latent_dim", "autoencoder_widths", "integrator_widths"]
+
+
+def _normalised(df: pd.DataFrame) -> pd.DataFrame:
+    """Point rows as :func:`choose` reads them: stress columns filled, the seed an int, widths as strings,
+    ``pruned`` a bool (rows written before pruning existed are measured rows)."""
+    df = df.copy()
+    for col in ("stress_conditions", "stress_failed"):
+        df[col] = df[col].fillna(0).astype(int) if col in df else 0
+    # a CSV reads back an empty failure list as NaN (a float column when every entry is empty)
+    df["stress_failures"] = df["stress_failures"].astype("string").fillna("") if "stress_failures" in df else ""
+    df["seed"] = df["seed"].astype(int) if "seed" in df else 0
+    df["pruned"] = df["pruned"].fillna(False).astype(bool) if "pruned" in df else False
+    for k in KEYS[1:]:  # "16" reads back from a CSV as a number, "32 32" as a string
+        df[k] = df[k].astype(str)
+    return df
+
+
+def _per_seed(df: pd.DataFrame, tolerance: float) -> pd.DataFrame:
+    """One row per point and measured seed of normalised rows (pruned rows left out): the worst sequence's
+    errors, ``diverged``, the stress results, ``within_tolerance`` and ``passes`` (no sequence diverged,
+    every mean error within ``tolerance``, no stress condition failed)."""
+    per_seed = df[~df["pruned"]].groupby(KEYS + ["seed"], sort=False, dropna=False).agg(
+        parameters=("parameters", "first"), mean_error=("mean_error", "max"), max_error=("max_error", "max"),
+        diverged=("diverged_frame", lambda d: bool((d >= 0).any())), step_ms=("step_ms", "median"), train_seconds=("train_seconds", "first"),
+        stress_conditions=("stress_conditions", "first"), stress_failed=("stress_failed", "first"), stress_failures=("stress_failures", "first"),
+    ).reset_index()  # fmt: skip
+    per_seed["within_tolerance"] = (~per_seed["diverged"]) & (per_seed["mean_error"] <= tolerance)
+    per_seed["passes"] = per_seed["within_tolerance"] & (per_seed["stress_failed"] == 0)
+    return per_seed
+
+
+def _seeds_needed(n_seeds: int, pass_fraction: float) -> int:
+    """Seeds of ``n_seeds`` in which a point must pass: ceil(pass_fraction n)."""
+    return int(np.ceil(pass_fraction * n_seeds - 1e-9))
+
+
+def prune_reason(earlier: pd.DataFrame, tolerance: float, pass_fraction: float, n_seeds: int) -> str | None:
+    """Why one point's next seed need not be trained, or None.
+
+    ``earlier``: the point's rows of its seeds already run (measured or pruned); ``n_seeds``: how many seeds
+    the scene runs.  The point must pass in ``ceil(pass_fraction n_seeds)`` seeds (:func:`choose`); once more
+    seeds have failed (or were pruned) than that leaves room for, no later seed can make it pass, and the
+    choice is the same whatever they would measure.
+    """
+    df = _normalised(earlier)
+    failed = int(df["pruned"].groupby(df["seed"]).any().sum())
+    per_seed = _per_seed(df, tolerance)
+    failed += int((~per_seed["passes"]).sum())
+    allowed = n_seeds - _seeds_needed(n_seeds, pass_fraction)
+    if failed > allowed:
+        return f"failed in {failed} of its first seeds; it must pass in {n_seeds - allowed} of {n_seeds} (sweep.pass_fraction {pass_fraction:g})"
+    return None
+
+
+def pruned_row(earlier: pd.DataFrame, seed: int, reason: str) -> pd.DataFrame:
+    """The row a pruned seed writes: the point's size (from its earlier rows), its seed, ``pruned`` and why;
+    no measurement."""
+    first = earlier.iloc[0]
+    size = [k for k in KEYS + ["decoder_parameters", "integrator_parameters", "parameters"] if k in earlier]
+    return pd.DataFrame([{**{k: first[k] for k in size}, "seed": int(seed), "pruned": True, "pruned_because": reason}])
+
+
 def choose(df: pd.DataFrame, tolerance: float, pass_fraction: float = 1.0) -> pd.DataFrame:
     """One row per sweep point over its seeds, with ``passes`` and the ``chosen`` smallest passing point.
 
@@ -188,11 +269,13 @@ def choose(df: pd.DataFrame, tolerance: float, pass_fraction: float = 1.0) -> pd
     diagonal is at most ``tolerance`` and it failed no stress condition (points measured without them,
     ``stress_conditions`` 0 or the columns absent, are judged on the test sequences alone).  A point
     passes when it passes in at least ``pass_fraction`` of its seeds (rows without a ``seed`` column are
-    one seed); among passing points the one with the fewest parameters (then the lowest latent
-    dimension, then the fastest step) is chosen.
+    one seed; a ``pruned`` seed, :func:`prune_reason`, counts as a seed that did not pass); among passing
+    points the one with the fewest parameters (then the lowest latent dimension, then the fastest step)
+    is chosen.
 
     Columns: the point's ``latent_dim``, ``autoencoder_widths``, ``integrator_widths``, ``parameters``;
-    over its seeds ``seeds``, ``seeds_passing``, the median (``mean_error``), least and largest
+    ``seeds`` (every seed, pruned ones included), ``seeds_pruned``; over its measured seeds
+    ``seeds_passing``, the median (``mean_error``), least and largest
     (``mean_error_min``, ``mean_error_max``) of the worst sequence's mean error, ``max_error`` (largest),
     ``diverged`` (in any seed), ``diverged_seeds``, ``step_ms`` and ``train_seconds`` (medians), the
     stress conditions (``stress_failed``: failures summed over seeds, ``stress_failures``: each seed's
@@ -200,22 +283,9 @@ def choose(df: pd.DataFrame, tolerance: float, pass_fraction: float = 1.0) -> pd
     """
     if not 0 < pass_fraction <= 1:
         raise ValueError(f"choose: pass_fraction {pass_fraction!r} must be in (0, 1]")
-    df = df.copy()
-    for col in ("stress_conditions", "stress_failed"):
-        df[col] = df[col].fillna(0).astype(int) if col in df else 0
-    # a CSV reads back an empty failure list as NaN (a float column when every entry is empty)
-    df["stress_failures"] = df["stress_failures"].astype("string").fillna("") if "stress_failures" in df else ""
-    df["seed"] = df["seed"].astype(int) if "seed" in df else 0
-    keys = ["latent_dim", "autoencoder_widths", "integrator_widths"]
-    for k in keys[1:]:  # "16" reads back from a CSV as a number, "32 32" as a string
-        df[k] = df[k].astype(str)
-    per_seed = df.groupby(keys + ["seed"], sort=False, dropna=False).agg(
-        parameters=("parameters", "first"), mean_error=("mean_error", "max"), max_error=("max_error", "max"),
-        diverged=("diverged_frame", lambda d: bool((d >= 0).any())), step_ms=("step_ms", "median"), train_seconds=("train_seconds", "first"),
-        stress_conditions=("stress_conditions", "first"), stress_failed=("stress_failed", "first"), stress_failures=("stress_failures", "first"),
-    ).reset_index()  # fmt: skip
-    per_seed["within_tolerance"] = (~per_seed["diverged"]) & (per_seed["mean_error"] <= tolerance)
-    per_seed["passes"] = per_seed["within_tolerance"] & (per_seed["stress_failed"] == 0)
+    df = _normalised(df)
+    keys = KEYS
+    per_seed = _per_seed(df, tolerance)
     g = per_seed.groupby(keys, sort=False, dropna=False).agg(
         parameters=("parameters", "first"), seeds=("seed", "nunique"), seeds_passing=("passes", "sum"),
         mean_error=("mean_error", "median"), mean_error_min=("mean_error", "min"), mean_error_max=("mean_error", "max"),
@@ -224,6 +294,10 @@ def choose(df: pd.DataFrame, tolerance: float, pass_fraction: float = 1.0) -> pd
         stress_failed=("stress_failed", "sum"), stress_failures=("stress_failures", lambda f: "; ".join(f)),
         within_tolerance=("within_tolerance", "all"),
     ).reset_index()  # fmt: skip
+    pruned = df[df["pruned"]].groupby(keys, sort=False, dropna=False)["seed"].nunique().rename("seeds_pruned")
+    g = g.join(pruned, on=keys)
+    g["seeds_pruned"] = g["seeds_pruned"].fillna(0).astype(int)
+    g["seeds"] = g["seeds"] + g["seeds_pruned"]
     g["seeds_passing"] = g["seeds_passing"].astype(int)
     g["diverged_seeds"] = g["diverged_seeds"].astype(int)
     g["passes"] = g["seeds_passing"] >= np.ceil(pass_fraction * g["seeds"] - 1e-9)
@@ -274,6 +348,8 @@ def sweep_chart(table: pd.DataFrame, tolerance: float, scene: str, path, method:
         ax.legend(fontsize=7)
     seeds = int(table["seeds"].max()) if "seeds" in table else 1
     spread = f"median of {seeds} seeds, bars least to largest; " if seeds > 1 else ""
+    if "seeds_pruned" in table and (table["seeds_pruned"] > 0).any():
+        spread += "points that failed their first seeds were not trained further (seeds measured only); "
     fig.suptitle(f"{scene}: sizing sweep, {method} loss ({spread}hollow: diverged on a test sequence in a seed; x: failed a stress condition)",
                  fontsize=9)  # fmt: skip
     fig.tight_layout()
