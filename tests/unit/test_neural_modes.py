@@ -510,3 +510,13 @@ def test_ground_truth_solves_an_indefinite_hessian_without_superlu():
     X = V.reshape(-1)
     assert np.abs(x - x_lu).max() <= 1e-6 * np.abs(x_lu - X).max()
     assert abs(info.energy - info_lu.energy) <= 1e-10 * info_lu.energy
+
+
+def test_nearest_neighbour_order_visits_every_sample_once_along_a_chain_of_neighbours():
+    from latentsim.neural_modes.compliant_modes import nearest_neighbour_order
+
+    z = np.array([[3.0], [-1.0], [0.5], [2.0], [-2.5]])[:, [0, 0]]
+    order = nearest_neighbour_order(z)
+    assert sorted(order) == list(range(len(z)))
+    assert list(order) == [2, 1, 4, 3, 0]  # 0.5 nearest the origin, then -1, -2.5, then back up to 2 and 3
+    assert len(nearest_neighbour_order(np.zeros((0, 3)))) == 0

@@ -1,0 +1,70 @@
+"""Neural Modes ground truth (Eq. 9): the order the samples are solved in, given against nearest-neighbour.
+
+    python benchmarks/nm_ground_truth_order.py nm_armadillo [--study energy] [--set train] [--samples 200]
+
+Needs the scene's mesh and linear modes (``snakemake --cores 2 results/neural_modes/<scene>/linear_modes.h5``).
+Takes the first ``--samples`` samples of one set of the study's ground truth (as rule ``nm_ground_truth``
+draws them), solves them in the rows' order and along ``compliant_modes.nearest_neighbour_order`` (each sample
+starts from the one solved before it), one thread, and prints per order the Newton iterations (total,
+median, largest), the seconds, and how far the two solutions lie apart: the largest vertex distance over
+the largest displacement of the sample, and the largest relative difference of the energies.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from latentsim.config import load_config  # noqa: E402
+from latentsim.neural_modes.compliant_modes import ground_truth  # noqa: E402
+from latentsim.stages import neural_modes as nm_pipeline  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("scene")
+    ap.add_argument("--study", default="energy")
+    ap.add_argument("--set", default="train")
+    ap.add_argument("--samples", type=int, default=200)
+    ap.add_argument("--config", default=str(ROOT / "config" / "config.yaml"))
+    ap.add_argument("--results", default=str(ROOT / "results"))
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    cfg = load_config(args.config)
+    p = nm_pipeline.ground_truth_params(cfg, args.scene, args.study)
+    results = Path(args.results)
+    pot, _ = nm_pipeline.scene_potential(results / "mesh" / args.scene / "mesh.h5", p["model"], p["material"])
+    basis = nm_pipeline.read_linear_modes(results / "neural_modes" / args.scene / "linear_modes.h5")
+    nmc = p["neural_modes"]
+    sets = nm_pipeline.study_sets(args.study, basis["modes"].shape[1], float(nmc["box"]), p["sets"], p["seed"])
+    z = sets[args.set][: args.samples]
+    solved = {}
+    for order in ("given", "nearest"):
+        t0 = time.perf_counter()
+        x, e, infos = ground_truth(pot, basis["X"], basis["modes"], z, free_dofs=basis["free_dofs"], rigid=basis["rigid"], metric=nmc["metric"],
+                                   max_iter=int(p["max_iterations"]), order=order)  # fmt: skip
+        seconds = time.perf_counter() - t0
+        its = np.array([i.iterations for i in infos])
+        res = np.array([i.residual for i in infos])
+        solved[order] = (x, e)
+        print(f"{order:8s} {len(z)} samples: {seconds:.1f} s, iterations total {its.sum()}, median {np.median(its):g}, largest {its.max()}, "
+              f"largest KKT residual {res.max():.2e}")  # fmt: skip
+    (xa, ea), (xb, eb) = solved["given"], solved["nearest"]
+    X = basis["X"].reshape(1, -1, 3)
+    scale = np.linalg.norm(xa - X, axis=-1).max(axis=1)
+    gap = np.linalg.norm(xa - xb, axis=-1).max(axis=1) / scale
+    print(f"solutions apart: largest vertex distance / largest displacement: median {np.median(gap):.2e}, largest {gap.max():.2e}; "
+          f"energies: largest relative difference {np.max(np.abs(ea - eb) / np.abs(ea)):.2e}")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
