@@ -54,13 +54,13 @@ SKIPPED_ATTRS = frozenset({"latentsim_version", "config", KEY, ENVIRONMENT})
 PHYSICS_STAGES = ("mesh", "sim")
 
 
-TIMING_WORDS = re.compile(r"(^|[ _/])(ms|s|seconds|speedup|on_front)($|[ _/])")
+TIMING_WORDS = re.compile(r"(^|[ _/])(ms|s|seconds|speedup|over_floor|on_front)($|[ _/])")
 
 
 def is_timing(name: str) -> bool:
     """A wall-time value, or a choice made from one (the speed-accuracy front), by name: these may
     differ between two identical runs.  Names are the pipeline's: ``step_ms``, ``ms/step mean``,
-    ``train s``, ``speedup``, ``on_front``."""
+    ``train s``, ``speedup``, ``step_over_floor`` (a step's time over its floor's), ``on_front``."""
     leaf = name.rsplit("/", 1)[-1].rsplit("@", 1)[-1]
     return leaf in TIMING_NAMES or bool(TIMING_WORDS.search(leaf))
 

@@ -410,6 +410,28 @@ def test_compiled_runtime_on_large_meshes(kind, mode, rod, layout, monkeypatch):
 
 
 @needs_numba
+@pytest.mark.parametrize("kind", ["hidden", "mid", "linear", "no_hidden"])
+def test_the_step_floor_is_one_pass_of_the_models_own_output_layer(kind):
+    """output_pass evaluates the runtime's last layer, at its own input width, over every value it writes, and
+    nothing else: b + sum_i h_i W_i with h = 0.5, against the NumPy runtime's output layer; the timing helper
+    records it beside the step."""
+    from latentsim.latent.timing import time_steppers
+
+    coords = _big_coords("mean")
+    ae = _decoder(coords, kind)
+    folded = rt.fold_networks(ae, LatentIntegrator(R, K, [16]).eval(), coords)
+    cs, ns = rc.CompiledStepper(folded, np.float32), rt.NumpyStepper(folded, np.float32)
+    call, y = cs.output_pass()
+    call()
+    A = ns.output.A.astype(np.float64)
+    assert y.shape == (A.shape[1],) == (3 * 2000,) and A.shape[0] > 1
+    assert np.allclose(y, A[-1] + 0.5 * A[:-1].sum(0), rtol=1e-5, atol=1e-6 * np.abs(A).max())
+    a = [t.numpy() for t in _inputs(coords, seed=3)]
+    timing = time_steppers({"numpy": ns, "compiled": cs}, a[0], a[1], a[2], a[5], repeats=5)
+    assert timing["floor_ms"] > 0 and np.isfinite(timing["step_ms"])
+
+
+@needs_numba
 @pytest.mark.parametrize("mode", ["roots", "hard_mean"])
 def test_compiled_rollout_writes_each_frame_and_keeps_nan(mode, tmp_path):
     """A rollout through the exported file writes every frame into its own row (z_out/x_out) and equals the NumPy

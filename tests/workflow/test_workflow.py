@@ -191,6 +191,9 @@ def test_tiny_run_writes_tables_and_figures(tiny_run):
     assert list((work / "results/integrator").rglob("integrator.pt"))
     assert not list((work / "results/integrator").rglob("checkpoint.pt"))  # a finished training leaves none
     choice = pd.read_csv(work / "results/sweep/tiny_cloth/choice.csv")
+    t1 = pd.read_csv(work / "results/evaluation/table1.csv")
+    # each step timed beside its floor, a bare pass of its own output layer, in the same rollout job
+    assert (t1["floor_ms"] > 0).all() and (t1["step_over_floor"] > 0).all() and (t1["step_over_floor_max"] >= t1["step_over_floor"]).all()
     assert sorted(choice["latent_dim"]) == [2, 4] and choice["chosen"].sum() <= 1
     assert (choice["method"] == "self_supervised").all()  # the loss its points trained with (sweep.method)
     assert (choice["stress_conditions"] == 8).all()  # the rollout stage's conditions, at every point

@@ -37,7 +37,10 @@ def time_steppers(steppers: dict, z1, z0, p, xD, repeats: int) -> dict:
     """Median ms of one latent step with each stepper (``{name}_step_ms`` etc.).
 
     ``step_ms``, ``integrate_ms`` and ``decode_ms`` are those of the fastest
-    stepper (whose name is ``runtime``), the deployable path.
+    stepper (whose name is ``runtime``), the deployable path.  ``floor_ms``: where a
+    stepper offers it (the compiled one, :meth:`~latentsim.runtime.compiled.CompiledStepper.output_pass`),
+    one bare pass of the model's own output layer over every DoF, timed in the same rounds'
+    process: the floor under any step of this model.
     """
     out: dict = {}
     for name, st in steppers.items():
@@ -47,6 +50,9 @@ def time_steppers(steppers: dict, z1, z0, p, xD, repeats: int) -> dict:
     best = min(steppers, key=lambda n: out[f"{n}_step_ms"])
     out.update(step_ms=out[f"{best}_step_ms"], integrate_ms=out[f"{best}_integrate_ms"], decode_ms=out[f"{best}_decode_ms"])
     out["runtime"] = best
+    passes = [st.output_pass()[0] for st in steppers.values() if hasattr(st, "output_pass")]
+    if passes:
+        out["floor_ms"] = runtime.time_jvp(passes[0], repeats)
     return out
 
 

@@ -117,6 +117,8 @@ def table1(df: pd.DataFrame, sized=()) -> pd.DataFrame:
 
     With several seeds (column ``seed``) each timing is the median over seeds of the seed's mean, and
     ``total_ms`` and ``speedup`` have their least and largest over seeds beside them (``_min``, ``_max``).
+    ``floor_ms`` (where the rollouts timed it): one bare pass of the model's output layer over every DoF,
+    and ``step_over_floor`` (median, ``_max``) the step's time over it.
 
     sized : variants that are whole models of another size (their own autoencoder); each gets a row of
         its own below its scene's, so the table shows the speed of the model a scene needs beside the
@@ -126,9 +128,10 @@ def table1(df: pd.DataFrame, sized=()) -> pd.DataFrame:
     for scene, method, _, g in _own_models(df, sized):
         paper = li2025_table1(scene)
         # each seed's mean over the test sequences, then the median over seeds (least and largest beside it)
-        cols = ["full_ms", "integrate_ms", "decode_ms", "latent_ms"] + (["numpy_step_ms"] if "numpy_step_ms" in g else [])
+        cols = ["full_ms", "integrate_ms", "decode_ms", "latent_ms"] + [c for c in ("numpy_step_ms", "floor_ms") if c in g]
         ps = g.assign(seed=_seeds(g)).groupby("seed")[cols].mean()
         ps["speedup"] = ps["full_ms"] / ps["latent_ms"]
+        floor = ps["floor_ms"] if "floor_ms" in ps else pd.Series(np.nan, index=ps.index)
         row = dict(
             scene=scene,
             method=method,
@@ -146,6 +149,9 @@ def table1(df: pd.DataFrame, sized=()) -> pd.DataFrame:
             speedup=ps["speedup"].median(),
             speedup_min=ps["speedup"].min(),
             speedup_max=ps["speedup"].max(),
+            floor_ms=floor.median(),
+            step_over_floor=(ps["latent_ms"] / floor).median(),
+            step_over_floor_max=(ps["latent_ms"] / floor).max(),
         )
         if paper is not None:
             row.update(paper_dof=paper[0], paper_latent=paper[1], paper_full_ms=paper[2], paper_integrate_ms=paper[3],

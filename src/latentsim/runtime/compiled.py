@@ -28,6 +28,7 @@ prescribed vertices are copied back in runs of consecutive indices.
 from __future__ import annotations
 
 import os
+from functools import partial
 
 import numpy as np
 
@@ -243,6 +244,14 @@ def _kernel(F, I, S, z1, z2, p0, p1, p2, xD, x, zout, what):
             xo[j] = xi[j]
 
 
+@njit(**_JIT)
+def _output_pass(A, h, y):
+    """y[:] = A[nin] + sum_i h[i] A[i] over every output of the layer A (nin + 1, D): one vectorised pass of an
+    output layer over every DoF, its arithmetic and memory traffic and nothing else (no integrator, no
+    hidden layers, no origins, no prescribed vertices): the floor under a step that decodes through it."""
+    _accumulate(A, h, A.shape[0] - 1, 0, A.shape[1], y)
+
+
 def _runs(keys: np.ndarray, cap: int) -> list:
     """Split 0..len(keys) into [start, end) runs of equal consecutive keys, each at most cap long."""
     out, start = [], 0
@@ -344,6 +353,7 @@ class CompiledStepper:
         layers = _layers(ref)
         w = max([2 * self.r + 3 * self.k] + [max(A.shape[0] - 1, A.shape[1]) for A, _ in layers[:-1]])
         self._F, table = _pack(layers, self.dtype)
+        self._n_layers = len(layers)
         out = _output_index(ref)
         scatter, roots, m = ref.layout == "scatter", ref.mode == "roots", len(self.dirichlet)
         hdr = np.zeros(_HLEN, np.int64)
@@ -372,6 +382,17 @@ class CompiledStepper:
         self._x0 = np.zeros((1, 3))
 
     inputs = NumpyStepper.inputs  # the same arrays: network-dtype latents and parameters, float64 positions
+
+    def output_pass(self):
+        """A call without arguments doing one pass of this runtime's own output layer (its input width, every DoF
+        it writes) into float64 values, with :func:`_output_pass`: the bare decode that every step of this model
+        does at least (``latent.timing.time_steppers`` times it as ``floor_ms``).  Returns (call, output), the
+        output array the call writes (for tests)."""
+        off, nin, D = (int(v) for v in self._I[self._I[_TABLE] + 4 * (self._n_layers - 1) :][:3])
+        A = self._F[off : off + (nin + 1) * D].reshape((nin + 1, D))
+        h = np.full(nin, 0.5, dtype=self.dtype)
+        y = np.empty(D)
+        return partial(_output_pass, A, h, y), y
 
     def integrate(self, z_prev, z_prev2, p, p_prev, p_prev2, out=None) -> np.ndarray:
         """z_t (r,) from z_{t-1}, z_{t-2} (r,) and p_t, p_{t-1}, p_{t-2} (k,)."""
