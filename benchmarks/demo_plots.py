@@ -27,7 +27,7 @@ import pandas as pd
 
 from latentsim.config import seed_dir
 from latentsim.report import paraview, plots, render
-from latentsim.report.tables import speed_accuracy_rows, stability_table
+from latentsim.report.tables import speed_accuracy_points, stability_table
 
 
 def _frames_to_show(T: int, diverged: int, k=4) -> list[int]:
@@ -89,11 +89,11 @@ def summary_figures(out: Path, seed: int = 0) -> None:
     table = Path("results/evaluation/summary.csv")
     if table.exists():
         df = pd.read_csv(table)
-        both = speed_accuracy_rows(df)  # every method, and the full-space solver at error 0
-        pts = plots.speed_accuracy_chart(both, out / "speed_accuracy.png")
+        pts = speed_accuracy_points(df)  # every method over its seeds, and the full-space solver at error 0
+        plots.speed_accuracy_chart(pts, out / "speed_accuracy.png")
         print("speed-accuracy: on the front ->", pts.loc[pts["on_front"], ["scene", "method"]].values.tolist())
         for scene in sorted(df["scene"].unique())[:1]:
-            plots.speed_accuracy_chart(both, out / f"speed_accuracy_{scene}.png", scene=scene)
+            plots.speed_accuracy_chart(pts, out / f"speed_accuracy_{scene}.png", scene=scene)
         st = stability_table(df)
         st = st[st["seed"].isin([seed, -1])]  # one row per method and sequence: the seed's, or the method's only run
         stab = pd.DataFrame(

@@ -19,14 +19,12 @@ import datetime as dt
 import sys
 from pathlib import Path
 
-import tempfile
 
 import pandas as pd
 from readme_glance import replace_block, run_commit
 
 from latentsim.provenance import recorded_environment
-from latentsim.report.plots import speed_accuracy_chart
-from latentsim.report.tables import claims, divergence_table, glance_table, speed_accuracy_rows
+from latentsim.report.tables import claims, divergence_table, glance_table
 
 BEGIN = "<!-- claims: begin (written by python tools/readme_claims.py; do not edit by hand) -->"
 END = "<!-- claims: end -->"
@@ -64,9 +62,7 @@ def claims_block(results: Path, scenes: list[str], commit: str) -> str:
             into.append(pd.read_csv(d / name))
     df = pd.concat(frames, ignore_index=True)
     st = pd.concat(stress, ignore_index=True)
-    with tempfile.TemporaryDirectory() as tmp:  # the chart's Pareto front; the picture is not kept
-        pts = speed_accuracy_chart(speed_accuracy_rows(df), Path(tmp) / "chart.png")
-    glance, dv = glance_table(df, pts, st), divergence_table(df, st)
+    glance, dv = glance_table(df, st), divergence_table(df, st)
     newest = max((results / "evaluation" / s / "metrics.csv").stat().st_mtime for s in scenes)
     finished = dt.datetime.fromtimestamp(newest, dt.timezone.utc).strftime("%Y-%m-%d")
     cpus = sorted({processor(results, s) for s in scenes})

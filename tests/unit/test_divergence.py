@@ -13,7 +13,7 @@ from latentsim import latent
 from latentsim.latent import stability
 from latentsim.report.metrics import DIVERGED_ERROR, bbox_diagonal, pareto_front, rollout_metrics
 from latentsim.report.plots import speed_accuracy_chart
-from latentsim.report.tables import glance_grid, glance_table, speed_accuracy_rows, stability_table, stress_table, table1, table2
+from latentsim.report.tables import glance_grid, glance_table, speed_accuracy_points, stability_table, stress_table, table1, table2
 from latentsim.stages.evaluate import summarise, write_scene_evaluation
 
 ERRORS = ("mean_error", "max_error", "dirichlet_error", "end_error")
@@ -90,10 +90,13 @@ def test_a_diverged_method_never_ranks_best_nor_sits_on_a_pareto_front(tmp_path)
     assert df.sort_values("mean_error")["method"].iloc[0] == "newton_1it"
     assert df.sort_values("max_error")["method"].iloc[0] == "newton_1it"
     # the chart's points (and its picture), then the glance table and the grid of the summary
-    pts = speed_accuracy_chart(speed_accuracy_rows(df), tmp_path / "chart.png", scene="a").set_index("method")
+    pts = speed_accuracy_points(df)
+    speed_accuracy_chart(pts, tmp_path / "chart.png", scene="a")
+    assert (tmp_path / "chart.png").stat().st_size > 1000
+    pts = pts.set_index("method")
     assert not pts.loc["supervised_5x256", "on_front"] and not pts.loc["pca_reduced", "on_front"]
     assert pts.loc["self_supervised", "on_front"] and pts.loc["newton_1it", "on_front"] and pts.loc["full_space", "on_front"]
-    glance = glance_table(df, pts.reset_index()).set_index("method")
+    glance = glance_table(df).set_index("method")
     assert list(glance.loc[["supervised_5x256", "pca_reduced"], "on_front"]) == [False, False]
     assert (glance.loc[["supervised_5x256", "pca_reduced"], "mean_error"] == np.inf).all()
     assert glance["mean_error"].drop("full_space").idxmin() == "newton_1it"

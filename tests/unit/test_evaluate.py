@@ -11,7 +11,7 @@ import pytest
 
 from latentsim.report.metrics import bbox_diagonal, kinetic_energy, rollout_metrics, vertex_errors
 from latentsim.report.plots import rollout_curves, speed_accuracy_chart
-from latentsim.report.tables import glance_grid, glance_table, speed_accuracy_rows, table1, table2, write_glance_html, write_table_html
+from latentsim.report.tables import glance_grid, glance_table, speed_accuracy_points, table1, table2, write_glance_html, write_table_html
 from latentsim.stages.evaluate import evaluate_scene, summarise
 
 
@@ -142,8 +142,8 @@ def _stress():
 
 def test_glance_table_rows(tmp_path):
     df = _metrics()
-    pts = speed_accuracy_chart(speed_accuracy_rows(df), tmp_path / "c.png")
-    g = glance_table(df, pts, _stress()).set_index(["scene", "method"])
+    speed_accuracy_chart(speed_accuracy_points(df), tmp_path / "c.png")
+    g = glance_table(df, _stress()).set_index(["scene", "method"])
     ss = g.loc[("a", "self_supervised")]
     # own job's ratio: mean full ms (11) over mean latent ms (0.1)
     assert np.isclose(ss["speedup"], 110.0)
@@ -164,10 +164,9 @@ def test_glance_table_rows(tmp_path):
         assert list(s["ms_per_frame"]) == sorted(s["ms_per_frame"])
 
 
-def test_glance_grid_front_of_the_compared_methods(tmp_path):
+def test_glance_grid_front_of_the_compared_methods():
     df = _metrics()
-    pts = speed_accuracy_chart(speed_accuracy_rows(df), tmp_path / "c.png")
-    grid = glance_grid(glance_table(df, pts, _stress())).set_index("scene")
+    grid = glance_grid(glance_table(df, _stress())).set_index("scene")
     # columns: the comparison's methods present, in the comparison's order; variants left out
     assert list(grid.columns) == ["full_space", "pca_reduced", "self_supervised", "supervised_5x256"]
     assert grid.loc["a", "self_supervised"] == "0.02 (0.1) *"  # no_noise is not in the grid's front

@@ -54,50 +54,57 @@ def _png(path):
     return img
 
 
-def _speed_df():
+def _speed_metrics():
+    """Per-sequence metrics of two scenes as the evaluate stage writes them (one sequence, one seed): the
+    full space at 20 ms (x10 on the armadillo), five methods."""
     rows = []
     for scene, scale in [("cloth", 1.0), ("armadillo", 10.0)]:
-        rows += [
-            {"scene": scene, "method": "full_newton", "ms_per_frame": 20 * scale, "mean_error": 0.0, "diverged_frame": -1},
-            {"scene": scene, "method": "newton_1it", "ms_per_frame": 5 * scale, "mean_error": 0.02, "diverged_frame": -1},
-            {"scene": scene, "method": "pca", "ms_per_frame": 0.5 * scale, "mean_error": 0.08, "diverged_frame": -1},
-            {"scene": scene, "method": "supervised", "ms_per_frame": 0.3 * scale, "mean_error": 0.01, "diverged_frame": 120},
-            {"scene": scene, "method": "self_supervised", "ms_per_frame": 0.4 * scale, "mean_error": 0.03, "diverged_frame": -1},
-            {"scene": scene, "method": "neural_modes", "ms_per_frame": 2.0 * scale, "mean_error": 0.05, "diverged_frame": -1},
-        ]
+        for method, ms, error, diverged in [("newton_1it", 5, 0.02, -1), ("pca", 0.5, 0.08, -1), ("supervised", 0.3, 0.01, 120),
+                                            ("self_supervised", 0.4, 0.03, -1), ("neural_modes", 2.0, 0.05, -1)]:  # fmt: skip
+            rows.append({"scene": scene, "method": method, "seed": 0, "sequence": "q", "latent_ms": ms * scale, "full_ms": 20 * scale,
+                         "mean_error": error, "max_error": 2 * error, "kinetic_ratio": 1.0, "diverged_frame": diverged})  # fmt: skip
     return pd.DataFrame(rows)
 
 
-def test_speed_accuracy_chart_one_scene_and_summary(tmp_path):
-    df = _speed_df()
-    pts = plots.speed_accuracy_chart(df, tmp_path / "cloth.png", scene="cloth", dpi=60)
-    assert set(pts["scene"]) == {"cloth"} and len(pts) == 6
-    front = set(pts.loc[pts["on_front"], "method"])
+def _speed_df():
+    """The chart's points of :func:`_speed_metrics` (:func:`latentsim.report.tables.speed_accuracy_points`)."""
+    from latentsim.report.tables import speed_accuracy_points
+
+    return speed_accuracy_points(_speed_metrics())
+
+
+def test_speed_accuracy_points_and_chart_one_scene_and_summary(tmp_path):
+    pts = _speed_df()
+    cloth = pts[pts["scene"] == "cloth"]
+    assert len(cloth) == 6 and "full_space" in set(cloth["method"])
     # supervised is the fastest and most accurate but diverged: off the front;
     # neural_modes is slower and less accurate than self_supervised; pca less accurate and slower than it too
-    assert front == {"full_newton", "newton_1it", "self_supervised"}
-    _png(tmp_path / "cloth.png")
-    pts = plots.speed_accuracy_chart(df, tmp_path / "summary.png", dpi=60)
-    assert sorted(pts["scene"].unique()) == ["armadillo", "cloth"]
+    assert set(cloth.loc[cloth["on_front"], "method"]) == {"full_space", "newton_1it", "self_supervised"}
     assert pts.groupby("scene")["on_front"].sum().tolist() == [3, 3]
+    plots.speed_accuracy_chart(pts, tmp_path / "cloth.png", scene="cloth", dpi=60)
+    _png(tmp_path / "cloth.png")
+    plots.speed_accuracy_chart(pts, tmp_path / "summary.png", dpi=60)
     _png(tmp_path / "summary.png")
 
 
-def test_speed_accuracy_chart_aggregates_sequences(tmp_path):
+def test_speed_accuracy_points_aggregate_sequences():
+    from latentsim.report.tables import speed_accuracy_points
+
+    base = {"scene": "s", "seed": 0, "full_ms": 10.0, "kinetic_ratio": 1.0}
     df = pd.DataFrame(
         [
-            {"scene": "s", "method": "a", "sequence": "q1", "ms_per_frame": 1.0, "mean_error": 0.1, "max_error": 0.5, "diverged_frame": -1},
-            {"scene": "s", "method": "a", "sequence": "q2", "ms_per_frame": 3.0, "mean_error": 0.3, "max_error": 0.9, "diverged_frame": -1},
-            {"scene": "s", "method": "b", "sequence": "q1", "ms_per_frame": 2.0, "mean_error": 0.1, "max_error": 0.2, "diverged_frame": -1},
-            {"scene": "s", "method": "b", "sequence": "q2", "ms_per_frame": 2.0, "mean_error": 0.1, "max_error": 0.2, "diverged_frame": 50},
+            {**base, "method": "a", "sequence": "q1", "latent_ms": 1.0, "mean_error": 0.1, "max_error": 0.5, "diverged_frame": -1},
+            {**base, "method": "a", "sequence": "q2", "latent_ms": 3.0, "mean_error": 0.3, "max_error": 0.9, "diverged_frame": -1},
+            {**base, "method": "b", "sequence": "q1", "latent_ms": 2.0, "mean_error": 0.1, "max_error": 0.2, "diverged_frame": -1},
+            {**base, "method": "b", "sequence": "q2", "latent_ms": 2.0, "mean_error": 0.1, "max_error": 0.2, "diverged_frame": 50},
         ]
     )
-    pts = plots.speed_accuracy_chart(df, tmp_path / "s.png", scene="s", dpi=60).set_index("method")
+    pts = speed_accuracy_points(df).set_index("method")
     assert pts.loc["a", "ms_per_frame"] == pytest.approx(2.0)
     assert pts.loc["a", "mean_error"] == pytest.approx(0.2)
     assert pts.loc["a", "max_error"] == pytest.approx(0.9)
-    assert pts.loc["b", "diverged_frame"] == 50
-    assert pts["on_front"].to_dict() == {"a": True, "b": False}
+    assert pts.loc["b", "diverged_frame"] == 50 and pts.loc["b", "diverged_seeds"] == 1
+    assert pts["on_front"].to_dict() == {"a": True, "b": False, "full_space": True}
 
 
 def test_speed_accuracy_labels_of_nearby_divergences_do_not_overlap():
@@ -107,13 +114,13 @@ def test_speed_accuracy_labels_of_nearby_divergences_do_not_overlap():
 
     pts = pd.DataFrame(
         [
-            {"scene": "s", "method": "a", "ms_per_frame": 0.12, "mean_error": 0.80, "diverged_frame": 335},
-            {"scene": "s", "method": "b", "ms_per_frame": 0.13, "mean_error": 0.76, "diverged_frame": 687},
-            {"scene": "s", "method": "c", "ms_per_frame": 50.0, "mean_error": 0.01, "diverged_frame": 40},
+            {"scene": "s", "method": "a", "ms_per_frame": 0.12, "mean_error": 0.80, "diverged_frame": 335, "on_front": False},
+            {"scene": "s", "method": "b", "ms_per_frame": 0.13, "mean_error": 0.76, "diverged_frame": 687, "on_front": False},
+            {"scene": "s", "method": "c", "ms_per_frame": 50.0, "mean_error": 0.01, "diverged_frame": 40, "on_front": False},
         ]
     )
     fig, ax = plt.subplots()
-    plots._draw_speed_accuracy(ax, pts, "mean_error", {"a": "r", "b": "g", "c": "b"}, annotate=False)
+    plots._draw_speed_accuracy(ax, pts, {"a": "r", "b": "g", "c": "b"}, annotate=False)
     offsets = {t.get_text(): t.xyann for t in ax.texts}
     plt.close(fig)
     assert offsets["diverged @ 335"] == (5, 4) and offsets["diverged @ 687"] == (5, 13)
@@ -127,7 +134,7 @@ def test_speed_accuracy_chart_bad_input_names_the_problem(tmp_path):
     with pytest.raises(KeyError, match="'bunny'"):
         plots.speed_accuracy_chart(df, tmp_path / "x.png", scene="bunny")
     bad = df.copy()
-    bad.loc[2, "ms_per_frame"] = 0.0
+    bad.loc[(bad["scene"] == "cloth") & (bad["method"] == "pca"), "ms_per_frame"] = 0.0
     with pytest.raises(ValueError, match="pca"):
         plots.speed_accuracy_chart(bad, tmp_path / "x.png")
     assert not (tmp_path / "x.png").exists()

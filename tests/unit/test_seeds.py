@@ -19,7 +19,7 @@ from latentsim.report.tables import (
     glance_table,
     over_seeds,
     per_seed,
-    speed_accuracy_rows,
+    speed_accuracy_points,
     stress_over_seeds,
     table1,
 )
@@ -74,9 +74,9 @@ def test_spread_over_seeds_is_the_median_least_and_largest_of_each_seeds_mean():
 
 def test_glance_states_seeds_and_keeps_a_method_that_diverged_in_one_seed_off_the_front(tmp_path):
     df = _metrics()
-    pts = speed_accuracy_chart(speed_accuracy_rows(df), tmp_path / "c.png")
+    speed_accuracy_chart(speed_accuracy_points(df), tmp_path / "c.png")
     assert (tmp_path / "c.png").stat().st_size > 1000
-    g = glance_table(df, pts, _stress()).set_index("method")
+    g = glance_table(df, _stress()).set_index("method")
     assert g.loc["self_supervised", "seeds_stable"] == "3/3" and g.loc["supervised", "seeds_stable"] == "2/3"
     assert g.loc["supervised", "stress_survived"] == "4/6" and g.loc["self_supervised", "stress_survived"] == "6/6"
     assert not g.loc["supervised", "on_front"]  # fastest and most accurate where stable, but diverged in a seed
@@ -96,7 +96,7 @@ def test_divergence_table_counts_seeds_and_lists_the_frames_each_survived():
 
 def test_claims_are_generated_from_the_tables_with_their_counts(tmp_path):
     df, st = _metrics(), _stress()
-    glance = glance_table(df, speed_accuracy_chart(speed_accuracy_rows(df), tmp_path / "c.png"), st)
+    glance = glance_table(df, st)
     text = claims(glance, divergence_table(df, st))
     lines = {ln.split(":")[0]: ln for ln in text.splitlines()}
     assert set(lines) == {"- a, self_supervised", "- a, supervised"}  # one-run methods claim no spread
@@ -107,7 +107,7 @@ def test_claims_are_generated_from_the_tables_with_their_counts(tmp_path):
     assert "fails speed_x2 in 2 of 3" in sup and "long" not in sup
     # the claims follow the tables: one more failing seed changes the sentence
     st.loc[(st["method"] == "supervised") & (st["condition"] == "long") & (st["seed"] == 0), ["diverged", "frames_survived"]] = (True, 5)
-    again = claims(glance_table(df, speed_accuracy_chart(speed_accuracy_rows(df), tmp_path / "c.png"), st), divergence_table(df, st))
+    again = claims(glance_table(df, st), divergence_table(df, st))
     assert "fails speed_x2 in 2 of 3, long in 1 of 3" in again
 
 

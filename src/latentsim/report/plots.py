@@ -35,7 +35,7 @@ from matplotlib.lines import Line2D
 from matplotlib.ticker import NullFormatter
 
 from latentsim.io import ArtefactError, atomic_path, open_artefact, require
-from latentsim.report.metrics import kinetic_energy, pareto_front
+from latentsim.report.metrics import kinetic_energy
 
 __all__ = [
     "empty_figure",
@@ -76,48 +76,17 @@ def method_colours(methods) -> dict:
 # --------------------------------------------------------------------------- speed vs accuracy
 
 
-def _aggregate_methods(df: pd.DataFrame, error: str) -> pd.DataFrame:
-    """One row per (scene, method): median ms, mean error, earliest divergence; with a ``seed`` column, first
-    per seed, then the median over seeds with the error's least and largest over the seeds that stayed
-    stable (``error_min``, ``error_max``), ``seeds`` and ``diverged_seeds``."""
-    df = df.assign(seed=df["seed"].fillna(-1).astype(int) if "seed" in df.columns else -1)
-    agg = {"ms_per_frame": ("ms_per_frame", "median"), error: (error, lambda s: s.mean(skipna=False))}
-    if "diverged_frame" in df.columns:
-        agg["diverged_frame"] = ("diverged_frame", lambda s: int(s[s >= 0].min()) if (s >= 0).any() else -1)
-    if "max_error" in df.columns and error != "max_error":
-        agg["max_error"] = ("max_error", lambda s: s.max(skipna=False))
-    if "sequence" in df.columns:
-        agg["sequences"] = ("sequence", "nunique")
-    ps = df.groupby(["scene", "method", "seed"], sort=True).agg(**agg).reset_index()
-    if "diverged_frame" not in ps.columns:
-        ps["diverged_frame"] = -1
-    ps["stable_error"] = ps[error].where(ps["diverged_frame"] < 0)
-    over = {"ms_per_frame": ("ms_per_frame", "median"), error: (error, "median"),
-            "diverged_frame": ("diverged_frame", lambda s: int(s[s >= 0].min()) if (s >= 0).any() else -1),
-            "error_min": ("stable_error", "min"), "error_max": ("stable_error", "max"), "seeds": ("seed", "nunique"),
-            "diverged_seeds": ("diverged_frame", lambda s: int((s >= 0).sum()))}  # fmt: skip
-    if "max_error" in ps.columns:
-        over["max_error"] = ("max_error", lambda s: s.max(skipna=False))
-    if "sequences" in ps.columns:
-        over["sequences"] = ("sequences", "max")
-    return ps.groupby(["scene", "method"], sort=True).agg(**over).reset_index()
-
-
-def _draw_speed_accuracy(ax, pts: pd.DataFrame, error: str, colours: dict, annotate=True):
-    """Scatter one scene's points on ``ax``; returns the points with ``on_front``."""
-    pts = pts.copy()
+def _draw_speed_accuracy(ax, pts: pd.DataFrame, colours: dict, annotate=True):
+    """Scatter one scene's points on ``ax`` with their front (``on_front``)."""
     t = pts["ms_per_frame"].to_numpy(float)
-    e = pts[error].to_numpy(float)
+    e = pts["mean_error"].to_numpy(float)
     diverged = pts["diverged_frame"].to_numpy() >= 0
-    # a diverged method is never on the front, whatever its error (infinite from rollout_metrics)
-    eligible_e = np.where(diverged, np.nan, e)
-    pts["on_front"] = pareto_front(t, eligible_e)
     positive = np.isfinite(e) & (e > 0)
     floor = np.nanmin(e[positive]) / 3 if positive.any() else 1e-6
     emax = pts["max_error"].to_numpy(float) if "max_error" in pts.columns else np.full(len(pts), np.nan)
     seeds = pts["seeds"].to_numpy(int) if "seeds" in pts.columns else np.ones(len(pts), dtype=int)
-    lo = pts["error_min"].to_numpy(float) if "error_min" in pts.columns else np.full(len(pts), np.nan)
-    hi = pts["error_max"].to_numpy(float) if "error_max" in pts.columns else np.full(len(pts), np.nan)
+    lo = pts["mean_error_min"].to_numpy(float) if "mean_error_min" in pts.columns else np.full(len(pts), np.nan)
+    hi = pts["mean_error_max"].to_numpy(float) if "mean_error_max" in pts.columns else np.full(len(pts), np.nan)
     top = np.concatenate([e[positive], emax[np.isfinite(emax) & (emax > 0)]])
     ceil = top.max() * 3 if len(top) else 1.0
     # exact (zero-error) rows sit in a shaded band at the bottom (a log axis has no 0), wholly inside the
@@ -173,13 +142,13 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, error: str, colours: dict, annot
         ax.set_xlim(10.0 ** np.floor(np.log10(ms.min())), 10.0 ** np.ceil(np.log10(ms.max()) + 1e-9))
     ax.xaxis.set_minor_formatter(NullFormatter())
     ax.grid(True, which="both", alpha=0.25)
-    return pts
 
 
-def speed_accuracy_chart(df: pd.DataFrame, path, scene=None, error="mean_error", title=None, dpi=100) -> pd.DataFrame:
+def speed_accuracy_chart(pts: pd.DataFrame, path, scene=None, title=None, dpi=100) -> None:
     """Log ms per frame (x) against log error (y), one point per method, Pareto front marked.
 
-    Expected columns of ``df`` (one row per scene, method and, optionally, test sequence):
+    ``pts``: one row per scene and method, as :func:`latentsim.report.tables.speed_accuracy_points` gives
+    them (the aggregation over sequences and seeds is done there, once, for the chart and the glance table):
 
     - ``scene`` (str), ``method`` (str);
     - ``ms_per_frame`` (float > 0): wall time of one step [ms];
@@ -187,40 +156,25 @@ def speed_accuracy_chart(df: pd.DataFrame, path, scene=None, error="mean_error",
       (0 for the ground truth itself, drawn as a down triangle in a shaded
       band "error 0" at the bottom; NaN when not measurable or infinite for a
       method that diverged (:mod:`latentsim.report.metrics`), drawn as a cross
-      on the top edge), or any column named by ``error`` (e.g. ``max_error``);
-    - ``max_error`` (float, optional): drawn as a whisker from the point up to
-      it (the largest vertex error of any frame);
-    - ``diverged_frame`` (int, optional): first diverged frame, -1 when stable.
-      Diverged methods are drawn hollow, labelled with the frame, and kept off
-      the Pareto front (whatever their error column says);
-    - ``sequence`` (str, optional).
-
-    - ``seed`` (int, optional): the training seed (-1 or NaN: a method no seed changes).
-
-    Several rows of one (scene, method) are aggregated: per seed the median ms per
-    frame, mean of the error and max of ``max_error`` (NaN if any is NaN), earliest
-    divergence; then the medians over the seeds, drawn with a bar from the least to
-    the largest error of the seeds that stayed stable (a single seed's point has the
-    whisker up to its max error instead).  A method that diverged in any seed is
-    hollow and off the front.  The Pareto front is computed on the error column only.
+      on the top edge);
+    - ``max_error`` (float, optional): with one seed, a whisker from the point up
+      to it (the largest vertex error of any frame);
+    - ``seeds``, ``mean_error_min``, ``mean_error_max`` (optional): with several
+      seeds, a bar from the least to the largest error of the stable seeds;
+    - ``diverged_frame`` (int): first diverged frame, -1 when stable, and
+      ``diverged_seeds``: diverged methods are drawn hollow and labelled;
+    - ``on_front`` (bool): circled, and joined by the front's staircase.
 
     Parameters
     ----------
-    df : DataFrame, columns as above.
+    pts : DataFrame, columns as above.
     path : output image (PNG unless the suffix says otherwise).
     scene : str or None
         One scene's chart; ``None`` draws small multiples, one panel per scene,
         with one legend (colour = method across all panels).
-    error : str
-        Column used as the error axis.
-
-    Returns
-    -------
-    DataFrame
-        One row per (scene, method) as drawn, with ``ms_per_frame``, the error
-        column, ``diverged_frame`` and ``on_front`` (bool).
     """
-    _require_columns(df, ["scene", "method", "ms_per_frame", error], "speed_accuracy_chart")
+    df = pts
+    _require_columns(df, ["scene", "method", "ms_per_frame", "mean_error", "diverged_frame", "on_front"], "speed_accuracy_chart")
     if df.empty:
         raise ValueError("speed_accuracy_chart: empty DataFrame")
     ms = df["ms_per_frame"].to_numpy(float)
@@ -236,18 +190,17 @@ def speed_accuracy_chart(df: pd.DataFrame, path, scene=None, error="mean_error",
     else:
         sub = df
         scenes = sorted(sub["scene"].unique())
-    pts = _aggregate_methods(sub, error)
+    pts = sub
     ncol = min(len(scenes), 3)
     nrow = -(-len(scenes) // ncol)
     legend_width = 2.4 if scene is not None else 0.0  # one scene: the legend beside the axes, off the points
     fig, axes = plt.subplots(nrow, ncol, figsize=(5.2 * ncol + legend_width, 4.2 * nrow), squeeze=False)
-    drawn = []
     for k, s in enumerate(scenes):
         ax = axes.flat[k]
-        drawn.append(_draw_speed_accuracy(ax, pts[pts["scene"] == s], error, colours, annotate=scene is not None))
+        _draw_speed_accuracy(ax, pts[pts["scene"] == s], colours, annotate=scene is not None)
         ax.set_title(s if scene is None else (title or f"{s}: speed vs accuracy"))
         ax.set_xlabel("ms per frame")
-        ax.set_ylabel(f"{error.replace('_', ' ')} / bbox diagonal")
+        ax.set_ylabel("mean error / bbox diagonal")
     for ax in axes.flat[len(scenes):]:
         ax.set_visible(False)
     handles = [Line2D([], [], marker="o", ls="", color=c, label=m) for m, c in colours.items() if m in set(pts["method"])]
@@ -266,7 +219,6 @@ def speed_accuracy_chart(df: pd.DataFrame, path, scene=None, error="mean_error",
         axes[0, 0].legend(handles=handles, fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False)
         fig.tight_layout()
     save_figure(fig, path, dpi=dpi)
-    return pd.concat(drawn, ignore_index=True)
 
 
 # --------------------------------------------------------------------------- stability map

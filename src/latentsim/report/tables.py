@@ -11,7 +11,7 @@ sequence, as :func:`latentsim.stages.evaluate.evaluate_scene` writes them; colum
   :func:`stress_table`: the stress conditions' rows of the stability map;
 - :func:`reconstruction_table`: the autoencoder's reconstruction error;
 - :func:`sizes_table`: model size per scene, the paper's and the sizing sweep's choice;
-- :func:`speed_accuracy_rows`, :func:`glance_table`, :func:`glance_grid`: the speed-accuracy
+- :func:`speed_accuracy_points`, :func:`glance_table`, :func:`glance_grid`: the speed-accuracy
   comparison of every method, as the chart's points and as the summary's opening tables;
 - :func:`markdown`: any of them as a Markdown table;
 - :func:`write_table_html`: a table file (CSV, or this package's Markdown) as an HTML page, which the
@@ -45,7 +45,7 @@ __all__ = [
     "markdown",
     "reconstruction_table",
     "sizes_table",
-    "speed_accuracy_rows",
+    "speed_accuracy_points",
     "stability_table",
     "stress_over_seeds",
     "stress_table",
@@ -90,13 +90,30 @@ def stress_table(scene: str, rollouts) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=["scene", "method", "seed", "condition", "frames", "frames_survived", "diverged", "bc_error"])
 
 
-def speed_accuracy_rows(df: pd.DataFrame) -> pd.DataFrame:
-    """Rows for :func:`latentsim.report.plots.speed_accuracy_chart`: every method, plus the full-space solver at error 0."""
-    pts = df.assign(ms_per_frame=df["latent_ms"], seed=_seeds(df))[["scene", "method", "seed", "sequence", "ms_per_frame", "mean_error",
-                                                                     "max_error", "diverged_frame"]]  # fmt: skip
-    full = df.groupby(["scene", "sequence"], sort=False)["full_ms"].first().reset_index()
-    full = full.assign(method="full_space", seed=-1, ms_per_frame=full["full_ms"], mean_error=0.0, max_error=0.0, diverged_frame=-1)
-    return pd.concat([full[pts.columns], pts], ignore_index=True)
+def speed_accuracy_points(df: pd.DataFrame) -> pd.DataFrame:
+    """The speed-accuracy comparison's points, one per scene and method, the full-space solver included: what
+    :func:`latentsim.report.plots.speed_accuracy_chart` draws and :func:`glance_table` lists.
+
+    ``df``: the per-sequence metrics (:func:`latentsim.stages.evaluate.summarise`'s table).  Each method's
+    columns are :func:`over_seeds` of :func:`per_seed` (medians over the seeds, least and largest); the
+    full space (``method`` ``full_space``, one "seed") runs at the median over the test sequences of its
+    ``full_ms``, at error 0, stable.  ``on_front``: the scene's Pareto front over ``ms_per_frame`` and
+    ``mean_error``, never a method that diverged in any seed.  Sorted by scene, then method.
+    """
+    methods = over_seeds(per_seed(df))
+    full = df.groupby(["scene", "sequence"], sort=False)["full_ms"].first().groupby("scene", sort=False).median()
+    n_seq = df.groupby("scene", sort=False)["sequence"].nunique()
+    ones = {f"{c}{x}": 1.0 for c in ("speedup", "kinetic_ratio") for x in ("", "_min", "_max")}
+    full = pd.DataFrame([dict(scene=scene, method="full_space", seeds=1, seeds_stable=1, ms_per_frame=ms, ms_per_frame_min=ms, ms_per_frame_max=ms,
+                              mean_error=0.0, mean_error_min=0.0, mean_error_max=0.0, max_error=0.0, **ones, sequences=int(n_seq[scene]),
+                              test_survived=f"{n_seq[scene]}/{n_seq[scene]}", diverged_frame=-1, diverged_seeds=0)
+                         for scene, ms in full.items()])  # fmt: skip
+    pts = pd.concat([full, methods], ignore_index=True).sort_values(["scene", "method"], kind="stable").reset_index(drop=True)
+    pts["on_front"] = False
+    for _, g in pts.groupby("scene", sort=False):
+        eligible = np.where(g["diverged_frame"].to_numpy() >= 0, np.nan, g["mean_error"].to_numpy(float))
+        pts.loc[g.index, "on_front"] = pareto_front(g["ms_per_frame"].to_numpy(float), eligible)
+    return pts
 
 
 def reconstruction_table(scene: str, latents) -> pd.DataFrame:
@@ -287,15 +304,22 @@ def per_seed(df: pd.DataFrame) -> pd.DataFrame:
     Columns: ``scene``, ``method``, ``seed`` (-1: a method no seed changes), ``ms_per_frame`` (median over
     the sequences), ``full_ms`` and ``latent_ms`` (means), ``speedup`` (their ratio), ``mean_error`` (mean;
     infinite where a sequence diverged), ``max_error`` (max), ``kinetic_ratio`` (mean; NaN where a sequence
-    diverged), ``sequences``, ``survived`` (test sequences stable to the end).
+    diverged), ``sequences``, ``survived`` (test sequences stable to the end), ``diverged_frame`` (the
+    earliest frame a sequence diverged at, -1 where none did).
     """
     g = df.assign(seed=_seeds(df)).groupby(["scene", "method", "seed"], sort=False)
     out = g.agg(ms_per_frame=("latent_ms", "median"), full_ms=("full_ms", "mean"), latent_ms=("latent_ms", "mean"),
                 mean_error=("mean_error", lambda v: v.mean(skipna=False)), max_error=("max_error", lambda v: v.max(skipna=False)),
                 kinetic_ratio=("kinetic_ratio", lambda v: v.mean(skipna=False)), sequences=("sequence", "nunique"),
-                survived=("diverged_frame", lambda v: int((v < 0).sum()))).reset_index()  # fmt: skip
+                survived=("diverged_frame", lambda v: int((v < 0).sum())), diverged_frame=("diverged_frame", _earliest)).reset_index()  # fmt: skip
     out["speedup"] = out["full_ms"] / out["latent_ms"]
     return out
+
+
+def _earliest(frames: pd.Series) -> int:
+    """The earliest divergence frame among ``frames`` (-1: none diverged)."""
+    hit = frames[frames >= 0]
+    return int(hit.min()) if len(hit) else -1
 
 
 def over_seeds(ps: pd.DataFrame) -> pd.DataFrame:
@@ -305,12 +329,14 @@ def over_seeds(ps: pd.DataFrame) -> pd.DataFrame:
     survived); ``ms_per_frame``, ``speedup``, ``mean_error``, ``kinetic_ratio``: the median over seeds, with
     ``<name>_min`` and ``<name>_max`` the least and largest (the mean error's over the stable seeds alone,
     NaN where none was); ``max_error``: the largest; ``test_survived``: ``k/N`` test rollouts (sequences
-    times seeds) stable to the end.
+    times seeds) stable to the end; ``sequences`` (per seed); ``diverged_frame``: the earliest divergence
+    of any seed (-1: none), ``diverged_seeds``: the seeds in which a test sequence diverged.
     """
     rows = []
     for (scene, method), g in ps.groupby(["scene", "method"], sort=False):
         stable = g["survived"] == g["sequences"]
-        row = dict(scene=scene, method=method, seeds=len(g), seeds_stable=int(stable.sum()))
+        row = dict(scene=scene, method=method, seeds=len(g), seeds_stable=int(stable.sum()), sequences=int(g["sequences"].max()),
+                   diverged_frame=_earliest(g["diverged_frame"]), diverged_seeds=int((~stable).sum()))  # fmt: skip
         for c in ("ms_per_frame", "speedup", "mean_error", "kinetic_ratio"):
             v = g.loc[stable, c] if c == "mean_error" else g[c]
             row[c] = g[c].median()
@@ -321,13 +347,13 @@ def over_seeds(ps: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def glance_table(df: pd.DataFrame, pts: pd.DataFrame, stress: pd.DataFrame | None = None) -> pd.DataFrame:
+def glance_table(df: pd.DataFrame, stress: pd.DataFrame | None = None) -> pd.DataFrame:
     """One row per scene and method: what the speed-accuracy chart and the stability map show, as numbers,
     over the seeds.
 
-    ``df``: the per-sequence metrics (:func:`latentsim.stages.evaluate.summarise`'s table, column ``seed``); ``pts``:
-    the chart's points (:func:`latentsim.report.plots.speed_accuracy_chart`'s return, with the ``full_space`` rows);
-    ``stress``: the stress-condition rows (:func:`stress_table`), optional.
+    ``df``: the per-sequence metrics (:func:`latentsim.stages.evaluate.summarise`'s table, column ``seed``);
+    ``stress``: the stress-condition rows (:func:`stress_table`), optional.  The rows are the chart's points
+    (:func:`speed_accuracy_points`).
 
     Columns: ``scene``, ``method``, ``seeds``; over the seeds (:func:`over_seeds`), median with least and largest:
     ``ms_per_frame`` (each seed's median over test sequences), ``speedup`` (full-space over latent or reduced ms,
@@ -340,31 +366,17 @@ def glance_table(df: pd.DataFrame, pts: pd.DataFrame, stress: pd.DataFrame | Non
     chart's Pareto front over the medians; never a method that diverged in any seed).
     Sorted by scene, then ms per frame.
     """
-    spread = over_seeds(per_seed(df)).set_index(["scene", "method"])
-    g = pts[["scene", "method", "on_front"]].copy()
-    key = list(zip(g["scene"], g["method"]))
-    full = {k[0]: df[df["scene"] == k[0]].groupby("sequence")["full_ms"].first().median() for k in key if k[1] == "full_space"}
-    n_seq = df.groupby("scene")["sequence"].nunique()
+    pts = speed_accuracy_points(df)
     surv = {}
     if stress is not None and not stress.empty:
         for k, st in stress.groupby(["scene", "method"], sort=False):
             surv[k] = f"{int((~st['diverged'].astype(bool)).sum())}/{len(st)}"
     cols = ["seeds", "ms_per_frame", "ms_per_frame_min", "ms_per_frame_max", "speedup", "speedup_min", "speedup_max", "mean_error",
             "mean_error_min", "mean_error_max", "max_error", "kinetic_ratio", "kinetic_ratio_min", "kinetic_ratio_max"]  # fmt: skip
-    out = []
-    for (scene, method), front in zip(key, g["on_front"]):
-        if method == "full_space":
-            ms = full.get(scene, np.nan)
-            row = dict(seeds=1, ms_per_frame=ms, ms_per_frame_min=ms, ms_per_frame_max=ms, speedup=1.0, speedup_min=1.0, speedup_max=1.0,
-                       mean_error=0.0, mean_error_min=0.0, mean_error_max=0.0, max_error=0.0, kinetic_ratio=1.0, kinetic_ratio_min=1.0,
-                       kinetic_ratio_max=1.0, seeds_stable="1/1", test_survived=f"{n_seq.get(scene, 0)}/{n_seq.get(scene, 0)}")  # fmt: skip
-        else:
-            r = spread.loc[(scene, method)]
-            row = {c: r[c] for c in cols}
-            row.update(seeds=int(r["seeds"]), seeds_stable=f"{int(r['seeds_stable'])}/{int(r['seeds'])}", test_survived=r["test_survived"])
-        out.append(dict(scene=scene, method=method, **row, stress_survived=surv.get((scene, method), ""), on_front=bool(front)))
+    out = pts.assign(seeds=pts["seeds"].astype(int), seeds_stable=[f"{int(k)}/{int(n)}" for k, n in zip(pts["seeds_stable"], pts["seeds"])],
+                     stress_survived=[surv.get(k, "") for k in zip(pts["scene"], pts["method"])], on_front=pts["on_front"].astype(bool))  # fmt: skip
     order = ["scene", "method", *cols, "seeds_stable", "test_survived", "stress_survived", "on_front"]
-    return pd.DataFrame(out, columns=order).sort_values(["scene", "ms_per_frame"], kind="stable").reset_index(drop=True)
+    return out[order].sort_values(["scene", "ms_per_frame"], kind="stable").reset_index(drop=True)
 
 
 def glance_grid(glance: pd.DataFrame, methods=GLANCE_METHODS) -> pd.DataFrame:

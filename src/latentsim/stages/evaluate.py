@@ -35,7 +35,7 @@ from latentsim.report.tables import (
     markdown,
     reconstruction_table,
     sizes_table,
-    speed_accuracy_rows,
+    speed_accuracy_points,
     stability_table,
     stress_over_seeds,
     stress_table,
@@ -118,7 +118,7 @@ def write_scene_evaluation(scene: str, trajectories, rollouts, latents, *, metri
     write_table(table, metrics)
     write_table(reconstruction_table(scene, latents), reconstruction)
     write_table(stress_table(scene, rollouts), stress)
-    speed_accuracy_chart(speed_accuracy_rows(table), chart, scene=scene)
+    speed_accuracy_chart(speed_accuracy_points(table), chart, scene=scene)
     rollout_curves(scene, curves, figure)
     return table
 
@@ -198,8 +198,8 @@ def summarise(tables: list, csv_path, md_path, fig_path, table1_path=None, stabi
             write_table(table, path)
     frames = [pd.read_csv(t) for t in stress]
     st_all = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
-    pts = speed_accuracy_chart(speed_accuracy_rows(df), fig_path, scene=None, title="speed vs accuracy, every scene (full space at error 0)")
-    glance = glance_table(df, pts, st_all)
+    speed_accuracy_chart(speed_accuracy_points(df), fig_path, scene=None, title="speed vs accuracy, every scene (full space at error 0)")
+    glance = glance_table(df, st_all)
     dv = divergence_table(df, st_all)
     said = claims(glance, dv)
     if glance_path is not None:
