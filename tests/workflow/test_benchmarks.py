@@ -46,6 +46,26 @@ def test_stage_times_put_every_benchmark_file_under_its_stage_and_scene(tmp_path
     assert df.loc[("nm_sheet_study", "nm_sheet")].tolist() == [2, 810.0, 798.0]  # one job per seed
 
 
+def test_stage_times_compare_two_runs_stage_by_stage(tmp_path, capsys):
+    """--before: both runs' jobs, wall and CPU minutes per stage, the CPU ratio (none for a stage the earlier
+    run lacks), and the totals."""
+    st = load("stage_times")
+    runs = {"before": {"sweep/cloth/r2_s0/seed0.tsv": (120.0, 60.0), "sweep/cloth/r2_s0/seed1.tsv": (120.0, 60.0)},
+            "now": {"sweep/cloth/r2_s0/seed0.tsv": (60.0, 30.0), "sweep/cloth/r2_s0/seed1.tsv": (6.0, 3.0), "sim/cloth.tsv": (30.0, 30.0)}}  # fmt: skip
+    for run, files in runs.items():
+        for rel, (wall, cpu) in files.items():
+            path = tmp_path / run / rel
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(f"s\th:m:s\tcpu_time\n{wall}\t0:00:00\t{cpu}\n")
+    t = st.compare(st.stage_times(tmp_path / "now"), st.stage_times(tmp_path / "before")).set_index("stage")
+    assert t.loc["sweep", ["jobs_before", "jobs_now"]].tolist() == [2, 2]
+    assert t.loc["sweep", "cpu_min_before"] == 2.0 and t.loc["sweep", "cpu_min_now"] == 33.0 / 60 and t.loc["sweep", "cpu_ratio"] == 33.0 / 120
+    assert t.loc["sim", "jobs_before"] == 0 and t.loc["sim", "cpu_ratio"] != t.loc["sim", "cpu_ratio"]  # NaN: nothing before
+    assert t.loc["all stages", "cpu_min_now"] == 63.0 / 60 and t.loc["all stages", "wall_min_now"] == 96.0 / 60
+    st.main([str(tmp_path / "now"), "--before", str(tmp_path / "before")])
+    assert "| sweep | 2 | 2 | 4.0 | 1.1 | 2.0 | 0.6 | 0.28 |" in capsys.readouterr().out
+
+
 def test_runtime_ab_times_a_revisions_runtime_beside_the_working_trees(tmp_path):
     """bench_runtime_ab loads runtime.py from git (HEAD here) as its own module and steps the same
     runtime file with both; the decoded frames agree to float32 rounding."""
