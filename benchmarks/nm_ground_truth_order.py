@@ -4,7 +4,7 @@
 
 Needs the scene's mesh and linear modes (``snakemake --cores 2 results/neural_modes/<scene>/linear_modes.h5``).
 Takes the first ``--samples`` samples of one set of the study's ground truth (as rule ``nm_ground_truth``
-draws them), solves them in the rows' order and along ``compliant_modes.nearest_neighbour_order`` (each sample
+draws them), solves them in the rows' order and along :func:`nearest_neighbour_order` (each sample
 starts from the one solved before it), one thread, and prints per order the Newton iterations (total,
 median, largest), the seconds, and how far the two solutions lie apart: the largest vertex distance over
 the largest displacement of the sample, and the largest relative difference of the energies.
@@ -29,6 +29,25 @@ from latentsim.stages import neural_modes as nm_pipeline  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def nearest_neighbour_order(z: np.ndarray) -> np.ndarray:
+    """A visiting order of the rows of z (N, m): start at the row nearest the origin, then always the nearest row
+    not yet visited (a greedy chain; O(N^2) distances, a second for the studies' few thousand samples).
+    Consecutive samples of the chain are close, so each starts from a near neighbour's solution."""
+    z = np.asarray(z, dtype=np.float64)
+    n = len(z)
+    if n == 0:
+        return np.zeros(0, np.int64)
+    order = np.empty(n, np.int64)
+    free = np.ones(n, bool)
+    d = np.einsum("ij,ij->i", z, z)  # distances to the origin first
+    for k in range(n):
+        i = int(np.argmin(np.where(free, d, np.inf)))
+        order[k], free[i] = i, False
+        diff = z - z[i]
+        d = np.einsum("ij,ij->i", diff, diff)
+    return order
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scene")
@@ -48,10 +67,10 @@ def main():
     sets = nm_pipeline.study_sets(args.study, basis["modes"].shape[1], float(nmc["box"]), p["sets"], p["seed"])
     z = sets[args.set][: args.samples]
     solved = {}
-    for order in ("given", "nearest"):
+    for order, visit in (("given", None), ("nearest", nearest_neighbour_order(z))):
         t0 = time.perf_counter()
         x, e, infos = ground_truth(pot, basis["X"], basis["modes"], z, free_dofs=basis["free_dofs"], rigid=basis["rigid"], metric=nmc["metric"],
-                                   max_iter=int(p["max_iterations"]), order=order)  # fmt: skip
+                                   max_iter=int(p["max_iterations"]), order=visit)  # fmt: skip
         seconds = time.perf_counter() - t0
         its = np.array([i.iterations for i in infos])
         res = np.array([i.residual for i in infos])

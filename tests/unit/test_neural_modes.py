@@ -512,11 +512,17 @@ def test_ground_truth_solves_an_indefinite_hessian_without_superlu():
     assert abs(info.energy - info_lu.energy) <= 1e-10 * info_lu.energy
 
 
-def test_nearest_neighbour_order_visits_every_sample_once_along_a_chain_of_neighbours():
-    from latentsim.neural_modes.compliant_modes import nearest_neighbour_order
 
-    z = np.array([[3.0], [-1.0], [0.5], [2.0], [-2.5]])[:, [0, 0]]
-    order = nearest_neighbour_order(z)
-    assert sorted(order) == list(range(len(z)))
-    assert list(order) == [2, 1, 4, 3, 0]  # 0.5 nearest the origin, then -1, -2.5, then back up to 2 and 3
-    assert len(nearest_neighbour_order(np.zeros((0, 3)))) == 0
+def test_ground_truth_solves_in_the_order_given_and_returns_the_rows_order(sheet_setup):
+    """A small grid (one minimum at these amplitudes) solved in reverse gives each row the solution of the rows'
+    order, returned in the rows' order; an order that is not a permutation of the rows is refused."""
+    from latentsim.neural_modes import ground_truth
+
+    pot, V, lm, R = sheet_setup
+    z = modal_samples("grid", 2, 0.1, resolution=3).double().numpy()
+    x0, e0, _ = ground_truth(pot, V, lm.modes, z, rigid=R)
+    x1, e1, _ = ground_truth(pot, V, lm.modes, z, rigid=R, order=np.arange(len(z))[::-1])
+    # the same minimum to the solver tolerance (another minimum would lie O(1) of the displacement away)
+    assert np.abs(x1 - x0).max() <= 1e-3 * np.abs(x0 - V).max() and np.allclose(e1, e0, rtol=1e-5)
+    with pytest.raises(ValueError, match="permutation"):
+        ground_truth(pot, V, lm.modes, z, rigid=R, order=[0, 0, 1])

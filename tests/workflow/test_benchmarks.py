@@ -96,3 +96,14 @@ def test_runtime_ab_times_a_revisions_runtime_beside_the_working_trees(tmp_path)
         assert row["old_us"] > 0 and row["new_us"] > 0 and row["max_dx"] < 1e-5
         df = ab.main(["--against", "HEAD", "--runtime", "compiled", "--npz", str(tmp_path / "runtime.npz"), "--rounds", "1", "--repeats", "3"])
         assert df["scene"].tolist() == ["runtime"] and df.loc[0, "max_dx"] < 1e-5
+
+
+def test_nearest_neighbour_order_visits_every_sample_once_along_a_chain_of_neighbours():
+    import numpy as np
+
+    nearest_neighbour_order = load("nm_ground_truth_order").nearest_neighbour_order
+    z = np.array([[3.0], [-1.0], [0.5], [2.0], [-2.5]])[:, [0, 0]]
+    order = nearest_neighbour_order(z)
+    assert sorted(order) == list(range(len(z)))
+    assert list(order) == [2, 1, 4, 3, 0]  # 0.5 nearest the origin, then -1, -2.5, then back up to 2 and 3
+    assert len(nearest_neighbour_order(np.zeros((0, 3)))) == 0

@@ -50,9 +50,9 @@ def time_steppers(steppers: dict, z1, z0, p, xD, repeats: int) -> dict:
     best = min(steppers, key=lambda n: out[f"{n}_step_ms"])
     out.update(step_ms=out[f"{best}_step_ms"], integrate_ms=out[f"{best}_integrate_ms"], decode_ms=out[f"{best}_decode_ms"])
     out["runtime"] = best
-    passes = [st.output_pass()[0] for st in steppers.values() if hasattr(st, "output_pass")]
-    if passes:
-        out["floor_ms"] = runtime.time_jvp(passes[0], repeats)
+    floor = next((st for st in steppers.values() if hasattr(st, "output_pass")), None)
+    if floor is not None:
+        out["floor_ms"] = runtime.time_jvp(floor.output_pass()[0], repeats)
     return out
 
 

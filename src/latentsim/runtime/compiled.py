@@ -353,7 +353,7 @@ class CompiledStepper:
         layers = _layers(ref)
         w = max([2 * self.r + 3 * self.k] + [max(A.shape[0] - 1, A.shape[1]) for A, _ in layers[:-1]])
         self._F, table = _pack(layers, self.dtype)
-        self._n_layers = len(layers)
+        self._output_layer = tuple(int(v) for v in table[-1, :3])  # (offset, in, out) of the output layer in F
         out = _output_index(ref)
         scatter, roots, m = ref.layout == "scatter", ref.mode == "roots", len(self.dirichlet)
         hdr = np.zeros(_HLEN, np.int64)
@@ -388,7 +388,7 @@ class CompiledStepper:
         it writes) into float64 values, with :func:`_output_pass`: the bare decode that every step of this model
         does at least (``latent.timing.time_steppers`` times it as ``floor_ms``).  Returns (call, output), the
         output array the call writes (for tests)."""
-        off, nin, D = (int(v) for v in self._I[self._I[_TABLE] + 4 * (self._n_layers - 1) :][:3])
+        off, nin, D = self._output_layer
         A = self._F[off : off + (nin + 1) * D].reshape((nin + 1, D))
         h = np.full(nin, 0.5, dtype=self.dtype)
         y = np.empty(D)
