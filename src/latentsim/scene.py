@@ -77,6 +77,30 @@ def dirichlet_trajectory(rest_D: np.ndarray, p: np.ndarray, dt: float) -> np.nda
     return out
 
 
+def dirichlet_step(xD_prev: torch.Tensor, p: torch.Tensor, dt) -> torch.Tensor:
+    """One step of the boundary-condition program, batched: the prescribed positions at frame t
+    from those at frame t-1, ``p`` = p_t and the time step ``dt``.
+
+    The Dirichlet set's centroid is c(t-1), so x*_D(t) = exp(dt [w_t]_x) (x*_D(t-1) - c(t-1)) +
+    c(t-1) + v_t dt, the step :func:`dirichlet_trajectory` takes.
+
+    xD_prev : (B, m, 3); p : (B, 6); dt : float or (B,) -> (B, m, 3) in xD_prev's dtype.
+    """
+    dtype = xD_prev.dtype
+    p = p.to(dtype)
+    h = torch.as_tensor(dt, dtype=dtype, device=xD_prev.device).reshape(-1, 1)
+    c = xD_prev.mean(-2, keepdim=True)
+    rot = p[:, 3:] * h
+    theta = torch.linalg.vector_norm(rot, dim=-1)
+    k = rot / theta.clamp_min(1e-300)[:, None]
+    K = torch.zeros(p.shape[0], 3, 3, dtype=dtype, device=xD_prev.device)
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    K = K - K.transpose(1, 2)
+    s, co = torch.sin(theta)[:, None, None], (1.0 - torch.cos(theta))[:, None, None]
+    R = torch.eye(3, dtype=dtype, device=xD_prev.device) + s * K + co * (K @ K)
+    return (xD_prev - c) @ R.transpose(1, 2) + c + (p[:, :3] * h)[:, None, :]
+
+
 # --- the physical model -------------------------------------------------------
 
 

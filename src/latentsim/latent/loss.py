@@ -24,8 +24,10 @@ def balancing_weights(x_prev: torch.Tensor, x_prev2: torch.Tensor, dt: float, ep
     velocity (a 3-vector) of the previous step.  ``eps`` [m/s] keeps the weight
     finite for samples at rest (v = 0), capping it at 1/eps.
 
-    x_prev, x_prev2 : (B, n, 3) -> (B,)
+    x_prev, x_prev2 : (B, n, 3) -> (B,); dt : a float or (B,), each sample's time step.
     """
+    if torch.is_tensor(dt) and dt.ndim:
+        dt = dt.reshape(-1, 1, 1)
     v = ((x_prev - x_prev2) / dt).mean(-2)
     return 1.0 / torch.linalg.vector_norm(v, dim=-1).clamp_min(eps)
 
@@ -77,7 +79,10 @@ def integrator_loss(
     potential : IncrementalPotential (its ``dt`` is used for balancing).
     batch : dict of tensors, B rows each: ``z_prev, z_prev2`` (B, r),
         ``p, p_prev, p_prev2`` (B, k), ``xD, xD_prev, xD_prev2`` (B, m, 3),
-        and ``z`` (B, r) ground truth (needed for ``mode="supervised"``).
+        and ``z`` (B, r) ground truth (needed for ``mode="supervised"``); optionally each
+        sample's condition (:mod:`latentsim.latent.conditioning`): ``dt`` (B,) its time step,
+        ``stiffness`` (B,) the factor on the elastic energy and ``scale`` (B,) a factor on its
+        weight.
     use_penalty : Dirichlet penalty in the potential; ``None`` -> on unless
         ``coords.hard_dirichlet`` (rods: roots re-applied exactly on decode).
     generator : CPU generator for the noise.
@@ -111,15 +116,18 @@ def integrator_loss(
             x2 = decode_latents(ae, coords, z2, xD2)
     if mode == "self_supervised":
         x = decode_latents(ae, coords, pred, xD)
-        per = potential(x, x1, x2, targets=xD.to(torch.float64), penalty=bool(use_penalty))
+        per = potential(x, x1, x2, targets=xD.to(torch.float64), penalty=bool(use_penalty), dt=batch.get("dt"), stiffness=batch.get("stiffness"))
     else:
         if zt is None:
             raise ValueError("supervised loss needs the ground-truth latents batch['z']")
         per = ((pred - zt.to(pred)) ** 2).sum(-1).to(torch.float64)
     if balancing:
-        w = balancing_weights(x1, x2, float(potential.dt), balancing_eps).to(per)
+        dt = batch.get("dt")
+        w = balancing_weights(x1, x2, float(potential.dt) if dt is None else dt.to(x1), balancing_eps).to(per)
     else:
         w = torch.ones_like(per)
+    if "scale" in batch:
+        w = w * batch["scale"].to(w)
     loss = (w * per).mean()
     if supervised_weight > 0:
         if zt is None:

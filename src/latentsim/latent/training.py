@@ -25,23 +25,28 @@ from tqdm import tqdm
 from latentsim.config import with_defaults
 from latentsim.latent.autoencoder import Autoencoder
 from latentsim.latent.base import LossHealth, TrainingDiverged, minibatches, potential_on, resolve_device
+from latentsim.latent.conditioning import CONDITION_DIM, Conditioning, with_condition
 from latentsim.latent.coordinates import RelativeCoordinates
 from latentsim.latent.data import build_triplets
 from latentsim.latent.integrator import LatentIntegrator
 from latentsim.latent.loss import integrator_loss
 from latentsim.latent.serialization import atomic_save, load_checked
 from latentsim.physics.kernels import with_compiled_elastic
+from latentsim.scene import dirichlet_step
 
 log = logging.getLogger(__name__)
 
 
-def training_fingerprint(cfg: dict, seed: int, hparams: dict, data: dict, ae: nn.Module) -> str:
+def training_fingerprint(cfg: dict, seed: int, hparams: dict, data: dict, ae: nn.Module, conditioning: Conditioning | None = None) -> str:
     """sha256 of what determines an integrator's training: its settings (without ``epochs`` at a
     constant learning rate, where a longer run continues a shorter one exactly), the seed, the
-    architecture, the training triplets and the autoencoder's weights.  A checkpoint resumes only
-    a training with the same fingerprint."""
+    architecture, the training triplets, the autoencoder's weights and the conditions trained over.
+    A checkpoint resumes only a training with the same fingerprint."""
     drop = {"epochs"} if cfg["lr_final"] is None else set()
-    h = hashlib.sha256(json.dumps({"cfg": {k: v for k, v in cfg.items() if k not in drop}, "seed": seed, "hparams": hparams}, sort_keys=True, default=str).encode())
+    what = {"cfg": {k: v for k, v in cfg.items() if k not in drop}, "seed": seed, "hparams": hparams}
+    if conditioning is not None:
+        what["conditioning"] = conditioning.to_dict()
+    h = hashlib.sha256(json.dumps(what, sort_keys=True, default=str).encode())
     for name, t in [*sorted(data.items()), *ae.state_dict().items()]:
         h.update(name.encode())
         h.update(t.detach().cpu().contiguous().numpy().tobytes())
@@ -61,6 +66,7 @@ def fit_integrator(
     checkpoint_every: int = 10,
     compiled: bool = True,
     label: str = "",
+    conditioning: Conditioning | None = None,
 ):
     """Train a :class:`LatentIntegrator` on ground-truth triplets.
 
@@ -89,6 +95,13 @@ def fit_integrator(
         faster than the batched PyTorch energy under autograd); False: the terms'
         PyTorch energies.
     label : what trains, for messages (e.g. "scene tiny_rods, method self_supervised").
+    conditioning : None, or the box of time steps and moduli to train over
+        (:mod:`latentsim.latent.conditioning`; self-supervised mode only, without supervision):
+        each sample of each minibatch draws its condition from the box, its Dirichlet targets
+        follow by the boundary-condition program at its time step, and its loss is the incremental
+        potential at its condition, weighted by (h / h_0)^2 so that the inertia term weighs the same
+        at every time step.  A box of more than one point appends the normalised condition to each
+        boundary-condition vector (``bc_dim`` + 2); a point trains an unconditioned integrator there.
 
     Returns
     -------
@@ -119,9 +132,15 @@ def fit_integrator(
     cfg = with_defaults("integrator", config, "fit_integrator")
     if cfg["mode"] not in ("self_supervised", "supervised"):
         raise ValueError(f"mode must be 'self_supervised' or 'supervised', got {cfg['mode']!r}")
+    if conditioning is not None and (cfg["mode"] != "self_supervised" or float(cfg["supervised_weight"]) > 0):
+        raise ValueError(
+            f"{label or 'integrator'}: a conditioned integrator trains on the incremental potential alone (mode self_supervised, "
+            f"supervised_weight 0; got mode {cfg['mode']!r}, supervised_weight {cfg['supervised_weight']}): ground truth exists only "
+            "at the conditions of the training sequences"
+        )
     device = resolve_device(device)
     ae_f, pot, data = _training_setup(ae, coords, potential, sequences, device, compiled)
-    integ = _new_integrator(data, cfg, seed, device)
+    integ = _new_integrator(data, cfg, seed, device, conditioning)
     opt = torch.optim.Adam(integ.parameters(), lr=float(cfg["lr"]))
     gen = torch.Generator().manual_seed(seed)
     health = LossHealth(cfg["divergence_factor"], cfg["max_loss"], key="integrator")
@@ -130,13 +149,13 @@ def fit_integrator(
     epochs, every = int(cfg["epochs"]), max(1, int(checkpoint_every))
     start, fingerprint, seconds_before = 0, None, 0.0
     if checkpoint_path is not None:
-        fingerprint = training_fingerprint(cfg, seed, integ.hparams, data, ae_f)
+        fingerprint = training_fingerprint(cfg, seed, integ.hparams, data, ae_f, conditioning)
         start, seconds_before = _resume(checkpoint_path, fingerprint, epochs, integ, opt, gen, history, health)
     bar = tqdm(range(start, epochs), desc="integrator", disable=not progress, leave=False)
     try:
         for epoch in bar:
             _set_learning_rate(opt, cfg, epoch, epochs)
-            loss, mse, distance = _integrator_epoch(integ, opt, ae_f, coords, pot, data, cfg, gen, epoch, health, centre)
+            loss, mse, distance = _integrator_epoch(integ, opt, ae_f, coords, pot, data, cfg, gen, epoch, health, centre, conditioning)
             health.check(epoch, loss)
             _check_latent_range(epoch, distance, radius, float(cfg["latent_range_factor"]))
             history["loss"].append(loss)
@@ -186,16 +205,42 @@ def _training_setup(ae: Autoencoder, coords: RelativeCoordinates, potential, seq
     return ae_f, pot, build_triplets(ae_f, coords, sequences)
 
 
-def _new_integrator(data: dict, cfg: dict, seed: int, device: torch.device) -> LatentIntegrator:
+def _new_integrator(data: dict, cfg: dict, seed: int, device: torch.device, conditioning: Conditioning | None = None) -> LatentIntegrator:
     """An untrained integrator of settings ``cfg`` (weights seeded by ``seed``), normalised by the
-    statistics of the triplets ``data``, on ``device``."""
-    r, k = data["z"].shape[1], data["p"].shape[1]
+    statistics of the triplets ``data`` (a conditioned one's conditions by those of one draw from
+    its box per triplet), on ``device``."""
+    conditioned = conditioning is not None and conditioning.conditioned
+    r, k = data["z"].shape[1], data["p"].shape[1] + (CONDITION_DIM if conditioned else 0)
     fork = [device.index or 0] if device.type == "cuda" else []
     with torch.random.fork_rng(devices=fork):
         torch.manual_seed(seed)
         integ = LatentIntegrator(r, k, cfg["widths"], residual=bool(cfg["residual"]))
-    integ.fit_normalization(*(data[key].cpu() for key in ("z", "z_prev", "z_prev2", "p", "p_prev", "p_prev2")))
+    stats = {key: data[key].cpu() for key in ("z", "z_prev", "z_prev2", "p", "p_prev", "p_prev2")}
+    if conditioned:
+        c = conditioning.normalise(*conditioning.sample(stats["z"].shape[0], torch.Generator().manual_seed(seed)))
+        for key in ("p", "p_prev", "p_prev2"):
+            stats[key] = with_condition(stats[key], c)
+    integ.fit_normalization(*stats.values())
     return integ.to(device)
+
+
+def _at_sampled_conditions(batch: dict, conditioning: Conditioning, gen: torch.Generator) -> dict:
+    """The minibatch with a condition drawn for each sample (:class:`Conditioning`): its time step
+    ``dt``, elastic factor ``stiffness`` and weight ``scale`` (h / h_0)^2, the frame-t Dirichlet
+    targets that the boundary-condition program gives at its time step, and (for a conditioned
+    integrator) the normalised condition appended to each boundary-condition vector."""
+    h, E = conditioning.sample(batch["z"].shape[0], gen)
+    dev = batch["xD"].device
+    out = dict(batch)
+    out["dt"] = h.to(dev)
+    out["stiffness"] = (E / conditioning.base_modulus).to(dev)
+    out["scale"] = ((h / conditioning.base_time_step) ** 2).to(dev)
+    out["xD"] = dirichlet_step(batch["xD_prev"], batch["p"], out["dt"])
+    if conditioning.conditioned:
+        c = conditioning.normalise(h, E).to(dev)
+        for key in ("p", "p_prev", "p_prev2"):
+            out[key] = with_condition(batch[key], c)
+    return out
 
 
 def _set_learning_rate(opt, cfg: dict, epoch: int, epochs: int) -> None:
@@ -209,16 +254,20 @@ def _set_learning_rate(opt, cfg: dict, epoch: int, epochs: int) -> None:
 
 def _integrator_epoch(
     integ: LatentIntegrator, opt, ae: Autoencoder, coords: RelativeCoordinates, pot, data: dict, cfg: dict, gen: torch.Generator, epoch: int,
-    health: LossHealth, centre: torch.Tensor,
+    health: LossHealth, centre: torch.Tensor, conditioning: Conditioning | None = None,
 ):  # fmt: skip
     """One epoch of Adam over the triplets ``data`` in minibatches; the mean weighted loss, the
-    mean latent MSE on the clean samples, and the largest distance |z_pred - centre| of a clean
-    sample's prediction.  The first minibatch of a training sets ``health``'s start and scale."""
+    mean latent MSE on the clean samples (against the training sequences' latents, which for a
+    conditioned training are those of another condition), and the largest distance
+    |z_pred - centre| of a clean sample's prediction.  The first minibatch of a training sets
+    ``health``'s start and scale."""
     integ.train()
     tot, mse, cnt, distance = 0.0, 0.0, 0, 0.0
     for b, idx in enumerate(minibatches(data["z"].shape[0], int(cfg["batch_size"]), gen)):
         idx = idx.to(data["z"].device)
         batch = {key: val[idx] for key, val in data.items()}
+        if conditioning is not None:
+            batch = _at_sampled_conditions(batch, conditioning, gen)
         loss, info = integrator_loss(
             integ, ae, coords, pot, batch,
             mode=cfg["mode"], noise_scale=float(cfg["noise_scale"]), balancing=bool(cfg["balancing"]),

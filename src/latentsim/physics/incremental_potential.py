@@ -98,10 +98,17 @@ class IncrementalPotential(ElasticPotential):
     g: torch.Tensor = field(kw_only=True)
     w_bc: float = 1e5
 
-    def __call__(self, x, x_prev, x_prev2, targets=None, penalty=True):
-        """E_total(x); ``targets`` (..., m, 3) are x*_D, penalised when ``penalty``."""
-        e = inertia(x, x_prev, x_prev2, self.masses, self.dt)
-        e = e + gravity(x, self.masses, self.g) + self.elastic(x)
+    def __call__(self, x, x_prev, x_prev2, targets=None, penalty=True, dt=None, stiffness=None):
+        """E_total(x); ``targets`` (..., m, 3) are x*_D, penalised when ``penalty``.
+
+        ``dt`` (a float, or a tensor of the batch shape ``(...)``): the time step of each state in
+        place of ``self.dt``.  ``stiffness`` (likewise): a factor on the elastic energy, the ratio
+        of each state's Young's modulus to the one the terms were built with (every elastic term
+        is linear in the modulus at a fixed Poisson ratio; ``tests/physics`` checks it).
+        """
+        e = inertia(x, x_prev, x_prev2, self.masses, self.dt if dt is None else dt)
+        elastic = self.elastic(x)
+        e = e + gravity(x, self.masses, self.g) + (elastic if stiffness is None else stiffness * elastic)
         if penalty and targets is not None and self.dirichlet.numel():
             e = e + dirichlet_penalty(x, self.dirichlet, targets, self.w_bc)
         return e
