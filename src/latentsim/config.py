@@ -103,7 +103,77 @@ def validate_config(config: dict, schema_path=SCHEMA) -> dict:
     _check_sequences(config)
     _check_nm_study(config)
     _check_latent_dims(config)
+    _check_conditioning(config)
     return config
+
+
+def condition_name(time_step: float, modulus: float) -> str:
+    """A file-name-safe name of a condition, e.g. ``60hz_3e05pa`` (frame rate 1/h, modulus E)."""
+    return f"{1.0 / time_step:.4g}hz_{modulus:.3g}pa".replace("+", "").replace(".", "p")
+
+
+def conditioned(config: dict, scene: str) -> bool:
+    """Whether a scene trains a conditioned integrator (its ``conditioning.test`` lists conditions)."""
+    return bool(config["scenes"][scene].get("conditioning", {}).get("test"))
+
+
+def conditions(config: dict, scene: str) -> dict[str, dict]:
+    """A conditioned scene's conditions by name (``latent.conditioning.condition_name``): each
+    ``{time_step, youngs_modulus, split}``, the training ones (the box's four corners unless listed)
+    first."""
+    c = config["scenes"][scene]["conditioning"]
+    train = c.get("train") or [
+        {"time_step": h, "youngs_modulus": E} for h in dict.fromkeys(c["time_step"]) for E in dict.fromkeys(c["youngs_modulus"])
+    ]
+    out = {}
+    for split, items in (("train", train), ("test", c["test"])):
+        for q in items:
+            out.setdefault(condition_name(q["time_step"], q["youngs_modulus"]), {"time_step": float(q["time_step"]), "youngs_modulus": float(q["youngs_modulus"]), "split": split})
+    return out
+
+
+def conditioned_integrator_settings(config: dict, scene: str) -> dict:
+    """The settings of a conditioned scene's integrators: the scene's, with its ``conditioning.integrator``."""
+    return {**config["scenes"][scene]["integrator"], **config["scenes"][scene]["conditioning"].get("integrator", {})}
+
+
+def _check_conditioning(config: dict) -> None:
+    """A conditioned scene's box (two values each, lo <= hi), its test conditions inside it and none
+    a training condition, a material linear in the modulus, and the self-supervised loss alone."""
+    for name, scene in config.get("scenes", {}).items():
+        c = scene.get("conditioning") or {}
+        key = f"scenes.{name}.conditioning"
+        if not (c.get("test") or c.get("train") or c.get("time_step") or c.get("youngs_modulus")):
+            continue
+        for k in ("time_step", "youngs_modulus"):
+            v = c.get(k) or []
+            if len(v) != 2 or v[0] > v[1]:
+                raise ConfigError(f"config key '{key}.{k}': {v!r}: give the range as [lo, hi] with lo <= hi")
+        if not c.get("test"):
+            raise ConfigError(f"config key '{key}.test': a conditioned scene needs at least one held-out test condition")
+        if scene.get("material", {}).get("bending_stiffness") is not None:
+            raise ConfigError(f"config key 'scenes.{name}.material.bending_stiffness': a conditioned scene scales every elastic term with the "
+                              "modulus; a bending stiffness given apart from it does not scale")  # fmt: skip
+        settings = conditioned_integrator_settings(config, name)
+        if settings.get("mode", "self_supervised") != "self_supervised" or float(settings.get("supervised_weight", 0.0)) > 0:
+            raise ConfigError(f"config key '{key}.integrator': a conditioned integrator trains on the incremental potential alone "
+                              "(mode self_supervised, supervised_weight 0)")  # fmt: skip
+        (h0, h1), (e0, e1) = c["time_step"], c["youngs_modulus"]
+        train = {condition_name(q["time_step"], q["youngs_modulus"]) for q in c.get("train") or []}
+        for i, q in enumerate(c.get("train") or []):
+            if not (h0 <= q["time_step"] <= h1 and e0 <= q["youngs_modulus"] <= e1):
+                raise ConfigError(f"config key '{key}.train.{i}': {q} lies outside the box time_step {c['time_step']}, youngs_modulus {c['youngs_modulus']}")
+        seen = set()
+        for i, q in enumerate(c["test"]):
+            n = condition_name(q["time_step"], q["youngs_modulus"])
+            if not (h0 <= q["time_step"] <= h1 and e0 <= q["youngs_modulus"] <= e1):
+                raise ConfigError(f"config key '{key}.test.{i}': {q} lies outside the box time_step {c['time_step']}, youngs_modulus {c['youngs_modulus']}")
+            corners = {condition_name(h, E) for h in (h0, h1) for E in (e0, e1)}
+            if n in (train or corners):
+                raise ConfigError(f"config key '{key}.test.{i}': {q} is a training condition; a test condition is held out")
+            if n in seen:
+                raise ConfigError(f"config key '{key}.test.{i}': {q} is listed twice")
+            seen.add(n)
 
 
 def _check_finite(value, path: str = "") -> None:

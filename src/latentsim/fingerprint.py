@@ -192,8 +192,10 @@ def compare(reference: dict, current: dict, rtol: float | None = None, only=None
 
 
 def is_physics(path: str) -> bool:
-    """A full-space artefact (mesh or simulation): equal to the Newton tolerance on any processor."""
-    return path.split("/", 1)[0] in PHYSICS_STAGES
+    """A full-space artefact (mesh or simulation, a conditioned scene's ``conditioned/<scene>/sim/``
+    included): equal to the Newton tolerance on any processor."""
+    parts = path.split("/")
+    return parts[0] in PHYSICS_STAGES or (parts[0] == "conditioned" and len(parts) > 3 and parts[2] == "sim")
 
 
 def main(argv=None) -> int:

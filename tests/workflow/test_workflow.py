@@ -207,6 +207,45 @@ def test_tiny_run_writes_tables_and_figures(tiny_run):
     assert "Model size per scene" in (work / "results/evaluation/summary.md").read_text()
 
 
+def test_tiny_cloth_trains_one_integrator_over_its_box_and_a_reference_at_each_held_out_condition(tiny_run, tmp_path):
+    import h5py
+    import pandas as pd
+
+    from latentsim.latent.serialization import load_extra, load_integrator
+
+    work, _ = tiny_run
+    c = yaml.safe_load(TINY.read_text())["scenes"]["tiny_cloth"]["conditioning"]
+    d = work / "results/conditioned/tiny_cloth"
+    # the four corners and the two held-out conditions, each at its own time step and modulus
+    sims = {p.stem: p for p in (d / "sim").glob("*.h5")}
+    assert sorted(sims) == ["15hz_3e04pa", "15hz_3e05pa", "30hz_1e05pa", "60hz_1e05pa", "60hz_3e04pa", "60hz_3e05pa"]
+    with h5py.File(sims["60hz_1e05pa"]) as f, h5py.File(sims["30hz_1e05pa"]) as g:
+        assert f.attrs["dt"] == pytest.approx(1 / 60) and f.attrs["youngs_modulus"] == 1e5
+        assert f["sequences/line"].attrs["split"] == "test" and len(f["sequences/line/positions"]) == 2 * (len(g["sequences/line/positions"]) - 1) + 1
+    conditioned = load_integrator(d / "seed0/conditioned/integrator.pt")
+    assert conditioned.bc_dim == 8 and load_integrator(d / "seed0/30hz_1e05pa/integrator.pt").bc_dim == 6
+    box = load_extra(d / "seed0/conditioned/integrator.pt")["conditioning"]
+    assert box["time_step"] == c["time_step"] and box["youngs_modulus"] == c["youngs_modulus"]
+    m = pd.read_csv(d / "seed0/metrics.csv")
+    assert sorted(zip(m["condition"], m["method"])) == sorted((n, k) for n in ("30hz_1e05pa", "60hz_1e05pa") for k in ("conditioned", "reference"))
+    assert np.isfinite(m["mean_error"]).all() and (m["stress_total"] == 8).all()
+    fr = pd.read_csv(d / "seed0/frame_rate.csv")
+    assert fr[["coarse", "fine", "factor"]].values.tolist() == [["30hz_1e05pa", "60hz_1e05pa", 2]] and fr["shared_frames"].iloc[0] == 60
+    summary = pd.read_csv(d / "summary.csv")
+    assert len(summary) == 2 and np.allclose(summary["ratio"], summary["conditioned_error"] / summary["reference_error"])
+    assert (d / "errors.png").stat().st_size > 1000 and (d / "summary.html").exists()
+    assert "Frame-rate independence" in (d / "summary.md").read_text()
+    # narrowing the box reruns the conditioned study (new corners: new training data), not the scene's own chain
+    cfg = yaml.safe_load(TINY.read_text())
+    cfg["scenes"]["tiny_cloth"]["conditioning"]["youngs_modulus"] = [4.0e4, 3.0e5]
+    edited = tmp_path / "edited.yaml"
+    edited.write_text(yaml.safe_dump(cfg))
+    jobs = planned_jobs(snakemake("-n", "all", "--configfile", str(edited), "--directory", str(work)).stdout)
+    assert {r for r, _ in jobs} <= {"conditioned_simulate", "conditioned_autoencoder", "conditioned_integrator", "conditioned_evaluate",
+                                    "conditioned_summary", "report_conditioned_page", "all"}, jobs  # fmt: skip
+    assert ("conditioned_integrator", "tiny_cloth") in jobs
+
+
 def test_a_sweep_point_that_is_the_scenes_model_measures_it_instead_of_training_it_again(tiny_run):
     """tiny_cloth's latent-4 point has the scene's own settings: its job measures the pipeline's trained model
     (its training time is the two files' own), and training the point afresh, one thread as a job runs,

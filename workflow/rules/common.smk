@@ -13,6 +13,9 @@ from latentsim.config import (
     ConfigError,
     autoencoder_dir,
     autoencoder_settings,
+    conditioned,
+    conditioned_integrator_settings,
+    conditions,
     integrator_settings,
     own_autoencoder,
     scene_methods,
@@ -286,6 +289,88 @@ def scene_artefacts(scene):
     return list(dict.fromkeys(out))
 
 
+# --- the conditioned integrator (workflow/rules/conditioning.smk) ---
+CONDITIONED_SCENES = [s for s in SCENES if conditioned(config, s)]
+CONDITION_NAMES = sorted({n for s in CONDITIONED_SCENES for n in conditions(config, s)})
+
+
+def condition_files(split):
+    """Input function: the trajectories of a conditioned scene's conditions of one split, by name."""
+
+    def get(wildcards):
+        return {
+            n: f"results/conditioned/{wildcards.scene}/sim/{n}.h5"
+            for n, c in conditions(config, wildcards.scene).items()
+            if c["split"] == split
+        }
+
+    return get
+
+
+def condition_sim_params(wildcards):
+    """Input function: the scene's simulation settings and the condition (time step, modulus, split)."""
+    sc = config["scenes"][wildcards.scene]
+    keys = ("model", "material", "dt", "gravity", "newton", "sequences")
+    return canonical(
+        {
+            "sim": {k: sc[k] for k in keys},
+            "condition": conditions(config, wildcards.scene)[wildcards.condition],
+        }
+    )
+
+
+def conditioned_autoencoder_params(wildcards):
+    """Input function: the scene's autoencoder settings, seed and device."""
+    return canonical(
+        {
+            "settings": autoencoder_settings(config, wildcards.scene),
+            "seed": int(wildcards.seed),
+            "device": config["device"],
+        }
+    )
+
+
+def conditioned_integrator_params(wildcards):
+    """Input function: the settings, seed and device of the conditioned integrator (``model`` conditioned:
+    the box) or of the reference at one test condition (``model`` that condition's name: the point).
+    """
+    c = config["scenes"][wildcards.scene]["conditioning"]
+    if wildcards.model == "conditioned":
+        box = {"time_step": c["time_step"], "youngs_modulus": c["youngs_modulus"]}
+    else:
+        q = conditions(config, wildcards.scene)[wildcards.model]
+        box = {
+            "time_step": [q["time_step"]] * 2,
+            "youngs_modulus": [q["youngs_modulus"]] * 2,
+        }
+    return canonical(
+        {
+            "settings": conditioned_integrator_settings(config, wildcards.scene),
+            "seed": int(wildcards.seed),
+            "device": config["device"],
+            "conditioning": box,
+        }
+    )
+
+
+def conditioned_models(wildcards):
+    """Input function: the conditioned integrator and every test condition's reference, of the job's seed."""
+    d = f"results/conditioned/{wildcards.scene}/seed{wildcards.seed}"
+    tests = condition_files("test")(wildcards)
+    return {"conditioned": f"{d}/conditioned/integrator.pt"} | {
+        n: f"{d}/{n}/integrator.pt" for n in tests
+    }
+
+
+def conditioned_targets():
+    """The summaries of the conditioned scenes."""
+    return [
+        f"results/conditioned/{scene}/{name}"
+        for scene in CONDITIONED_SCENES
+        for name in ("summary.csv", "summary.md", "errors.png")
+    ]
+
+
 def all_targets():
     out = [path for scene in SCENES for path in scene_artefacts(scene)]
     out += [path for scene in SCENES for path in rollout_paths(scene)]
@@ -294,6 +379,7 @@ def all_targets():
     out += list(sweep_choices().values())
     out += ["results/evaluation/summary.csv", "results/evaluation/summary.md"]
     out += ["results/mesh/quality.csv"]
+    out += conditioned_targets()
     return out
 
 

@@ -258,3 +258,23 @@ rule report_nm_aspect_page:
         titles={},
     script:
         "../scripts/report_pages.py"
+
+
+rule report_conditioned_page:
+    input:
+        summary="results/conditioned/{scene}/summary.md",
+    output:
+        summary=report(
+            "results/conditioned/{scene}/summary.html",
+            caption="../report/conditioned.rst",
+            category="Conditioned integrator",
+            subcategory="{scene}",
+        ),
+    log:
+        "logs/report/{scene}_conditioned_page.log",
+    conda:
+        "../../envs/latentsim.yaml"
+    params:
+        titles={},
+    script:
+        "../scripts/report_pages.py"

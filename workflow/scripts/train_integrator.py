@@ -1,12 +1,16 @@
-"""Stage: latent integrator training (see latentsim.stages.integrator.train_integrator)."""
+"""Stage: latent integrator training (see latentsim.stages.integrator.train_integrator): a scene's
+method (rule train_integrator), or a conditioned scene's conditioned integrator or reference (rule
+conditioned_integrator, whose params carry the box of conditions)."""
 from latentsim.stages.integrator import train_integrator
 from latentsim.utils import progress_enabled, run_stage
 
 
 def main(smk):
     p = smk.params.train
+    conditioned = "conditioning" in p
+    what = f"conditioned model {smk.wildcards.model}" if conditioned else f"method {smk.wildcards.method}"
     train_integrator(
-        smk.input.trajectories,
+        list(smk.input.trajectories) if conditioned else smk.input.trajectories,
         smk.input.autoencoder,
         p["settings"],
         p["seed"],
@@ -15,7 +19,8 @@ def main(smk):
         smk.output.history,
         checkpoint=smk.params.checkpoint,
         progress=progress_enabled(smk.config.get("progress", True)),
-        label=f"scene {smk.wildcards.scene}, method {smk.wildcards.method}",
+        label=f"scene {smk.wildcards.scene}, {what}",
+        conditioning=p.get("conditioning"),
     )
 
 

@@ -6,11 +6,14 @@ ground-truth triplets ``(z_t, z_{t-1}, z_{t-2})`` with their boundary conditions
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
 from typing import Sequence
 
+import numpy as np
 import torch
 
-from latentsim.io import require
+from latentsim.io import open_artefact, require
 from latentsim.latent.autoencoder import Autoencoder, encode_positions
 from latentsim.latent.coordinates import RelativeCoordinates
 
@@ -28,6 +31,27 @@ def load_sequences(f, split=None) -> dict:
         out[name]["split"] = str(g.attrs["split"])
     if not out:
         raise ValueError(f"{f.filename}: no sequence with split '{split}'")
+    return out
+
+
+def load_split(paths, split=None) -> dict:
+    """:func:`load_sequences` of one split of several ``trajectories.h5`` of one mesh (the
+    conditions of a conditioned scene), each name prefixed with its file's stem and a dot; a
+    single path's names as they are.
+
+    Raises ValueError naming the file whose rest positions differ from the first's.
+    """
+    paths = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
+    out, rest = {}, None
+    for path in paths:
+        with open_artefact(path) as f:
+            x = f["rest_positions"][()]
+            if rest is None:
+                rest = x
+            elif x.shape != rest.shape or not np.array_equal(x, rest):
+                raise ValueError(f"{path}: its rest positions differ from those of {paths[0]}; the sequences of one model share one mesh")
+            prefix = "" if len(paths) == 1 else f"{Path(path).stem}."
+            out.update({prefix + k: v for k, v in load_sequences(f, split).items()})
     return out
 
 

@@ -6,6 +6,7 @@ every sequence encoded with its reconstruction error.
 from __future__ import annotations
 
 import logging
+import os
 import time
 
 import numpy as np
@@ -15,7 +16,7 @@ from latentsim.config import with_defaults
 from latentsim.io import atomic_h5, open_artefact, write_dataset
 from latentsim.latent.autoencoder import LatentRankError, decode_latents, encode_positions, fit_autoencoder
 from latentsim.latent.coordinates import coordinates_for
-from latentsim.latent.data import load_sequences
+from latentsim.latent.data import load_split
 from latentsim.latent.serialization import save_module
 from latentsim.report.metrics import bbox_diagonal
 
@@ -36,18 +37,21 @@ def reconstruction_errors(ae, coords, seq: dict, diag: float) -> tuple[float, fl
 def train_autoencoder(trajectories, settings: dict, seed: int, device: str, out_model, out_latents, progress=False, label=""):
     """Fit the autoencoder on every training frame; encode every sequence.
 
+    ``trajectories``: a scene's ``trajectories.h5``, or a list of several of one mesh (a conditioned
+    scene's conditions; :func:`~latentsim.latent.data.load_split` names their sequences).
+
     ``settings``: the scene's ``autoencoder`` block (keys absent take the schema's defaults), which
     ``out_latents`` records as its config.  ``label`` names the training in messages (the scene,
     and the method of a variant's own autoencoder).  A training that diverges raises
     :class:`~latentsim.latent.base.TrainingDiverged` and writes neither output.
     """
     cfg = with_defaults("autoencoder", settings, "train_autoencoder")
-    with open_artefact(trajectories) as f:
+    paths = [trajectories] if isinstance(trajectories, (str, os.PathLike)) else list(trajectories)
+    with open_artefact(paths[0]) as f:
         coords = coordinates_for(f, cfg["coordinates"])
-        train = load_sequences(f, "train")
-        every = load_sequences(f)
         diag = bbox_diagonal(f["rest_positions"][()])
         scene = f.attrs.get("scene", "?")
+    train, every = load_split(paths, "train"), load_split(paths)
     U = torch.cat([coords.encode(torch.as_tensor(s["positions"]), torch.as_tensor(s["dirichlet_positions"])) for s in train.values()])
     t0 = time.perf_counter()
     try:

@@ -13,7 +13,8 @@ import numpy as np
 
 from latentsim.config import with_defaults
 from latentsim.io import atomic_h5, open_artefact, write_dataset
-from latentsim.latent.data import load_sequences
+from latentsim.latent.conditioning import Conditioning
+from latentsim.latent.data import load_split
 from latentsim.latent.serialization import autoencoder_coordinates, load_autoencoder, save_module
 from latentsim.latent.training import fit_integrator
 from latentsim.scene import potential_from_artefact
@@ -21,7 +22,8 @@ from latentsim.scene import potential_from_artefact
 log = logging.getLogger(__name__)
 
 
-def train_integrator(trajectories, ae_path, settings: dict, seed: int, device: str, out_model, out_history, checkpoint=None, progress=False, label=""):
+def train_integrator(trajectories, ae_path, settings: dict, seed: int, device: str, out_model, out_history, checkpoint=None, progress=False, label="",
+                     conditioning: dict | None = None):  # fmt: skip
     """Fit the latent integrator (self-supervised or supervised) on the training sequences.
 
     ``settings``: the method's ``integrator`` block (keys absent take the schema's defaults), which
@@ -30,19 +32,32 @@ def train_integrator(trajectories, ae_path, settings: dict, seed: int, device: s
     to its checkpoint included.  A training that diverges raises
     :class:`~latentsim.latent.base.TrainingDiverged` and writes neither output (the checkpoint
     keeps the last good epoch).
+
+    ``trajectories``: a scene's ``trajectories.h5``, or a list of several of one mesh (a conditioned
+    scene's training conditions).  ``conditioning``: None, or the box to train over, ``{time_step:
+    [lo, hi], youngs_modulus: [lo, hi]}`` (:mod:`latentsim.latent.conditioning`; the first file's
+    time step and modulus are the potential's own); the model file records it.
     """
     cfg = with_defaults("integrator", settings, "train_integrator")
-    with open_artefact(trajectories) as f:
+    paths = [trajectories] if isinstance(trajectories, (str, os.PathLike)) else list(trajectories)
+    with open_artefact(paths[0]) as f:
         coords = autoencoder_coordinates(f, ae_path)
-        train = load_sequences(f, "train")
         potential = potential_from_artefact(f)
+        box = None
+        if conditioning is not None:
+            box = Conditioning(tuple(conditioning["time_step"]), tuple(conditioning["youngs_modulus"]), float(f.attrs["dt"]), float(f.attrs["youngs_modulus"]))
+    train = load_split(paths, "train")
     ae = load_autoencoder(ae_path)
     integ, history = fit_integrator(
-        ae, coords, potential, list(train.values()), cfg, seed=seed, device=device, progress=progress, checkpoint_path=checkpoint, label=label
-    )
+        ae, coords, potential, list(train.values()), cfg, seed=seed, device=device, progress=progress, checkpoint_path=checkpoint, label=label,
+        conditioning=box,
+    )  # fmt: skip
     seconds = history["train_seconds"]
     log.info("integrator (%s): %d triplets, %.1f s, final loss %.4e", cfg["mode"], history["n_triplets"], seconds, history["loss"][-1])
-    save_module(out_model, integ.cpu(), extra={"mode": cfg["mode"], "train_seconds": seconds})
+    extra = {"mode": cfg["mode"], "train_seconds": seconds}
+    if box is not None:
+        extra["conditioning"] = box.to_dict()
+    save_module(out_model, integ.cpu(), extra=extra)
     with atomic_h5(out_history, config=settings, seed=seed) as g:
         g.attrs["train_seconds"] = seconds
         g.attrs["start_epoch"] = int(history["start_epoch"])
