@@ -22,10 +22,13 @@ and fed to the latent integrator, are p_t = [v_t, w_t] (k = 6).
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import torch
 
 from latentsim.physics import neohookean, rods, shells, stvk_nm, tets
+from latentsim.physics.contact import Capsule, ContactBarrier, HalfSpace, Sphere
 from latentsim.physics.incremental_potential import ElasticPotential, IncrementalPotential
 
 BC_DIM = 6
@@ -240,24 +243,54 @@ def energy_description(model: str, material: dict) -> str:
     return f"{MATERIAL_ENERGIES[(model, law)]}, {', '.join(consts)}"
 
 
-def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity, w_bc: float = 1e5, free_only: bool = False):
+def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity, w_bc: float = 1e5, free_only: bool = False,
+                    contact: dict | None = None):  # fmt: skip
     """IncrementalPotential of a scene: :func:`build_elastic` (same arguments) with the time
-    step ``dt`` [s], ``gravity`` (3,) [m/s^2] and the Dirichlet penalty weight ``w_bc``."""
+    step ``dt`` [s], ``gravity`` (3,) [m/s^2], the Dirichlet penalty weight ``w_bc`` and the
+    colliders of ``contact`` (a scene's ``contact`` block, :func:`contact_settings`)."""
     elastic = build_elastic(model, arrays, material, free_only=free_only)
+    g = torch.as_tensor(np.asarray(gravity, dtype=np.float64))
+    barrier = None
+    if contact and contact.get("colliders"):
+        c = contact_settings(contact, arrays["rest_positions"], elastic.masses.numpy(), g.numpy())
+        barrier = ContactBarrier(elastic.n_vertices, [collider(q) for q in c["colliders"]], c["d_hat"], c["kappa"])
     return IncrementalPotential(
         terms=elastic.terms,
         masses=elastic.masses,
         dirichlet=elastic.dirichlet,
         dt=float(dt),
-        g=torch.as_tensor(np.asarray(gravity, dtype=np.float64)),
+        g=g,
         w_bc=float(w_bc),
+        contact=barrier,
     )
+
+
+#: the analytic colliders a scene's ``contact.colliders`` may list, by ``type``
+COLLIDERS = {"half_space": (HalfSpace, ("point", "normal")), "sphere": (Sphere, ("centre", "radius")), "capsule": (Capsule, ("a", "b", "radius"))}
+
+
+def collider(q: dict):
+    """The collider of one ``contact.colliders`` entry (``type`` and the shape's keys)."""
+    cls, keys = COLLIDERS[q["type"]]
+    return cls(*(q[k] for k in keys))
+
+
+def contact_settings(contact: dict, rest_positions, masses, gravity) -> dict:
+    """A scene's ``contact`` block with its defaults resolved: ``d_hat`` (null: 1e-3 of the rest
+    bounding-box diagonal, IPC's default) and ``kappa`` (null: 100 m_max |g| / d_hat, so that the
+    barrier holds a vertex pressed with 119 times the heaviest vertex's weight at d_hat / 2)."""
+    rest = np.asarray(rest_positions, dtype=float)
+    d_hat = contact.get("d_hat") or 1e-3 * float(np.linalg.norm(rest.max(0) - rest.min(0)))
+    kappa = contact.get("kappa") or 100.0 * float(np.max(masses)) * max(float(np.linalg.norm(gravity)), 1.0) / d_hat
+    return {"colliders": list(contact["colliders"]), "d_hat": float(d_hat), "kappa": float(kappa)}
 
 
 MATERIAL_KEYS = ("youngs_modulus", "poisson_ratio", "density", "thickness", "radius", "bending_stiffness")
 # the material model is a string, stored as the attribute ``material_model`` (``model`` is the scene's)
 MATERIAL_MODEL_ATTR = "material_model"
 ELEMENT_KEYS = ("edges", "triples", "triangles", "tets", "root_of")
+# the resolved contact block (contact_settings), as JSON
+CONTACT_ATTR = "contact"
 
 
 def potential_from_artefact(f, w_bc: float = 1e5, free_only: bool = False) -> IncrementalPotential:
@@ -270,4 +303,5 @@ def potential_from_artefact(f, w_bc: float = 1e5, free_only: bool = False) -> In
     material = {k: float(f.attrs[k]) for k in MATERIAL_KEYS if k in f.attrs}
     if MATERIAL_MODEL_ATTR in f.attrs:
         material["model"] = str(f.attrs[MATERIAL_MODEL_ATTR])
-    return build_potential(str(f.attrs["model"]), arrays, material, float(f.attrs["dt"]), f.attrs["gravity"], w_bc, free_only=free_only)
+    contact = json.loads(str(f.attrs[CONTACT_ATTR])) if CONTACT_ATTR in f.attrs else None
+    return build_potential(str(f.attrs["model"]), arrays, material, float(f.attrs["dt"]), f.attrs["gravity"], w_bc, free_only=free_only, contact=contact)

@@ -12,6 +12,7 @@ Variational implicit Euler (Martin et al. 2011): the end-of-step positions
                - sum_i m_i g . x_i                               (gravity)
                + w_bc ||x_D - x*_D||^2                           (Dirichlet penalty)
                + E_elastic(x)                                    (sum of EnergyTerms)
+               + E_contact(x)                                    (barrier of the colliders, if any)
 
 with a lumped (diagonal) mass ``M``.  The same object serves the full-space
 Newton solver (which removes Dirichlet DoFs instead of penalising them), the
@@ -92,11 +93,14 @@ class IncrementalPotential(ElasticPotential):
     dt : time step [s]
     g : (3,) gravitational acceleration [m/s^2]
     w_bc : penalty weight used where constraints are soft (learning, reduced solvers)
+    contact : None, or the barrier of the scene's colliders (``physics.contact.ContactBarrier``), a
+        term of E_total beside the elastic ones (it does not scale with the modulus)
     """
 
     dt: float = field(kw_only=True)
     g: torch.Tensor = field(kw_only=True)
     w_bc: float = 1e5
+    contact: object | None = field(default=None, kw_only=True)
 
     def __call__(self, x, x_prev, x_prev2, targets=None, penalty=True, dt=None, stiffness=None):
         """E_total(x); ``targets`` (..., m, 3) are x*_D, penalised when ``penalty``.
@@ -109,6 +113,8 @@ class IncrementalPotential(ElasticPotential):
         e = inertia(x, x_prev, x_prev2, self.masses, self.dt if dt is None else dt)
         elastic = self.elastic(x)
         e = e + gravity(x, self.masses, self.g) + (elastic if stiffness is None else stiffness * elastic)
+        if self.contact is not None:
+            e = e + self.contact.energy(x)
         if penalty and targets is not None and self.dirichlet.numel():
             e = e + dirichlet_penalty(x, self.dirichlet, targets, self.w_bc)
         return e

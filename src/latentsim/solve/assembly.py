@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse
+import torch
 
 from latentsim.physics.kernels import add_at, split_stencils, term_kernel
 from latentsim.solve.sparse import BandedUpper, HessianPattern
@@ -44,6 +45,33 @@ class CompiledAssembly:
             self._diag_slots = pos[self._diag_slots]
             self._target_size = (pattern.bandwidth + 1) * pattern.shape[0]
 
+        self.contact = None
+
+    def with_contact(self, term) -> "CompiledAssembly":
+        """Add a contact barrier (``physics.contact.ContactBarrier``, one vertex per stencil) to every
+        evaluation: its closed-form per-vertex gradient and (projected or exact) Hessian."""
+        self.contact = term
+        slots = self.pattern.stencil_slots(term.stencils.numpy())
+        if self.banded:
+            slots = np.where(slots >= 0, self.pattern.band_positions()[slots], -1)
+        self._contact_slots = slots
+        return self
+
+    def _contact(self, x, grad, data=None, project=True) -> float:
+        """The barrier's energy at x (n,3); with ``grad``, its gradient added into it and, with ``data``,
+        its Hessian's upper triangle into the matrix data."""
+        xt = torch.as_tensor(np.asarray(x, dtype=np.float64))
+        e = float(self.contact.energy(xt))
+        if grad is None or not np.isfinite(e):
+            return e
+        g, H = self.contact.local_gradient_hessian(self.contact.gather(xt), project=project)
+        grad += g.numpy().reshape(-1)
+        if data is not None:
+            iu, ju = np.triu_indices(3)
+            values, ok = H.numpy()[:, iu, ju], self._contact_slots >= 0
+            np.add.at(data, self._contact_slots[ok], values[ok])
+        return e
+
     @classmethod
     def of(cls, terms, pattern: HessianPattern, n_vertices: int, banded: bool = False, threads: int = 1):
         """For the terms' kernels (``term_kernel``); a term without one is named in a ValueError."""
@@ -54,13 +82,19 @@ class CompiledAssembly:
         return cls(ks, pattern, n_vertices, banded, threads)
 
     def energy(self, x) -> float:
-        """Elastic energy at x (n,3)."""
-        return sum(k.energy(x) for k in self.kernels)
+        """Elastic energy at x (n,3) (and the contact barrier's, with one)."""
+        e = sum(k.energy(x) for k in self.kernels)
+        if self.contact is not None:
+            e += self._contact(x, None)
+        return e
 
     def energy_gradient(self, x):
-        """Elastic energy and its full gradient (3n,) in one pass."""
+        """Elastic energy and its full gradient (3n,) in one pass (with the contact barrier's)."""
         grad = np.zeros(3 * self.n)
-        return sum(k.energy_gradient(x, grad) for k in self.kernels), grad
+        e = sum(k.energy_gradient(x, grad) for k in self.kernels)
+        if self.contact is not None:
+            e += self._contact(x, grad)
+        return e, grad
 
     def gradient_hessian(self, x, diagonal, project: bool):
         """Elastic gradient (3n,) and the free-DoF Hessian plus ``diagonal`` (3n,) on its diagonal,
@@ -75,6 +109,8 @@ class CompiledAssembly:
         e = 0.0
         for k, slots in zip(self.kernels, self.slots):
             e += k.accumulate(x, grad, data, slots, project)
+        if self.contact is not None:
+            e += self._contact(x, grad, data, project)
         add_at(data, self._diag_slots, np.ascontiguousarray(diagonal, dtype=np.float64)[self.pattern.free_dofs])
         p = self.pattern
         if self.banded:

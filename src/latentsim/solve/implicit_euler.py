@@ -122,7 +122,10 @@ def check_finite_potential(potential: IncrementalPotential) -> None:
 
 
 def rigidly_carried(x, D, targets):
-    """x (n,3) moved by the rigid motion best mapping x[D] onto targets (Kabsch; translation if m < 3)."""
+    """x (n,3) moved by the rigid motion best mapping x[D] onto targets (Kabsch; translation if m < 3;
+    x itself, a copy, without Dirichlet vertices)."""
+    if len(D) == 0:
+        return np.array(x, dtype=np.float64)
     src = x[D]
     cs, ct = src.mean(axis=0), np.asarray(targets).mean(axis=0)
     if len(D) < 3:
@@ -169,6 +172,9 @@ class ImplicitEuler:
         self.assembly = CompiledAssembly.of(
             potential.terms, self.pattern, n, self.linear.method == "banded", min(2, int(threads or torch.get_num_threads()))
         )
+        self.contact = getattr(potential, "contact", None)
+        if self.contact is not None:
+            self.assembly.with_contact(self.contact)
         self._last_iterations = 0  # the previous step's Newton iterations (NewtonSettings.fused_trial)
 
     # -- E_total and its derivatives ------------------------------------------
@@ -251,6 +257,9 @@ class ImplicitEuler:
         best, e_best, energies = None, np.inf, []
         for c in candidates:
             c[D] = dirichlet_targets
+            if self.contact is not None and not self.contact.first_impact(x_prev, c - x_prev) > 1.0:
+                energies.append(np.inf)  # its path from x_{t-1} passes through a collider
+                continue
             e = self.energy(c, x_prev, x_prev2)
             energies.append(e)
             if np.isfinite(e) and e < e_best:
@@ -259,6 +268,7 @@ class ImplicitEuler:
             names = ("constant velocity", "x_{t-1}", "rigidly carried")
             raise NewtonFailed(
                 "every initial guess has a non-finite energy ("
+                + ("inf also where its path from x_{t-1} crosses a collider; " if self.contact is not None else "")
                 + ", ".join(f"{k}: {e:.3e}" for k, e in zip(names, energies))
                 + "): the state or the potential is not finite"
             )
@@ -355,6 +365,12 @@ class _StepProblem:
             return e, (grad, U)
         e, grad = sv._evaluate(x, self.x_prev, self.x_prev2)
         return e, (grad, None)
+
+    def max_step(self, x, dx) -> float:
+        """The contact barrier's ``max_step``: the step fraction that keeps every vertex outside the
+        colliders (1 without colliders)."""
+        contact = self.solver.contact
+        return 1.0 if contact is None else contact.max_step(x, dx)
 
     def _time_line_search(self, seconds):
         self.info.timings["energy"] += seconds - self.fused_seconds

@@ -32,6 +32,9 @@ A problem is any object with
 - ``accept(trial, e_old, seconds)``: the line search accepted ``trial`` (``seconds``: its time).
 - ``line_search_failed(k, seconds)``: no step length down to ``min_step`` met Armijo: raise,
   or return to evaluate x_k again as iteration k + 1.
+- optionally ``max_step(x, dx) -> alpha0`` in (0, 1]: the largest step the search may start from
+  (a scene with colliders: the first time of impact along dx, scaled back, so that every iterate
+  stays outside them).
 """
 
 from __future__ import annotations
@@ -88,8 +91,9 @@ class NewtonInfo:
         return self.status == "stopped"
 
 
-def line_search(trial, x, e: float, dx, slope: float, settings: LineSearch) -> Trial | None:
-    """Backtracking from the full step x + dx until Armijo holds (see the module docstring).
+def line_search(trial, x, e: float, dx, slope: float, settings: LineSearch, alpha0: float = 1.0) -> Trial | None:
+    """Backtracking from the full step x + dx (or the first ``alpha0`` of it: the most a problem
+    with colliders allows, its ``max_step``) until Armijo holds (see the module docstring).
 
     Parameters
     ----------
@@ -105,7 +109,7 @@ def line_search(trial, x, e: float, dx, slope: float, settings: LineSearch) -> T
     s = settings
     resolvable = -slope > s.energy_resolution * max(abs(e), 1e-300)
     if resolvable or s.search_unresolvable:
-        alpha = 1.0
+        alpha = float(alpha0)
         while alpha >= s.min_step:
             x_try = x + alpha * dx
             e_try, payload = trial(x_try, alpha, True)
@@ -114,9 +118,9 @@ def line_search(trial, x, e: float, dx, slope: float, settings: LineSearch) -> T
             alpha *= 0.5
         if resolvable:
             return None
-    x_try = x + dx
-    e_try, payload = trial(x_try, 1.0, False)
-    return Trial(1.0, x_try, e_try, payload)
+    x_try = x + alpha0 * dx
+    e_try, payload = trial(x_try, float(alpha0), False)
+    return Trial(float(alpha0), x_try, e_try, payload)
 
 
 def minimise(problem, x, e: float, settings: LineSearch, max_iterations: int):
@@ -139,7 +143,8 @@ def minimise(problem, x, e: float, settings: LineSearch, max_iterations: int):
             return x, NewtonInfo(k, e, "no descent")
         dx, slope = step
         t0 = time.perf_counter()
-        accepted = line_search(problem.trial, x, e, dx, slope, settings)
+        alpha0 = problem.max_step(x, dx) if hasattr(problem, "max_step") else 1.0
+        accepted = line_search(problem.trial, x, e, dx, slope, settings, alpha0)
         seconds = time.perf_counter() - t0
         if accepted is None:
             problem.line_search_failed(k, seconds)

@@ -1,0 +1,184 @@
+"""The contact barrier against analytic colliders, tested as physics: zero beyond d_hat, C2 there,
+derivatives against finite differences and the autograd oracle, symmetry, and the time of impact."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from latentsim.physics.base import autograd_gradient_hessian
+from latentsim.physics.contact import Capsule, ContactBarrier, HalfSpace, Sphere, barrier, barrier_derivatives
+
+F64 = torch.float64
+COLLIDERS = {
+    "half_space": HalfSpace((0.0, -0.5, 0.0), (0.0, 1.0, 0.0)),
+    "sphere": Sphere((0.1, 0.0, -0.2), 0.3),
+    "capsule": Capsule((-0.4, 0.0, 0.0), (0.4, 0.1, 0.0), 0.2),
+}
+
+
+def test_barrier_is_zero_beyond_d_hat_c2_there_and_infinite_at_contact():
+    d_hat, kappa = 0.01, 3.0
+    d = torch.tensor([d_hat, 1.5 * d_hat, 10.0], dtype=F64)
+    assert torch.equal(barrier(d, d_hat, kappa), torch.zeros(3, dtype=F64))
+    assert all(torch.equal(v, torch.zeros(3, dtype=F64)) for v in barrier_derivatives(d, d_hat, kappa))
+    eps = torch.tensor([1e-7, 1e-5], dtype=F64)
+    b, (db, d2b) = barrier(d_hat - eps, d_hat, kappa), barrier_derivatives(d_hat - eps, d_hat, kappa)
+    # b, b', b'' -> 0 as d -> d_hat from below, as eps^3, eps^2 and eps (b'' ~ 6 kappa eps / d_hat): C2 at d_hat
+    assert (b > 0).all() and (b <= 3 * kappa * eps**3 / d_hat).all() and (db < 0).all() and (db.abs() <= 4 * kappa * eps**2 / d_hat).all()
+    assert (d2b > 0).all() and (d2b <= 7 * kappa * eps / d_hat).all()
+    assert torch.isinf(barrier(torch.tensor([0.0, -1e-3], dtype=F64), d_hat, kappa)).all()
+    small = barrier(torch.tensor([1e-6, 1e-9], dtype=F64), d_hat, kappa)
+    assert small[1] > small[0] > 1e-4  # grows without bound as d -> 0
+
+
+def test_barrier_derivatives_match_finite_differences():
+    d_hat, kappa = 0.02, 5.0
+    d = torch.linspace(0.001, 0.019, 37, dtype=F64)
+    h = 1e-7
+    db, d2b = barrier_derivatives(d, d_hat, kappa)
+    fd1 = (barrier(d + h, d_hat, kappa) - barrier(d - h, d_hat, kappa)) / (2 * h)
+    fd2 = (barrier_derivatives(d + h, d_hat, kappa)[0] - barrier_derivatives(d - h, d_hat, kappa)[0]) / (2 * h)
+    assert torch.allclose(db, fd1, rtol=1e-6, atol=1e-9) and torch.allclose(d2b, fd2, rtol=1e-6, atol=1e-6)
+    assert (db < 0).all() and (d2b > 0).all()
+
+
+def _points_near(collider, n=40, seed=0):
+    """Points outside ``collider`` within 0.08 of its surface (and a few beyond)."""
+    g = torch.Generator().manual_seed(seed)
+    x = 0.6 * (2 * torch.rand(4000, 3, generator=g, dtype=F64) - 1)
+    d = collider.distance(x)
+    keep = (d > 1e-3) & (d < 0.08)
+    return x[keep][:n]
+
+
+@pytest.mark.parametrize("name", COLLIDERS)
+def test_distance_derivatives_match_autograd(name):
+    c = COLLIDERS[name]
+    x = _points_near(c)
+    g, H = c.distance_derivatives(x)
+    xa = x.clone().requires_grad_(True)
+    ga = torch.autograd.grad(c.distance(xa).sum(), xa)[0]
+    Ha = torch.stack([torch.autograd.functional.hessian(lambda y: c.distance(y), xi) for xi in x])
+    assert torch.allclose(g, ga, atol=1e-12) and torch.allclose(H, Ha, atol=1e-10)
+
+
+@pytest.mark.parametrize("name", COLLIDERS)
+def test_barrier_term_gradient_and_hessian_against_its_oracle_and_finite_differences(name):
+    c = COLLIDERS[name]
+    x = _points_near(c)
+    term = ContactBarrier(len(x), [c], d_hat=0.05, kappa=2.0)
+    xe = term.gather(x)
+    g, H = term.local_gradient_hessian(xe, project=False)
+    go, Ho = autograd_gradient_hessian(term, xe, project=False)
+    assert torch.allclose(g, go.reshape(g.shape), rtol=1e-9, atol=1e-9) and torch.allclose(H, Ho.reshape(H.shape), rtol=1e-8, atol=1e-8)
+    # the total energy's gradient against central differences
+    v = torch.randn(x.shape, generator=torch.Generator().manual_seed(1), dtype=F64)
+    h = 1e-7
+    fd = (term.energy(x + h * v) - term.energy(x - h * v)) / (2 * h)
+    assert float((g * v).sum()) == pytest.approx(float(fd), rel=1e-6)
+    # projected: PSD, and equal where already PSD
+    gp, Hp = term.local_gradient_hessian(xe, project=True)
+    assert torch.linalg.eigvalsh(Hp).min() > -1e-9 and torch.equal(gp, g)
+    if name == "half_space":
+        assert torch.allclose(Hp, H)
+
+
+def test_the_barrier_is_zero_beyond_d_hat_and_repels_inside_it():
+    plane = HalfSpace((0.0, 0.0, 0.0), (0.0, 0.0, 1.0))
+    x = torch.tensor([[0.0, 0.0, 0.2], [0.3, -0.1, 0.004]], dtype=F64)
+    term = ContactBarrier(2, [plane], d_hat=0.01, kappa=1.0)
+    e = term.element_energy(x)
+    g, _ = term.local_gradient_hessian(term.gather(x))
+    assert e[0] == 0 and torch.equal(g[0], torch.zeros(3, dtype=F64)) and e[1] > 0
+    assert g[1, 2] < 0 and g[1, :2].abs().max() == 0  # -g: a force along the normal, away from the plane
+
+
+def test_symmetry_rigid_motions_of_scene_and_collider_together():
+    """The barrier of a sphere is the same after rotating the points about its centre; a half-space's
+    after sliding the points along its plane."""
+    s = COLLIDERS["sphere"]
+    x = _points_near(s)
+    term = ContactBarrier(len(x), [s], d_hat=0.05, kappa=2.0)
+    q = torch.linalg.qr(torch.randn(3, 3, generator=torch.Generator().manual_seed(2), dtype=F64))[0]
+    c = torch.tensor(s.centre, dtype=F64)
+    assert torch.allclose(term.energy((x - c) @ q.T + c), term.energy(x), rtol=1e-12)
+    p = COLLIDERS["half_space"]
+    y = _points_near(p)
+    plane = ContactBarrier(len(y), [p], d_hat=0.05, kappa=2.0)
+    assert torch.allclose(plane.energy(y + torch.tensor([0.3, 0.0, -0.7], dtype=F64)), plane.energy(y), rtol=1e-12)
+
+
+@pytest.mark.parametrize("name", COLLIDERS)
+def test_time_of_impact_lands_on_the_surface_and_max_step_stays_outside(name):
+    c = COLLIDERS[name]
+    rng = np.random.default_rng(3)
+    x = _points_near(c, n=200).numpy()
+    dx = rng.normal(size=x.shape) * 0.3
+    t = c.time_of_impact(x, dx)
+    hit = np.isfinite(t)
+    assert hit.any() and (~hit).any() and (t[hit] >= 0).all()
+    on = torch.as_tensor(x[hit] + t[hit, None] * dx[hit])
+    assert np.allclose(c.distance(on).numpy(), 0.0, atol=1e-10)
+    # before its time of impact each path stays outside
+    for frac in (0.25, 0.5, 0.99):
+        tt = np.where(hit, frac * t, 5.0)
+        assert (c.distance(torch.as_tensor(x + tt[:, None] * dx)).numpy() > 0).all()
+    term = ContactBarrier(len(x), [c], d_hat=0.01, kappa=1.0)
+    alpha = term.max_step(x, dx)
+    assert 0 < alpha < 1 and alpha == pytest.approx(0.9 * float(t[hit].min()))
+    for s in np.linspace(0, alpha, 7):
+        assert (c.distance(torch.as_tensor(x + s * dx)).numpy() > 0).all()
+    assert term.max_step(x, np.zeros_like(x)) == 1.0
+
+
+def test_the_extended_barrier_is_finite_inside_c2_at_the_seam_and_exact_above_it():
+    d_hat, kappa, de = 0.01, 2.0, 0.001
+    d = torch.tensor([-0.05, -1e-4, 0.0, 0.5 * de, 2 * de, 0.02], dtype=F64)
+    b = barrier(d, d_hat, kappa, extend_below=de)
+    assert torch.isfinite(b).all() and (b[:-1] > 0).all() and b[0] > b[1] > b[2] > b[3] > b[4] and b[-1] == 0
+    assert torch.equal(b[4:], barrier(d[4:], d_hat, kappa))
+    f = lambda v: float(barrier(torch.tensor([v], dtype=F64), d_hat, kappa, extend_below=de))
+    slope = lambda v, h=1e-7: (f(v + h) - f(v - h)) / (2 * h)
+    curve = lambda v, h=1e-6: (f(v + h) - 2 * f(v) + f(v - h)) / h**2
+    below, above = de * (1 - 1e-4), de * (1 + 1e-4)  # value, slope and curvature continuous across d_e
+    assert f(below) == pytest.approx(f(above), rel=1e-3) and slope(below) == pytest.approx(slope(above), rel=1e-3)
+    assert curve(below) == pytest.approx(curve(above), rel=1e-2)
+    term = ContactBarrier(1, [HalfSpace((0, 0, 0), (0, 0, 1))], d_hat, kappa).extended(0.1)
+    assert term.extend_below == pytest.approx(de) and torch.isfinite(term.energy(torch.tensor([[0.0, 0.0, -1.0]], dtype=F64)))
+
+
+@pytest.mark.parametrize("shape", ["half_space", "sphere"])
+def test_a_cloth_dropped_on_a_collider_never_enters_it_and_every_frame_solves_its_equations_of_motion(shape):
+    """Full space: a free cloth falls onto a half-space (and comes to rest on it, within d_hat) or onto a
+    sphere (and slides off it); in every frame no vertex is inside, and the gradient of the incremental
+    potential with the barrier, by autograd of the PyTorch energies, is within the solver's tolerance."""
+    from latentsim.mesh import cloth_grid
+    from latentsim.scene import build_potential
+    from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings
+
+    X, tris = cloth_grid(4, 4, 0.3, 0.3, plane="xz")
+    X = np.asarray(X, dtype=np.float64)
+    arrays = {"rest_positions": X, "triangles": tris, "dirichlet": np.zeros(0, dtype=np.int64)}
+    material = {"youngs_modulus": 1e5, "poisson_ratio": 0.3, "density": 200.0, "thickness": 0.001}
+    colliders = {"half_space": {"type": "half_space", "point": [0, -0.05, 0], "normal": [0, 1, 0]},
+                 "sphere": {"type": "sphere", "centre": [0.05, -0.12, 0.02], "radius": 0.1}}  # fmt: skip
+    pot = build_potential("shell", arrays, material, 1 / 60, [0, -9.81, 0], free_only=True, contact={"colliders": [colliders[shape]]})
+    solver = ImplicitEuler(pot, NewtonSettings(tolerance=1e-6))
+    check = build_potential("shell", arrays, material, 1 / 60, [0, -9.81, 0], contact={"colliders": [colliders[shape]]})
+    tol = 1e-6 * solver.f_ref
+    x2 = x1 = X.copy()
+    nearest = []
+    for _ in range(90):
+        x, _ = solver.step(x1, x2, np.zeros((0, 3)))
+        xt = torch.as_tensor(x).requires_grad_(True)
+        (g,) = torch.autograd.grad(check(xt, torch.as_tensor(x1), torch.as_tensor(x2), penalty=False), xt)
+        assert float(g.norm()) <= 1.5 * tol
+        nearest.append(float(pot.contact.distances(torch.as_tensor(x)).min()))
+        x2, x1 = x1, x
+    assert min(nearest) > 0 and min(nearest) < pot.contact.d_hat  # it touched, and never entered
+    if shape == "half_space":  # at rest on the plane, inside the barrier's reach
+        assert 0 < nearest[-1] < pot.contact.d_hat and np.abs(x1 - x2).max() * 60 < 1e-3
+    else:  # slid off: falling below the sphere's centre
+        assert x1[:, 1].max() < -0.12
