@@ -132,6 +132,11 @@ def conditions(config: dict, scene: str) -> dict[str, dict]:
     return out
 
 
+def conditioned_autoencoder_settings(config: dict, scene: str) -> dict:
+    """The settings of a conditioned scene's autoencoder: the scene's, with its ``conditioning.autoencoder``."""
+    return {**config["scenes"][scene]["autoencoder"], **config["scenes"][scene]["conditioning"].get("autoencoder", {})}
+
+
 def conditioned_integrator_settings(config: dict, scene: str) -> dict:
     """The settings of a conditioned scene's integrators: the scene's, with its ``conditioning.integrator``."""
     return {**config["scenes"][scene]["integrator"], **config["scenes"][scene]["conditioning"].get("integrator", {})}

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from latentsim.config import ConfigError, condition_name, conditions, validate_config
+from latentsim.config import ConfigError, condition_name, conditioned_autoencoder_settings, conditions, validate_config
 from latentsim.latent.autoencoder import Autoencoder, decode_latents
 from latentsim.latent.conditioning import AtCondition, Conditioning, scaled_sequence, with_condition
 from latentsim.latent.coordinates import RelativeCoordinates
@@ -131,6 +131,11 @@ def test_the_config_names_the_conditions_and_refuses_what_cannot_be_held_out():
     assert [(n, q["split"]) for n, q in c.items()] == [
         ("60hz_1e05pa", "train"), ("60hz_1e06pa", "train"), ("15hz_1e05pa", "train"), ("15hz_1e06pa", "train"), ("30hz_3e05pa", "test")]  # fmt: skip
     assert condition_name(1 / 45, 5.5e5) == "45hz_5p5e05pa"
+    # its own autoencoder size (the box holds more deformation than one condition), the scene's other settings
+    wider = validate_config(_scene(**box, test=[{"time_step": 1 / 30, "youngs_modulus": 3e5}], autoencoder={"latent_dim": 6}))
+    assert conditioned_autoencoder_settings(wider, "s")["latent_dim"] == 6
+    assert conditioned_autoencoder_settings(wider, "s")["epochs"] == wider["scenes"]["s"]["autoencoder"]["epochs"]
+    assert conditioned_autoencoder_settings(cfg, "s") == cfg["scenes"]["s"]["autoencoder"]
     for bad, match in [
         (dict(box, test=[{"time_step": 1 / 100, "youngs_modulus": 3e5}]), "outside the box"),
         (dict(box, test=[{"time_step": 1 / 60, "youngs_modulus": 1e6}]), "is a training condition"),

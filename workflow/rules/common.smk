@@ -14,6 +14,7 @@ from latentsim.config import (
     autoencoder_dir,
     autoencoder_settings,
     conditioned,
+    conditioned_autoencoder_settings,
     conditioned_integrator_settings,
     conditions,
     integrator_settings,
@@ -307,23 +308,32 @@ def condition_files(split):
     return get
 
 
-def condition_sim_params(wildcards):
-    """Input function: the scene's simulation settings and the condition (time step, modulus, split)."""
+def sim_params(wildcards):
+    """Input function: the scene's simulation settings (its contact block only where it has colliders, so
+    that a scene without any keeps the params it had before contact existed)."""
     sc = config["scenes"][wildcards.scene]
     keys = ("model", "material", "dt", "gravity", "newton", "sequences")
+    out = {k: sc[k] for k in keys}
+    if sc["contact"]["colliders"]:
+        out["contact"] = sc["contact"]
+    return canonical(out)
+
+
+def condition_sim_params(wildcards):
+    """Input function: the scene's simulation settings and the condition (time step, modulus, split)."""
     return canonical(
         {
-            "sim": {k: sc[k] for k in keys},
+            "sim": sim_params(wildcards),
             "condition": conditions(config, wildcards.scene)[wildcards.condition],
         }
     )
 
 
 def conditioned_autoencoder_params(wildcards):
-    """Input function: the scene's autoencoder settings, seed and device."""
+    """Input function: the conditioned scene's autoencoder settings, seed and device."""
     return canonical(
         {
-            "settings": autoencoder_settings(config, wildcards.scene),
+            "settings": conditioned_autoencoder_settings(config, wildcards.scene),
             "seed": int(wildcards.seed),
             "device": config["device"],
         }

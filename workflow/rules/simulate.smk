@@ -16,6 +16,6 @@ rule simulate:
         mem_mb=4000,
         runtime=240,
     params:
-        sim=scene_cfg("model", "material", "dt", "gravity", "newton", "sequences"),
+        sim=sim_params,
     script:
         "../scripts/simulate.py"

@@ -13,6 +13,7 @@ Frame 0 is the initial state (at rest); frame 1 is solved with x_{-1} = x_0.
 
 from __future__ import annotations
 
+import json
 import logging
 import shutil
 import time
@@ -20,12 +21,13 @@ from pathlib import Path
 
 import meshio
 import numpy as np
+import torch
 
 from latentsim.io import atomic_h5, atomic_path, open_artefact, write_dataset
 from latentsim.mesh.geometry import tet_volumes
 from latentsim.report.paraview import single_block_xdmf
 from latentsim.stages.mesh import cells_for
-from latentsim.scene import MATERIAL_MODEL_ATTR, bc_parameters, build_potential, dirichlet_trajectory
+from latentsim.scene import CONTACT_ATTR, MATERIAL_MODEL_ATTR, bc_parameters, build_potential, dirichlet_trajectory
 from latentsim.solve.implicit_euler import ImplicitEuler, NewtonFailed, NewtonSettings, StepInfo
 from latentsim.utils import progress_bar, working_directory
 
@@ -99,7 +101,11 @@ def simulate_scene(scene: str, mesh_h5, cfg: dict, out_h5, paraview_dir=None, pr
     model = arrays["model"]
     if model != cfg["model"]:
         raise SimulationError(f"scene '{scene}': {mesh_h5} holds a '{model}' mesh, the config says '{cfg['model']}'")
-    pot = build_potential(model, arrays, cfg["material"], cfg["dt"], cfg["gravity"], free_only=True)
+    pot = build_potential(model, arrays, cfg["material"], cfg["dt"], cfg["gravity"], free_only=True, contact=cfg.get("contact"))
+    contact = None  # the contact block with its defaults resolved, as the trajectories file records it
+    if pot.contact is not None:
+        contact = {"colliders": list(cfg["contact"]["colliders"]), "d_hat": pot.contact.d_hat, "kappa": pot.contact.kappa}
+        log.info("scene %s: %d collider(s), d_hat %.3g m, kappa %.3g", scene, len(pot.contact.colliders), pot.contact.d_hat, pot.contact.kappa)
     solver = ImplicitEuler(pot, NewtonSettings(**cfg["newton"]))
     rest = np.asarray(arrays["rest_positions"], dtype=np.float64)
     log.info("scene %s: %d DoF, %d free, linear solver %s", scene, 3 * len(rest), len(solver.free_dofs), solver.linear.method)
@@ -120,6 +126,12 @@ def simulate_scene(scene: str, mesh_h5, cfg: dict, out_h5, paraview_dir=None, pr
             "%s: %d frames, %.1f ms/frame, %.2f Newton iterations/frame, timings %s",
             label, len(data["positions"]), data["frame_ms"][1:].mean(), it.mean(), {k: round(v, 3) for k, v in timings.items()},
         )
+        if pot.contact is not None:
+            data["min_contact_distance"] = pot.contact.distances(torch.as_tensor(data["positions"])).amin(-1).numpy()
+            inside = np.flatnonzero(data["min_contact_distance"] <= 0)
+            if inside.size:
+                raise SimulationError(f"{label}, frame {inside[0]}: a vertex lies inside a collider (signed distance {data['min_contact_distance'][inside[0]]:.3e} m)")
+            log.info("%s: nearest approach to a collider %.3e m (d_hat %.3e m)", label, data["min_contact_distance"].min(), pot.contact.d_hat)
         results[seq["name"]] = (seq, data)
     with atomic_h5(out_h5, config=cfg) as f:
         f.attrs["scene"] = scene
@@ -129,6 +141,8 @@ def simulate_scene(scene: str, mesh_h5, cfg: dict, out_h5, paraview_dir=None, pr
         f.attrs["newton_tolerance"] = float(solver.settings.tolerance)
         f.attrs["force_scale"] = solver.f_ref
         f.attrs["linear_solver"] = solver.linear.method
+        if contact is not None:
+            f.attrs[CONTACT_ATTR] = json.dumps(contact)
         for k, v in cfg["material"].items():
             if k == "model":  # the material model; the attribute "model" is the scene's (rods, shell, tets)
                 f.attrs[MATERIAL_MODEL_ATTR] = str(v)
