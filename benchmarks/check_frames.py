@@ -1,8 +1,9 @@
 """Check every stored frame of a run's full simulations against its equations of motion, independently of the
 solver: the incremental potential is rebuilt from each trajectories.h5 (its model and material.model), its
 gradient recomputed at every frame by autograd of the PyTorch energies (not the solver's compiled kernels), and
-the largest free-DoF residual compared with the solver's tolerance.  Tet scenes also report the frames that end
-with an inverted tet.
+the largest free-DoF residual compared with the solver's tolerance (a scene with colliders: the barrier's
+gradient included).  Tet scenes also report the frames that end with an inverted tet; scenes with colliders the
+nearest approach of any vertex to one over every frame (negative: inside).
 
     python benchmarks/check_frames.py [results/sim]
 """
@@ -25,7 +26,7 @@ def check(path: Path) -> dict:
         tol = float(f.attrs["newton_tolerance"] * f.attrs["force_scale"])
         free = np.setdiff1d(np.arange(len(f["rest_positions"])), f["dirichlet"][()])
         law = str(f.attrs.get(MATERIAL_MODEL_ATTR, "stvk"))
-        worst, frames, inverted = 0.0, 0, 0
+        worst, frames, inverted, nearest = 0.0, 0, 0, float("inf")
         for name, grp in f["sequences"].items():
             if name.endswith("_train") and name[: -len("_train")] in f["sequences"]:
                 continue  # the first frames of a sequence stored whole
@@ -35,17 +36,20 @@ def check(path: Path) -> dict:
                 (g,) = torch.autograd.grad(pot(x, X[t - 1], X[max(t - 2, 0)], penalty=False), x)
                 worst = max(worst, float(g[free].norm()) / tol)
             frames += len(X) - 1
+            if pot.contact is not None:
+                nearest = min(nearest, float(pot.contact.distances(X).min()))
             if "inverted_tets" in grp:
                 inverted += int((grp["inverted_tets"][1:] > 0).sum())
-    return dict(law=law, frames=frames, worst=worst, inverted=inverted)
+    return dict(law=law, frames=frames, worst=worst, inverted=inverted, nearest=nearest)
 
 
 def main(root: str = "results/sim") -> None:
-    print("| scene | material | frames | max residual / tolerance (autograd) | frames ending with an inverted tet |")
-    print("|---|---|---|---|---|")
+    print("| scene | material | frames | max residual / tolerance (autograd) | frames ending with an inverted tet | nearest approach to a collider [m] |")
+    print("|---|---|---|---|---|---|")
     for path in sorted(Path(root).glob("*/trajectories.h5")):
         r = check(path)
-        print(f"| {path.parent.name} | {r['law']} | {r['frames']} | {r['worst']:.2f} | {r['inverted']} |", flush=True)
+        near = "-" if r["nearest"] == float("inf") else f"{r['nearest']:.3g}"
+        print(f"| {path.parent.name} | {r['law']} | {r['frames']} | {r['worst']:.2f} | {r['inverted']} | {near} |", flush=True)
 
 
 if __name__ == "__main__":

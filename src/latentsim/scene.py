@@ -293,6 +293,15 @@ ELEMENT_KEYS = ("edges", "triples", "triangles", "tets", "root_of")
 CONTACT_ATTR = "contact"
 
 
+def contact_from_artefact(f) -> ContactBarrier | None:
+    """The contact barrier a trajectories.h5 (open h5py.File) records (its resolved ``contact``
+    block), or None for a scene without colliders."""
+    if CONTACT_ATTR not in f.attrs:
+        return None
+    c = json.loads(str(f.attrs[CONTACT_ATTR]))
+    return ContactBarrier(len(f["rest_positions"]), [collider(q) for q in c["colliders"]], c["d_hat"], c["kappa"])
+
+
 def potential_from_artefact(f, w_bc: float = 1e5, free_only: bool = False) -> IncrementalPotential:
     """Rebuild the IncrementalPotential from a trajectories.h5 (open h5py.File).
 

@@ -29,7 +29,7 @@ from workflow_support import HANG_SECONDS, snakemake
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = ROOT / "config" / "tiny.yaml"
-SCENES_TINY = ["tiny_cloth", "tiny_nm", "tiny_rods"]
+SCENES_TINY = ["tiny_cloth", "tiny_contact", "tiny_nm", "tiny_rods"]
 STAGES = ["prepare_mesh", "simulate", "train_autoencoder", "train_integrator", "rollout", "evaluate"]
 # values that measure wall time, the only things allowed to differ between two identical runs: these, and
 # every dataset or attribute whose name ends in _ms or _seconds, or is "seconds" (is_timing)
@@ -244,6 +244,29 @@ def test_tiny_cloth_trains_one_integrator_over_its_box_and_a_reference_at_each_h
     assert {r for r, _ in jobs} <= {"conditioned_simulate", "conditioned_autoencoder", "conditioned_integrator", "conditioned_evaluate",
                                     "conditioned_summary", "report_conditioned_page", "all"}, jobs  # fmt: skip
     assert ("conditioned_integrator", "tiny_cloth") in jobs
+
+
+def test_tiny_contact_stays_out_of_its_ball_in_the_full_space_and_every_method_is_measured_for_penetration(tiny_run):
+    import h5py
+    import pandas as pd
+
+    from latentsim.scene import contact_from_artefact
+
+    work, _ = tiny_run
+    with h5py.File(work / "results/sim/tiny_contact/trajectories.h5") as f:
+        barrier = contact_from_artefact(f)
+        near = f["sequences/line/min_contact_distance"][()]
+        positions = f["sequences/line/positions"][()]
+    # it touches the ball (comes within the barrier's reach) and never enters it
+    assert barrier is not None and len(barrier.colliders) == 1 and (near > 0).all() and near.min() < barrier.d_hat
+    assert np.allclose(barrier.distances(torch.as_tensor(positions)).amin(-1).numpy(), near)
+    m = pd.read_csv(work / "results/evaluation/tiny_contact/metrics.csv").set_index("method")
+    assert {"max_penetration", "penetrating_frames"} <= set(m.columns)
+    # one full-space Newton iteration a frame keeps the line search's guarantee: nothing enters
+    assert m.loc["newton_1it", "max_penetration"] == 0 and m.loc["newton_1it", "penetrating_frames"] == 0
+    assert np.isfinite(m.loc["self_supervised", "max_penetration"])
+    other = pd.read_csv(work / "results/evaluation/tiny_cloth/metrics.csv")
+    assert "max_penetration" not in other.columns  # a scene without colliders has no such column
 
 
 def test_a_sweep_point_that_is_the_scenes_model_measures_it_instead_of_training_it_again(tiny_run):

@@ -10,6 +10,7 @@ checkpoint (:func:`training_fingerprint` says which training a checkpoint belong
 from __future__ import annotations
 
 import copy
+import dataclasses
 import hashlib
 import json
 import logging
@@ -196,10 +197,13 @@ def _check_latent_range(epoch: int, distance: float, radius: float, factor: floa
 
 def _training_setup(ae: Autoencoder, coords: RelativeCoordinates, potential, sequences: Sequence[dict], device: torch.device, compiled: bool):
     """A frozen eval-mode copy of the autoencoder on ``device``, the potential there (its elastic
-    energy on the compiled kernels where ``compiled`` and on the CPU), and the training triplets."""
+    energy on the compiled kernels where ``compiled`` and on the CPU; its contact barrier, if any,
+    extended finitely past the colliders' surfaces), and the training triplets."""
     ae_f = copy.deepcopy(ae).to(device).eval()
     ae_f.requires_grad_(False)
     pot = potential_on(potential, device)
+    if getattr(pot, "contact", None) is not None:  # finite past the colliders' surfaces: a decode that enters one costs much, not inf
+        pot = dataclasses.replace(pot, contact=pot.contact.extended())
     if compiled and device.type == "cpu":
         pot = with_compiled_elastic(pot)
     return ae_f, pot, build_triplets(ae_f, coords, sequences)

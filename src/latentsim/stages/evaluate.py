@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import torch
 
 from latentsim.io import atomic_path, open_artefact, require
 from latentsim.report.metrics import bbox_diagonal, rollout_metrics
@@ -43,6 +44,7 @@ from latentsim.report.tables import (
     table2,
     write_table,
 )
+from latentsim.scene import contact_from_artefact
 
 __all__ = ["evaluate_scene", "render_scene", "summarise", "write_scene_evaluation"]
 
@@ -82,6 +84,7 @@ def evaluate_scene(scene: str, trajectories, rollouts):
         D = require(ft, "dirichlet")[()]
         dt = float(ft.attrs["dt"])
         diag = bbox_diagonal(rest)
+        contact = contact_from_artefact(ft)
         for path in rollouts:
             with open_artefact(path) as fr:
                 method = str(fr.attrs.get("method", "self_supervised"))
@@ -98,6 +101,8 @@ def evaluate_scene(scene: str, trajectories, rollouts):
                                                          int(g.attrs["diverged_frame"]))  # fmt: skip
                     except ValueError as e:
                         raise ValueError(f"{path}: sequence {name!r}: {e}") from e
+                    if contact is not None:
+                        metrics.update(penetration(contact, pred, diag, int(g.attrs["diverged_frame"])))
                     curves.setdefault(method, {}).setdefault(name, curve)  # the curves of the method's first seed
                     # same-run timing of full-space frames when the rollout stage measured it
                     full_ms = float(fr.attrs.get("full_ms", np.median(gt["frame_ms"][1:])))
@@ -107,6 +112,17 @@ def evaluate_scene(scene: str, trajectories, rollouts):
                                      runtime=str(g.attrs.get("runtime", "")), **parts, speedup=full_ms / latent_ms,
                                      dof=int(rest.size), latent_dim=int(g["latents"].shape[-1]), **train_s))  # fmt: skip
     return pd.DataFrame(rows), curves
+
+
+def penetration(contact, positions, diag: float, diverged_frame: int) -> dict:
+    """How far a rollout's vertices enter the scene's colliders, over the frames before divergence:
+    ``max_penetration`` (the deepest vertex of any frame / the rest bbox diagonal; 0 when none enters)
+    and ``penetrating_frames`` (frames with any vertex inside)."""
+    ok = positions[: len(positions) if diverged_frame < 0 else diverged_frame]
+    if not len(ok):
+        return {"max_penetration": float("nan"), "penetrating_frames": 0}
+    d = contact.distances(torch.as_tensor(ok, dtype=torch.float64)).amin(-1).numpy()
+    return {"max_penetration": float(np.maximum(-d, 0.0).max() / diag), "penetrating_frames": int((d < 0).sum())}
 
 
 def write_scene_evaluation(scene: str, trajectories, rollouts, latents, *, metrics, reconstruction, stress, chart, figure) -> pd.DataFrame:
