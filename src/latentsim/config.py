@@ -137,9 +137,12 @@ def conditioned_autoencoder_settings(config: dict, scene: str) -> dict:
     return {**config["scenes"][scene]["autoencoder"], **config["scenes"][scene]["conditioning"].get("autoencoder", {})}
 
 
-def conditioned_integrator_settings(config: dict, scene: str) -> dict:
-    """The settings of a conditioned scene's integrators: the scene's, with its ``conditioning.integrator``."""
-    return {**config["scenes"][scene]["integrator"], **config["scenes"][scene]["conditioning"].get("integrator", {})}
+def conditioned_integrator_settings(config: dict, scene: str, model: str = "conditioned") -> dict:
+    """The settings of a conditioned scene's integrators: the scene's, with its ``conditioning.integrator``
+    and, for the conditioned integrator (``model`` conditioned; any other: a reference), its
+    ``conditioning.conditioned``."""
+    c = config["scenes"][scene]["conditioning"]
+    return {**config["scenes"][scene]["integrator"], **c.get("integrator", {}), **(c.get("conditioned", {}) if model == "conditioned" else {})}
 
 
 def _check_conditioning(config: dict) -> None:
@@ -159,10 +162,11 @@ def _check_conditioning(config: dict) -> None:
         if scene.get("material", {}).get("bending_stiffness") is not None:
             raise ConfigError(f"config key 'scenes.{name}.material.bending_stiffness': a conditioned scene scales every elastic term with the "
                               "modulus; a bending stiffness given apart from it does not scale")  # fmt: skip
-        settings = conditioned_integrator_settings(config, name)
-        if settings.get("mode", "self_supervised") != "self_supervised" or float(settings.get("supervised_weight", 0.0)) > 0:
-            raise ConfigError(f"config key '{key}.integrator': a conditioned integrator trains on the incremental potential alone "
-                              "(mode self_supervised, supervised_weight 0)")  # fmt: skip
+        for model in ("conditioned", "reference"):
+            settings = conditioned_integrator_settings(config, name, model)
+            if settings.get("mode", "self_supervised") != "self_supervised" or float(settings.get("supervised_weight", 0.0)) > 0:
+                raise ConfigError(f"config key '{key}.integrator' (or '.conditioned'): a conditioned integrator and its references train on "
+                                  "the incremental potential alone (mode self_supervised, supervised_weight 0)")  # fmt: skip
         (h0, h1), (e0, e1) = c["time_step"], c["youngs_modulus"]
         train = {condition_name(q["time_step"], q["youngs_modulus"]) for q in c.get("train") or []}
         for i, q in enumerate(c.get("train") or []):

@@ -355,7 +355,9 @@ def conditioned_integrator_params(wildcards):
         }
     return canonical(
         {
-            "settings": conditioned_integrator_settings(config, wildcards.scene),
+            "settings": conditioned_integrator_settings(
+                config, wildcards.scene, wildcards.model
+            ),
             "seed": int(wildcards.seed),
             "device": config["device"],
             "conditioning": box,

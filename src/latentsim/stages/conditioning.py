@@ -217,8 +217,10 @@ def conditioned_table(df: pd.DataFrame) -> pd.DataFrame:
             row[f"{method}_step_ms"] = float(m["step_ms"].median())
         per_seed = g.pivot_table(index="seed", columns="method", values="mean_error")
         ratio = (per_seed[CONDITIONED] / per_seed[REFERENCE]).to_numpy(float)
-        row["ratio"] = row[f"{CONDITIONED}_error"] / row[f"{REFERENCE}_error"]
-        row["ratio_min"], row["ratio_max"] = float(np.min(ratio)), float(np.max(ratio))
+        ratio = ratio[np.isfinite(ratio) & (ratio > 0)]  # the seeds where both stayed stable
+        both = np.isfinite(row[f"{CONDITIONED}_error"]) and np.isfinite(row[f"{REFERENCE}_error"])
+        row["ratio"] = row[f"{CONDITIONED}_error"] / row[f"{REFERENCE}_error"] if both else float("nan")
+        row["ratio_min"], row["ratio_max"] = (float(ratio.min()), float(ratio.max())) if len(ratio) else (float("nan"), float("nan"))
         row["full_ms"] = float(g["full_ms"].median())
         row["speedup"] = row["full_ms"] / row[f"{CONDITIONED}_step_ms"]
         out.append(row)
@@ -231,24 +233,24 @@ def _summary_markdown(scene: str, table: pd.DataFrame, fr: pd.DataFrame, toleran
         "E [Pa]": table["youngs_modulus"].map(lambda v: f"{v:.3g}"), "sequence": table["sequence"],
         "conditioned error": [f"{r.conditioned_error:.3g} ({r.conditioned_error_min:.3g}-{r.conditioned_error_max:.3g})" for r in table.itertuples()],
         "reference error": [f"{r.reference_error:.3g} ({r.reference_error_min:.3g}-{r.reference_error_max:.3g})" for r in table.itertuples()],
-        "ratio": [f"{r.ratio:.2f} ({r.ratio_min:.2f}-{r.ratio_max:.2f})" for r in table.itertuples()],
+        "ratio": [_ratio_text(r) for r in table.itertuples()],
         "diverged (cond./ref.)": [f"{r.conditioned_diverged_seeds}/{r.reference_diverged_seeds}" for r in table.itertuples()],
         "stress survived (cond./ref.)": [f"{r.conditioned_stress} / {r.reference_stress}" for r in table.itertuples()],
         "step ms": table["conditioned_step_ms"].map(lambda v: f"{v:.3g}"), "full ms": table["full_ms"].map(lambda v: f"{v:.3g}"),
         "speed-up": table["speedup"].map(lambda v: f"{v:.0f}x"),
     })  # fmt: skip
-    worst = float(table["ratio"].max()) if len(table) else float("nan")
+    worst = float(table["ratio"].max()) if table["ratio"].notna().any() else float("nan")
     lines = [
         f"# {scene}: one integrator for a range of time steps and moduli",
         "",
         f"Mean vertex error / bbox diagonal over each held-out test sequence, median over {seeds} seed(s) (least-largest); the "
         "reference is an unconditioned integrator trained at that condition alone, on the same autoencoder and training states. "
-        "ratio: conditioned median / reference median (the per-seed ratios' range). Stress: conditions survived in every seed, of "
+        "ratio: conditioned median / reference median (the per-seed ratios' range). A diverged rollout's error is infinite. Stress: conditions survived in every seed, of "
         "those run. Step: one eager PyTorch step; full: one full-space Newton frame, both timed in the evaluation's process.",
         "",
         markdown(t),
         "",
-        f"Largest ratio over the held-out conditions: {worst:.2f}.",
+        f"Largest ratio over the held-out conditions where both medians are finite: {worst:.2f}.",
     ]
     if not fr.empty:
         g = fr.groupby(["coarse", "fine", "sequence"], sort=False).agg(
@@ -271,6 +273,16 @@ def _summary_markdown(scene: str, table: pd.DataFrame, fr: pd.DataFrame, toleran
             markdown(g.drop(columns=["worst", "worst_fine"])),
         ]
     return "\n".join(lines) + "\n"
+
+
+def _ratio_text(r) -> str:
+    """The ratio of the medians with the per-seed range over the seeds where both stayed stable; a
+    median that is infinite (the method diverged in most seeds) named instead."""
+    spread = f" ({r.ratio_min:.2f}-{r.ratio_max:.2f} where both stable)" if np.isfinite(r.ratio_min) else ""
+    if np.isfinite(r.ratio):
+        return f"{r.ratio:.2f}{spread}"
+    who = "reference" if not np.isfinite(r.reference_error) else "conditioned"
+    return f"- ({who} median diverged){spread}"
 
 
 def conditioned_figure(df: pd.DataFrame, train_conditions: dict, path, scene: str) -> None:
