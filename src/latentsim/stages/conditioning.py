@@ -287,18 +287,27 @@ def _ratio_text(r) -> str:
 
 def conditioned_figure(df: pd.DataFrame, train_conditions: dict, path, scene: str) -> None:
     """Mean error against the time step and against the modulus, the conditioned integrator beside
-    the references (median over seeds, bars from the least to the largest), the training
-    conditions' values dashed."""
+    the references (median over the stable seeds, bars from the least to the largest; the seeds that
+    diverged named at the top), the training conditions' values dashed."""
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), constrained_layout=True)
     g = df[df["diverged_frame"] < 0].groupby(["condition", "method"]).agg(
         h=("time_step", "first"), E=("youngs_modulus", "first"), e=("mean_error", "median"), lo=("mean_error", "min"), hi=("mean_error", "max")
     ).reset_index()  # fmt: skip
     styles = {CONDITIONED: dict(marker="o", color="tab:blue", label="conditioned (one network)"),
               REFERENCE: dict(marker="s", color="tab:orange", label="reference (trained at that condition)", mfc="none")}  # fmt: skip
+    diverged = df.assign(d=df["diverged_frame"] >= 0).groupby(["condition", "method"]).agg(
+        h=("time_step", "first"), E=("youngs_modulus", "first"), k=("d", "sum"), n=("seed", "nunique")
+    ).reset_index()  # fmt: skip
+    diverged = diverged[diverged["k"] > 0]
     for ax, key, xlabel, train_key in ((axes[0], "h", "time step [s]", "time_step"), (axes[1], "E", "Young's modulus [Pa]", "youngs_modulus")):
         for method, st in styles.items():
             m = g[g["method"] == method]
             ax.errorbar(m[key], m["e"], yerr=[m["e"] - m["lo"], m["hi"] - m["e"]], linestyle="none", capsize=3, **st)
+        for r in diverged.itertuples():  # the seeds left out above: a cross on the top edge, with how many diverged
+            y = 0.97 if r.method == REFERENCE else 0.91
+            ax.plot([getattr(r, key)], [y], marker="x", color=styles[r.method]["color"], transform=ax.get_xaxis_transform(), clip_on=False)
+            ax.annotate(f"{r.k}/{r.n} diverged", (getattr(r, key), y), xycoords=("data", "axes fraction"), xytext=(5, 0),
+                        textcoords="offset points", ha="left", va="center", fontsize=7, color=styles[r.method]["color"])  # fmt: skip
         for v in sorted({float(c[train_key]) for c in train_conditions.values()}):
             ax.axvline(v, color="0.6", linestyle="--", linewidth=0.8)
         ax.set_xscale("log")
