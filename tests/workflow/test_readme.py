@@ -29,6 +29,8 @@ NOT_RUN = {
     "snakemake --cores 2 results/evaluation/cloth_paper/metrics.csv results/evaluation/cantilever_paper/metrics.csv":
         "the Fig. 8 scenes over five seeds take 24 min; the tiny run's two-seed scene checks the same rules, tables and claims",
     'python -m pytest -q -m "not slow" tests': "a part of the test command itself",
+    "snakemake --cores 2 results/conditioned/cloth/summary.md results/conditioned/cantilever/summary.md":
+        "the two conditioned scenes over three seeds take about 45 min; the tiny run's tiny_cloth runs the same rules",
 }
 if not torch.cuda.is_available():
     NOT_RUN["snakemake --cores 2 all --config device=cuda"] = "needs a GPU; test_latent checks the error without one"
