@@ -55,7 +55,7 @@ def condition_sim_config(sim: dict, condition: dict) -> dict:
         split = q.get("split", "train")
         if condition["split"] == "train":
             if q.get("train_frames"):
-                q = {**{k: v for k, v in q.items() if k != "train_frames"}, "frames": q["train_frames"], "split": "train"}
+                q = {**{key: v for key, v in q.items() if key != "train_frames"}, "frames": q["train_frames"], "split": "train"}
             elif split != "train":
                 continue
         elif split != "test":
