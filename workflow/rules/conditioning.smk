@@ -5,7 +5,7 @@
 
 wildcard_constraints:
     condition="|".join(CONDITION_NAMES) if CONDITION_NAMES else "NO_CONDITION",
-    model="|".join(["conditioned"] + CONDITION_NAMES),
+    model="|".join(["conditioned", *CONDITION_NAMES]),
 
 
 # The scene's sequences as the same motions in physical time at one condition's time step and modulus.
@@ -76,9 +76,9 @@ rule conditioned_integrator:
 rule conditioned_evaluate:
     input:
         unpack(
-            lambda w: {"test_" + n: p for n, p in condition_files("test")(w).items()}
+            lambda w: {f"test_{n}": p for n, p in condition_files("test")(w).items()}
         ),
-        unpack(lambda w: {"model_" + n: p for n, p in conditioned_models(w).items()}),
+        unpack(lambda w: {f"model_{n}": p for n, p in conditioned_models(w).items()}),
         autoencoder="results/conditioned/{scene}/seed{seed}/autoencoder.pt",
     output:
         metrics="results/conditioned/{scene}/seed{seed}/metrics.csv",

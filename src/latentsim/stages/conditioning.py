@@ -281,8 +281,8 @@ def _ratio_text(r) -> str:
     spread = f" ({r.ratio_min:.2f}-{r.ratio_max:.2f} where both stable)" if np.isfinite(r.ratio_min) else ""
     if np.isfinite(r.ratio):
         return f"{r.ratio:.2f}{spread}"
-    who = "reference" if not np.isfinite(r.reference_error) else "conditioned"
-    return f"- ({who} median diverged){spread}"
+    who = [m for m, e in (("conditioned", r.conditioned_error), ("reference", r.reference_error)) if not np.isfinite(e)]
+    return f"- ({' and '.join(who)} median diverged){spread}"
 
 
 def conditioned_figure(df: pd.DataFrame, train_conditions: dict, path, scene: str) -> None:
@@ -311,7 +311,8 @@ def conditioned_figure(df: pd.DataFrame, train_conditions: dict, path, scene: st
         for v in sorted({float(c[train_key]) for c in train_conditions.values()}):
             ax.axvline(v, color="0.6", linestyle="--", linewidth=0.8)
         ax.set_xscale("log")
-        ax.set_yscale("log")
+        if (g["e"] > 0).any():  # every rollout diverged: nothing to draw on a log scale
+            ax.set_yscale("log")
         ticks = sorted({float(f"{v:.4g}") for v in [*g[key], *(float(c[train_key]) for c in train_conditions.values())]})
         ax.set_xticks(ticks, [f"1/{1 / v:.3g}" if key == "h" else f"{v:.2g}" for v in ticks], rotation=45)
         ax.xaxis.set_minor_formatter(NullFormatter())
