@@ -164,21 +164,6 @@ def test_frame_rate_rows_compare_the_shared_times():
     assert r["full_space_gap"] == pytest.approx(0.01 * math.sqrt(3)) and r["rollout_gap"] == pytest.approx(0.03 * math.sqrt(3))
 
 
-def _exact_step_at(ch: Chain, x1, x2, xD, h, s):
-    """The chain's implicit-Euler step at time step h with its springs s times as stiff."""
-    n, lead = ch.n, x1.shape[:-2]
-    Mv, K = ch.pot.masses.repeat_interleave(3), s * ch.K
-    A = torch.diag(Mv) / h**2 + K
-    mg = (ch.pot.masses[:, None] * ch.pot.g).reshape(3 * n)
-    xfix = torch.zeros(lead + (3 * n,), dtype=F64)
-    xfix[..., :3] = xD.reshape(lead + (3,))
-    rhs = Mv / h**2 * (2 * x1 - x2).reshape(lead + (3 * n,)) + mg + K @ ch.X.reshape(-1) - xfix @ K.T
-    f = slice(3, 3 * n)
-    out = xfix.clone()
-    out[..., f] = torch.linalg.solve(A[f, f], rhs[..., f].unsqueeze(-1)).squeeze(-1)
-    return out.reshape(lead + (n, 3))
-
-
 def _six(seq):
     """A chain sequence with the root's x-velocity as the first of six BC entries (v, w)."""
     return {**seq, "bc": torch.cat([seq["bc"], torch.zeros(len(seq["bc"]), 5, dtype=F64)], 1)}
@@ -206,7 +191,7 @@ def test_the_conditioned_integrator_learns_the_step_at_each_condition():
             z = AtCondition(integ, box.normalise(*told))(tr["z_prev"], tr["z_prev2"], tr["p"], tr["p_prev"], tr["p_prev2"])
             x, x1 = decode_latents(ae, coords, z, xD), decode_latents(ae, coords, tr["z_prev"], tr["xD_prev"])
             x2 = decode_latents(ae, coords, tr["z_prev2"], tr["xD_prev2"])
-        exact = _exact_step_at(ch, x1, x2, xD, *true)
+        exact = ch.exact_step(x1, x2, xD, *true)
         return float((x - exact).norm(dim=-1).mean() / (exact - x1).norm(dim=-1).mean())
 
     corners = [(1 / 60, 0.5), (1 / 15, 2.0), (1 / 25, 1.0)]  # two corners and a condition inside

@@ -85,18 +85,20 @@ class Chain:
             lap[j, i] -= 1
         self.K = k * torch.kron(lap, torch.eye(3, dtype=F64))  # spring energy = 1/2 (x-X)^T K (x-X)
 
-    def exact_step(self, x1, x2, xD):
+    def exact_step(self, x1, x2, xD, h=None, stiffness=1.0):
         """Implicit Euler with the root held at xD (..., 1, 3): solve
-        (M/h^2 + K)_ff x_f = M/h^2 (2 x1 - x2)_f + (M g)_f + (K X)_f - K_f0 x_0."""
-        n, h = self.n, self.pot.dt
+        (M/h^2 + K)_ff x_f = M/h^2 (2 x1 - x2)_f + (M g)_f + (K X)_f - K_f0 x_0;
+        at time step ``h`` (the potential's by default) with the springs ``stiffness`` times as stiff."""
+        n, h = self.n, self.pot.dt if h is None else h
         lead = x1.shape[:-2]
         Mv = self.pot.masses.repeat_interleave(3)
-        A = torch.diag(Mv) / h**2 + self.K
+        K = stiffness * self.K
+        A = torch.diag(Mv) / h**2 + K
         y = (2 * x1 - x2).reshape(lead + (3 * n,))
         mg = (self.pot.masses[:, None] * self.pot.g).reshape(3 * n)
         xfix = torch.zeros(lead + (3 * n,), dtype=F64)
         xfix[..., :3] = xD.reshape(lead + (3,))
-        rhs = Mv / h**2 * y + mg + self.K @ self.X.reshape(-1) - xfix @ self.K.T
+        rhs = Mv / h**2 * y + mg + K @ self.X.reshape(-1) - xfix @ K.T
         f = slice(3, 3 * n)
         xf = torch.linalg.solve(A[f, f], rhs[..., f].unsqueeze(-1)).squeeze(-1)
         out = xfix.clone()

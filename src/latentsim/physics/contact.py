@@ -231,9 +231,10 @@ class ContactBarrier(EnergyTerm):
         """The signed distance of every vertex from its nearest collider, x (..., n, 3) -> (..., n)."""
         return torch.stack([c.distance(x) for c in self.colliders]).amin(0)
 
-    def local_gradient_hessian(self, xe: torch.Tensor, project: bool = True):
+    def local_gradient_hessian(self, xe: torch.Tensor, project: bool = True, hessian: bool = True):
         """Per vertex: g = b'(d) grad d and H = b''(d) grad d grad d^T + b'(d) Hess d, summed over the
-        colliders, H clamped to its non-negative eigenvalues when ``project``."""
+        colliders, H clamped to its non-negative eigenvalues when ``project``; H is None without
+        ``hessian`` (a line search's trial needs the gradient alone)."""
         x = xe[:, 0, :]
         g = torch.zeros_like(x)
         H = torch.zeros(x.shape + (3,), dtype=x.dtype, device=x.device)
@@ -242,7 +243,10 @@ class ContactBarrier(EnergyTerm):
             db, d2b = barrier_derivatives(d, self.d_hat, self.kappa)
             n, hd = c.distance_derivatives(x)
             g = g + db[:, None] * n
-            H = H + d2b[:, None, None] * n[:, :, None] * n[:, None, :] + db[:, None, None] * hd
+            if hessian:
+                H = H + d2b[:, None, None] * n[:, :, None] * n[:, None, :] + db[:, None, None] * hd
+        if not hessian:
+            return g, None
         if project:
             w, V = torch.linalg.eigh(H)
             H = (V * w.clamp_min(0.0)[:, None, :]) @ V.transpose(1, 2)

@@ -64,7 +64,7 @@ class CompiledAssembly:
         e = float(self.contact.energy(xt))
         if grad is None or not np.isfinite(e):
             return e
-        g, H = self.contact.local_gradient_hessian(self.contact.gather(xt), project=project)
+        g, H = self.contact.local_gradient_hessian(self.contact.gather(xt), project=project, hessian=data is not None)
         grad += g.numpy().reshape(-1)
         if data is not None:
             iu, ju = np.triu_indices(3)
