@@ -163,7 +163,10 @@ class ImplicitEuler:
         self.free_mask = np.repeat(free_v, 3)
         self.free_dofs = np.flatnonzero(self.free_mask)
         self.stencils = [t.stencils.cpu().numpy() for t in potential.terms]
-        self.pattern = HessianPattern(n, self.stencils, self.free_dofs)
+        self.contact = getattr(potential, "contact", None)
+        # the barrier's per-vertex blocks too (a reduced solver's cubature terms may not touch every vertex)
+        contact_stencils = [] if self.contact is None else [self.contact.stencils.cpu().numpy()]
+        self.pattern = HessianPattern(n, self.stencils + contact_stencils, self.free_dofs)
         self.linear = LinearSolver(self.pattern, self.settings.linear_solver)
         m_free = self.masses[free_v]
         self.f_ref = float(np.linalg.norm(m_free) * max(np.linalg.norm(self.g), 1.0))
@@ -172,7 +175,6 @@ class ImplicitEuler:
         self.assembly = CompiledAssembly.of(
             potential.terms, self.pattern, n, self.linear.method == "banded", min(2, int(threads or torch.get_num_threads()))
         )
-        self.contact = getattr(potential, "contact", None)
         if self.contact is not None:
             self.assembly.with_contact(self.contact)
         self._last_iterations = 0  # the previous step's Newton iterations (NewtonSettings.fused_trial)
