@@ -147,6 +147,11 @@ def test_the_extended_barrier_is_finite_inside_c2_at_the_seam_and_exact_above_it
     assert curve(below) == pytest.approx(curve(above), rel=1e-2)
     term = ContactBarrier(1, [HalfSpace((0, 0, 0), (0, 0, 1))], d_hat, kappa).extended(0.1)
     assert term.extend_below == pytest.approx(de) and torch.isfinite(term.energy(torch.tensor([[0.0, 0.0, -1.0]], dtype=F64)))
+    # a learned loss's barrier: reach and stiffness scaled, the seam a fraction of the new reach
+    wide = ContactBarrier(1, [HalfSpace((0, 0, 0), (0, 0, 1))], d_hat, kappa).extended(0.5, d_hat_factor=10.0, kappa_factor=0.01)
+    assert (wide.d_hat, wide.kappa, wide.extend_below) == pytest.approx((10 * d_hat, 0.01 * kappa, 5 * d_hat))
+    x = torch.tensor([[0.0, 0.0, 0.05]], dtype=F64)
+    assert float(wide.energy(x)) == pytest.approx(float(barrier(torch.tensor([0.05], dtype=F64), 10 * d_hat, 0.01 * kappa)))
 
 
 @pytest.mark.parametrize("shape", ["half_space", "sphere"])
@@ -217,3 +222,36 @@ def test_the_simulation_stage_with_a_collider_and_the_independent_frame_check(tm
         d_hat = float(__import__("json").loads(f.attrs["contact"])["d_hat"])
     assert report["frames"] == 29 and report["worst"] <= 1.0
     assert 0 < report["nearest"] == pytest.approx(near.min()) and near.min() < d_hat
+
+
+def test_a_solver_whose_elastic_terms_miss_some_vertices_still_assembles_every_vertexs_barrier():
+    """A reduced solver's cubature keeps a few elements: the barrier's per-vertex Hessian blocks must
+    still have their places in the sparse pattern, and gradient and Hessian match autograd."""
+    import dataclasses
+
+    from latentsim.mesh import cloth_grid
+    from latentsim.scene import build_potential
+    from latentsim.solve.implicit_euler import ImplicitEuler
+
+    X, tris = cloth_grid(3, 3, 0.3, 0.3, plane="xz")
+    X = np.asarray(X, dtype=np.float64)
+    arrays = {"rest_positions": X, "triangles": tris, "dirichlet": np.zeros(0, dtype=np.int64)}
+    material = {"youngs_modulus": 1e5, "poisson_ratio": 0.3, "density": 200.0, "thickness": 0.001}
+    contact = {"colliders": [{"type": "half_space", "point": [0, -0.001, 0], "normal": [0, 1, 0]}], "d_hat": 0.01}
+    pot = build_potential("shell", arrays, material, 1 / 60, [0, -9.81, 0], contact=contact)
+    first = [t.weighted_subset(torch.arange(2), torch.ones(2, dtype=F64)) for t in pot.terms]  # two elements of each term
+    sub = dataclasses.replace(pot, terms=first)
+    touched = np.unique(np.concatenate([t.stencils.numpy().ravel() for t in first]))
+    assert len(touched) < len(X)  # some vertices belong to no element left
+    solver = ImplicitEuler(sub)
+    x = X + np.array([0.0, 0.002, 0.0]) * np.random.default_rng(0).random((len(X), 1))  # inside the barrier's reach
+    assert float(pot.contact.energy(torch.as_tensor(x))) > 0
+    grad, U = solver.gradient_hessian(x, X, X, project=False)
+    U = U.tocsr().toarray()
+    H = U + U.T - np.diag(np.diag(U))
+    xt = torch.as_tensor(x).reshape(-1)
+    f = lambda v: sub(v.reshape(-1, 3), torch.as_tensor(X), torch.as_tensor(X), penalty=False)
+    ga = torch.func.grad(f)(xt).numpy()
+    Ha = torch.autograd.functional.hessian(f, xt).numpy()
+    assert np.allclose(grad, ga, rtol=1e-7, atol=1e-9 * np.abs(ga).max())
+    assert np.allclose(H, Ha, rtol=1e-6, atol=1e-8 * np.abs(Ha).max())

@@ -453,6 +453,55 @@ def test_checkpoint_resume_equals_uninterrupted(chain_setup, tmp_path):
 
 
 
+def test_own_rollouts_chain_the_integrators_own_predictions_sequence_by_sequence(chain_setup):
+    """Each training sequence rolled out by the integrator from its first two ground-truth latents: a
+    row's inputs are the two latents before it in that rollout, its boundary conditions and targets
+    the frame's own; a rollout that leaves the range stops there."""
+    from latentsim.latent.training import own_rollout_triplets
+
+    ch, seqs, coords, ae = chain_setup
+    integ, tr = _untrained(chain_setup)
+    lengths = [len(s["positions"]) - 2 for s in seqs]
+    centre = tr["z"].mean(0)
+    own = own_rollout_triplets(integ, tr, lengths, centre, math.inf)
+    assert own["z"].shape == tr["z"].shape
+    for key in ("z", "p", "p_prev", "p_prev2", "xD", "xD_prev", "xD_prev2"):
+        assert torch.equal(own[key], tr[key])
+    with torch.no_grad():
+        pred = integ(own["z_prev"], own["z_prev2"], own["p"], own["p_prev"], own["p_prev2"])
+    start = 0
+    for n in lengths:
+        rows = slice(start, start + n)
+        assert torch.equal(own["z_prev"][start], tr["z_prev"][start]) and torch.equal(own["z_prev2"][start], tr["z_prev2"][start])
+        # from the second row on, the inputs are the rollout's: the previous row's prediction and input
+        assert torch.allclose(own["z_prev"][rows][1:], pred[rows][:-1], atol=1e-6)
+        assert torch.equal(own["z_prev2"][rows][1:], own["z_prev"][rows][:-1])
+        start += n
+    # an untrained integrator drifts: its own inputs are not the ground truth's
+    assert not torch.allclose(own["z_prev"], tr["z_prev"], atol=1e-3)
+    # a range it leaves at once: each sequence keeps the rows up to its first prediction outside
+    short = own_rollout_triplets(integ, tr, lengths, centre, 0.0)
+    assert short["z"].shape[0] == len(lengths)
+    with pytest.raises(ValueError, match="rows_per_sequence"):
+        own_rollout_triplets(integ, tr, lengths[:-1], centre, math.inf)
+
+
+def test_a_training_on_its_own_rollouts_resumes_them_from_its_checkpoint(chain_setup, tmp_path):
+    """The rolled-out triplets in use travel with the checkpoint: a run resumed between two rollouts
+    equals the uninterrupted one to the bit."""
+    ch, seqs, coords, ae = chain_setup
+    cfg = dict(widths=[16], epochs=6, lr=1e-3, batch_size=40, own_rollouts_every=2, own_rollouts_start=1)
+    full, hf = fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=3)
+    assert hf["own_triplets"] and len(hf["own_triplets"]) == 3 and all(0 < n <= 3 * 38 for n in hf["own_triplets"])
+    path = tmp_path / "ckpt.pt"
+    fit_integrator(ae, coords, ch.pot, seqs, {**cfg, "epochs": 4}, seed=3, checkpoint_path=path, checkpoint_every=1)
+    resumed, hr = fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=3, checkpoint_path=path, checkpoint_every=1)
+    assert hr["start_epoch"] == 4 and hr["loss"] == hf["loss"] and hr["own_triplets"] == hf["own_triplets"]
+    assert all(torch.equal(full.state_dict()[k], v) for k, v in resumed.state_dict().items())
+    with pytest.raises(ValueError, match="own_rollouts_every"):
+        fit_integrator(ae, coords, ch.pot, seqs, {**cfg, "mode": "supervised"}, seed=3)
+
+
 @pytest.mark.parametrize(
     "change",
     ["widths", "lr", "noise", "seed", "data", "fewer_epochs"],

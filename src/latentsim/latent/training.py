@@ -19,6 +19,7 @@ import os
 import time
 from typing import Any, Sequence
 
+import numpy as np
 import torch
 from torch import nn
 from tqdm import tqdm
@@ -80,7 +81,9 @@ def fit_integrator(
     config : settings of the config schema's ``integrator`` (widths, epochs, lr, lr_final (cosine
         decay of the learning rate to it; None: constant), batch_size, mode ('self_supervised' |
         'supervised'), noise_scale, supervised_weight, balancing, balancing_eps, use_penalty,
-        residual, and the health rule's divergence_factor, max_loss, latent_range_factor); those
+        residual, barrier_d_hat, barrier_kappa, barrier_extend_below (the loss's contact barrier,
+        relative to the potential's), own_rollouts_every, own_rollouts_start (see below), and the
+        health rule's divergence_factor, max_loss, latent_range_factor); those
         absent take the schema's defaults (:func:`latentsim.config.with_defaults`).
     seed : seeds weight init, minibatch order and the training noise.
     checkpoint_path : when set, the integrator, optimiser, RNG state and history are saved every
@@ -103,6 +106,15 @@ def fit_integrator(
         potential at its condition, weighted by (h / h_0)^2 so that the inertia term weighs the same
         at every time step.  A box of more than one point appends the normalised condition to each
         boundary-condition vector (``bc_dim`` + 2); a point trains an unconditioned integrator there.
+
+    Own rollouts (``own_rollouts_every`` k > 0, self-supervised mode, not conditioned; not in the
+    paper): from epoch ``own_rollouts_start`` on, every k epochs the integrator rolls out each
+    training sequence in the latent space from its first two ground-truth latents, under its
+    boundary conditions, until it ends or a latent leaves twice the training latents' radius; the
+    triplets whose inputs are those rolled-out latents (with the frames' boundary conditions and
+    Dirichlet targets) join the ground-truth ones until the next rollout.  The loss needs no
+    ground truth at the predicted frame, so the integrator learns from the states it drifts into,
+    in contact among them, and not only from those of the training data.
 
     Returns
     -------
@@ -139,9 +151,13 @@ def fit_integrator(
             f"supervised_weight 0; got mode {cfg['mode']!r}, supervised_weight {cfg['supervised_weight']}): ground truth exists only "
             "at the conditions of the training sequences"
         )
+    own_every = int(cfg["own_rollouts_every"])
+    if own_every > 0 and (conditioning is not None or cfg["mode"] != "self_supervised"):
+        raise ValueError(f"{label or 'integrator'}: own_rollouts_every needs a self-supervised, unconditioned training")
     device = resolve_device(device)
-    ae_f, pot, data = _training_setup(ae, coords, potential, sequences, device, compiled)
+    ae_f, pot, data = _training_setup(ae, coords, potential, sequences, device, compiled, cfg)
     integ = _new_integrator(data, cfg, seed, device, conditioning)
+    rows_per_sequence = [len(q["positions"]) - 2 for q in sequences if len(q["positions"]) >= 3]  # build_triplets' order
     opt = torch.optim.Adam(integ.parameters(), lr=float(cfg["lr"]))
     gen = torch.Generator().manual_seed(seed)
     health = LossHealth(cfg["divergence_factor"], cfg["max_loss"], key="integrator")
@@ -152,11 +168,17 @@ def fit_integrator(
     if checkpoint_path is not None:
         fingerprint = training_fingerprint(cfg, seed, integ.hparams, data, ae_f, conditioning)
         start, seconds_before = _resume(checkpoint_path, fingerprint, epochs, integ, opt, gen, history, health)
+    own = history.pop("own", None)  # a resumed run's rolled-out triplets
     bar = tqdm(range(start, epochs), desc="integrator", disable=not progress, leave=False)
     try:
         for epoch in bar:
             _set_learning_rate(opt, cfg, epoch, epochs)
-            loss, mse, distance = _integrator_epoch(integ, opt, ae_f, coords, pot, data, cfg, gen, epoch, health, centre, conditioning)
+            if own_every > 0 and epoch >= int(cfg["own_rollouts_start"]) and (epoch - int(cfg["own_rollouts_start"])) % own_every == 0:
+                own = own_rollout_triplets(integ, data, rows_per_sequence, centre, 2.0 * radius)
+                history.setdefault("own_triplets", []).append(int(own["z"].shape[0]))
+            train_data = data if own is None else {key: torch.cat([val, own[key]]) for key, val in data.items()}
+            n_ground_truth = None if own is None else data["z"].shape[0]
+            loss, mse, distance = _integrator_epoch(integ, opt, ae_f, coords, pot, train_data, cfg, gen, epoch, health, centre, conditioning, n_ground_truth)
             health.check(epoch, loss)
             _check_latent_range(epoch, distance, radius, float(cfg["latent_range_factor"]))
             history["loss"].append(loss)
@@ -166,7 +188,7 @@ def fit_integrator(
             if checkpoint_path is not None and ((epoch + 1) % every == 0 or epoch + 1 == epochs):
                 history.update(health.state())
                 seconds = seconds_before + time.perf_counter() - t_start
-                _save_checkpoint(checkpoint_path, fingerprint, seed, epoch + 1, integ, opt, gen, history, seconds)
+                _save_checkpoint(checkpoint_path, fingerprint, seed, epoch + 1, integ, opt, gen, history, seconds, own)
     except TrainingDiverged as e:
         e.label = e.label or label
         raise
@@ -195,18 +217,54 @@ def _check_latent_range(epoch: int, distance: float, radius: float, factor: floa
         )  # fmt: skip
 
 
-def _training_setup(ae: Autoencoder, coords: RelativeCoordinates, potential, sequences: Sequence[dict], device: torch.device, compiled: bool):
+def _training_setup(ae: Autoencoder, coords: RelativeCoordinates, potential, sequences: Sequence[dict], device: torch.device, compiled: bool, cfg: dict):
     """A frozen eval-mode copy of the autoencoder on ``device``, the potential there (its elastic
     energy on the compiled kernels where ``compiled`` and on the CPU; its contact barrier, if any,
-    extended finitely past the colliders' surfaces), and the training triplets."""
+    the learned loss's of ``cfg``'s ``barrier_*`` settings, extended finitely past the colliders'
+    surfaces), and the training triplets."""
     ae_f = copy.deepcopy(ae).to(device).eval()
     ae_f.requires_grad_(False)
     pot = potential_on(potential, device)
     if getattr(pot, "contact", None) is not None:  # finite past the colliders' surfaces: a decode that enters one costs much, not inf
-        pot = dataclasses.replace(pot, contact=pot.contact.extended())
+        barrier = pot.contact.extended(cfg["barrier_extend_below"], cfg["barrier_d_hat"], cfg["barrier_kappa"])
+        pot = dataclasses.replace(pot, contact=barrier)
     if compiled and device.type == "cpu":
         pot = with_compiled_elastic(pot)
     return ae_f, pot, build_triplets(ae_f, coords, sequences)
+
+
+@torch.no_grad()
+def own_rollout_triplets(integ: LatentIntegrator, data: dict, rows_per_sequence: Sequence[int], centre: torch.Tensor, max_distance: float) -> dict:
+    """Triplets whose inputs are the integrator's own latents: each training sequence of ``data``
+    (:func:`~latentsim.latent.data.build_triplets`: ``rows_per_sequence[i]`` rows of sequence i,
+    in order) rolled out from its first two ground-truth latents under its boundary conditions,
+    until it ends or a latent lies farther than ``max_distance`` from ``centre``.  Each row keeps
+    the frame's boundary conditions, Dirichlet targets and ground-truth latent ``z``; its
+    ``z_prev`` and ``z_prev2`` are the rolled-out ones (a sequence's first row keeps its ground
+    truth: it is the first step).  The training mode of ``integ`` is restored."""
+    if sum(rows_per_sequence) != data["z"].shape[0]:
+        raise ValueError(f"rows_per_sequence sums to {sum(rows_per_sequence)}, the triplets have {data['z'].shape[0]} rows")
+    was_training = integ.training
+    integ.eval()
+    ends = np.cumsum(rows_per_sequence).tolist()
+    starts = [0] + ends[:-1]
+    rows, z_prev, z_prev2 = [], [], []
+    for a, b in zip(starts, ends):
+        z2, z1 = data["z_prev2"][a], data["z_prev"][a]
+        for i in range(a, b):
+            rows.append(i)
+            z_prev.append(z1)
+            z_prev2.append(z2)
+            z = integ(z1[None], z2[None], data["p"][i : i + 1], data["p_prev"][i : i + 1], data["p_prev2"][i : i + 1])[0].to(z1.dtype)
+            if not torch.isfinite(z).all() or float((z - centre).norm()) > max_distance:
+                break
+            z2, z1 = z1, z
+    if was_training:
+        integ.train()
+    idx = torch.as_tensor(rows, device=data["z"].device)
+    own = {key: val[idx] for key, val in data.items()}
+    own["z_prev"], own["z_prev2"] = torch.stack(z_prev), torch.stack(z_prev2)
+    return own
 
 
 def _new_integrator(data: dict, cfg: dict, seed: int, device: torch.device, conditioning: Conditioning | None = None) -> LatentIntegrator:
@@ -258,15 +316,16 @@ def _set_learning_rate(opt, cfg: dict, epoch: int, epochs: int) -> None:
 
 def _integrator_epoch(
     integ: LatentIntegrator, opt, ae: Autoencoder, coords: RelativeCoordinates, pot, data: dict, cfg: dict, gen: torch.Generator, epoch: int,
-    health: LossHealth, centre: torch.Tensor, conditioning: Conditioning | None = None,
+    health: LossHealth, centre: torch.Tensor, conditioning: Conditioning | None = None, n_ground_truth: int | None = None,
 ):  # fmt: skip
     """One epoch of Adam over the triplets ``data`` in minibatches; the mean weighted loss, the
     mean latent MSE on the clean samples (against the training sequences' latents, which for a
     conditioned training are those of another condition), and the largest distance
-    |z_pred - centre| of a clean sample's prediction.  The first minibatch of a training sets
+    |z_pred - centre| of a clean sample's prediction from a ground-truth input (the first
+    ``n_ground_truth`` rows; all when None).  The first minibatch of a training sets
     ``health``'s start and scale."""
     integ.train()
-    tot, mse, cnt, distance = 0.0, 0.0, 0, 0.0
+    tot, mse, cnt, count, distance = 0.0, 0.0, 0, 0, 0.0
     for b, idx in enumerate(minibatches(data["z"].shape[0], int(cfg["batch_size"]), gen)):
         idx = idx.to(data["z"].device)
         batch = {key: val[idx] for key, val in data.items()}
@@ -280,18 +339,29 @@ def _integrator_epoch(
         )  # fmt: skip
         if not torch.isfinite(loss):
             raise TrainingDiverged(epoch + 1, b)
-        health.first_batch(float(loss.detach()), info["per_sample"] * info["weights"])
+        weighted = info["per_sample"] * info["weights"]
+        value = float(loss.detach())
+        if n_ground_truth is not None:  # the health rule and history follow the ground-truth rows' loss alone
+            weighted = weighted[(idx < n_ground_truth).repeat(weighted.shape[0] // idx.numel())]
+            value = float(weighted.mean()) if weighted.numel() else float("nan")
+        if weighted.numel():
+            health.first_batch(value, weighted)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         if any(q.grad is not None and not torch.isfinite(q.grad).all() for q in integ.parameters()):
             raise TrainingDiverged(epoch + 1, b, what="gradient")
         opt.step()
         nb = idx.numel()
-        tot += float(loss.detach()) * nb
+        if n_ground_truth is None:
+            tot, count = tot + value * nb, count + nb
+        else:
+            tot, count = tot + float(weighted.sum()), count + weighted.numel()
         mse += float(((info["prediction"][:nb] - batch["z"]) ** 2).mean()) * nb
-        distance = max(distance, float((info["prediction"][:nb] - centre).norm(dim=-1).max()))
+        clean = info["prediction"][:nb] if n_ground_truth is None else info["prediction"][:nb][idx < n_ground_truth]
+        if clean.shape[0]:
+            distance = max(distance, float((clean - centre).norm(dim=-1).max()))
         cnt += nb
-    return tot / cnt, mse / cnt, distance
+    return tot / count, mse / cnt, distance
 
 
 def _resume(path, fingerprint: str, epochs: int, integ: LatentIntegrator, opt, gen: torch.Generator, history: dict, health: LossHealth) -> tuple[int, float]:
@@ -313,13 +383,19 @@ def _resume(path, fingerprint: str, epochs: int, integ: LatentIntegrator, opt, g
     history["latent_distance"] = list(state["history"]["latent_distance"])
     health.load(state["history"])
     history["start_epoch"] = int(state["epoch"])
+    if state.get("own") is not None:
+        history["own"] = {k: v.to(integ.in_mean.device) for k, v in state["own"].items()}
+        history["own_triplets"] = list(state.get("own_triplets", []))
     log.info("resuming %s at epoch %d (%.1f s of training so far)", path, history["start_epoch"], float(state["train_seconds"]))
     return history["start_epoch"], float(state["train_seconds"])
 
 
-def _save_checkpoint(path, fingerprint: str, seed: int, epoch_done: int, integ: LatentIntegrator, opt, gen: torch.Generator, history: dict, seconds: float) -> None:
-    """Write the state after ``epoch_done`` epochs, and the training time so far ``seconds``,
-    atomically (the last good one stays on disk until the new one is complete)."""
+def _save_checkpoint(
+    path, fingerprint: str, seed: int, epoch_done: int, integ: LatentIntegrator, opt, gen: torch.Generator, history: dict, seconds: float, own: dict | None = None,
+) -> None:  # fmt: skip
+    """Write the state after ``epoch_done`` epochs, the training time so far ``seconds`` and the
+    rolled-out triplets ``own`` in use, atomically (the last good one stays on disk until the new
+    one is complete)."""
     atomic_save(
         {
             "epoch": epoch_done,
@@ -331,6 +407,8 @@ def _save_checkpoint(path, fingerprint: str, seed: int, epoch_done: int, integ: 
             "generator": gen.get_state(),
             "history": {k: history[k] for k in ("loss", "latent_mse", "latent_distance", "loss_start", "loss_scale")},
             "train_seconds": float(seconds),
+            "own": None if own is None else {k: v.cpu() for k, v in own.items()},
+            "own_triplets": list(history.get("own_triplets", [])),
         },
         path,
     )

@@ -215,10 +215,12 @@ class ContactBarrier(EnergyTerm):
         self.d_hat, self.kappa, self.extend_below = float(d_hat), float(kappa), extend_below
         self.stencils = torch.arange(int(n_vertices)).reshape(-1, 1)
 
-    def extended(self, fraction: float = 0.1) -> "ContactBarrier":
-        """The same barrier continued below ``fraction`` d_hat by its quadratic Taylor expansion
+    def extended(self, fraction: float = 0.1, d_hat_factor: float = 1.0, kappa_factor: float = 1.0) -> "ContactBarrier":
+        """The barrier of activation distance ``d_hat_factor`` d_hat and stiffness ``kappa_factor``
+        kappa, continued below ``fraction`` of that distance by its quadratic Taylor expansion
         (:func:`barrier`'s ``extend_below``): finite inside the colliders, for learned losses."""
-        return ContactBarrier(len(self.stencils), self.colliders, self.d_hat, self.kappa, fraction * self.d_hat)
+        d_hat = d_hat_factor * self.d_hat
+        return ContactBarrier(len(self.stencils), self.colliders, d_hat, kappa_factor * self.kappa, fraction * d_hat)
 
     def local_energy(self, xe: torch.Tensor) -> torch.Tensor:
         x = xe[..., 0, :]
