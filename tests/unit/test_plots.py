@@ -107,6 +107,38 @@ def test_speed_accuracy_points_aggregate_sequences():
     assert pts["on_front"].to_dict() == {"a": True, "b": False, "full_space": True}
 
 
+def test_a_method_that_enters_a_collider_is_off_the_front_and_ringed(tmp_path):
+    """With colliders (column max_penetration): the deepest entry of each seed, its median over seeds; a
+    method whose median exceeds 1% of the diagonal is off the front however fast and accurate, the full
+    space stands at 0, and the chart still draws."""
+    from latentsim.report.tables import PENETRATION_LIMIT, speed_accuracy_points
+
+    base = {"scene": "s", "sequence": "q", "frames": 100, "full_ms": 10.0, "kinetic_ratio": 1.0, "diverged_frame": -1}
+    rows = [{**base, "method": "fast", "seed": k, "latent_ms": 0.01, "mean_error": 0.01, "max_error": 0.05, "max_penetration": pen}
+            for k, pen in enumerate([0.02, 0.12, 0.0])]  # fmt: skip
+    rows += [{**base, "method": "shallow", "seed": k, "latent_ms": 1.0, "mean_error": 0.02, "max_error": 0.05, "max_penetration": pen}
+             for k, pen in enumerate([0.004, 0.0, 0.009])]  # fmt: skip
+    pts = speed_accuracy_points(pd.DataFrame(rows)).set_index("method")
+    assert pts.loc["fast", "max_penetration"] == pytest.approx(0.02) and 0.02 > PENETRATION_LIMIT
+    assert (pts.loc["fast", "max_penetration_min"], pts.loc["fast", "max_penetration_max"]) == pytest.approx((0.0, 0.12))
+    assert pts.loc["full_space", "max_penetration"] == 0.0
+    assert pts["on_front"].to_dict() == {"fast": False, "full_space": True, "shallow": True}
+    plots.speed_accuracy_chart(pts.reset_index(), tmp_path / "s.png", scene="s", dpi=60)
+    _png(tmp_path / "s.png")
+    # a scene without colliders has no such column
+    assert "max_penetration" not in speed_accuracy_points(_speed_metrics()).columns
+    # the tables say it too: the grid's cell and front, the long table's columns, the claims' sentence
+    from latentsim.report.tables import claims, divergence_table, glance_grid, glance_table
+
+    df = pd.DataFrame(rows)
+    glance = glance_table(df)
+    assert {"max_penetration", "max_penetration_min", "max_penetration_max"} <= set(glance.columns)
+    grid = glance_grid(glance, methods=("full_space", "fast", "shallow")).set_index("scene")
+    assert grid.loc["s", "fast"].endswith("inside 2%") and grid.loc["s", "shallow"].endswith("inside 0.4% *")
+    text = claims(glance, divergence_table(df))
+    assert "- s, fast: " in text and "enters a collider by 2% of the diagonal (median of 3 seeds; 0% to 12%)" in text
+
+
 def test_speed_accuracy_labels_of_nearby_divergences_do_not_overlap():
     """Two methods that diverged at nearly the same speed and error get their labels a line apart;
     a far one keeps the first line."""
@@ -385,6 +417,41 @@ def test_render_frames_draws_the_mesh(tmp_path):
     c = mpimg.imread(tmp_path / "c.png")[..., :3]
     dark_left, dark_right = (c[:, : c.shape[1] // 2] < 0.6).mean(), (c[:, c.shape[1] // 2 :] < 0.6).mean()
     assert dark_right == pytest.approx(dark_left, rel=0.3)  # a mesh in view is drawn in its panel
+
+
+def test_the_stability_map_prints_and_frames_a_deep_entry_into_a_collider(tmp_path):
+    df = pd.DataFrame([{"method": "a", "condition": "x2", "frames": 10, "frames_survived": 10, "max_penetration": 0.12},
+                       {"method": "a", "condition": "x5", "frames": 10, "frames_survived": 10, "max_penetration": 0.0}])  # fmt: skip
+    out = plots.stability_heatmap(df, tmp_path / "m.png", dpi=60)
+    assert out["max_penetration"].tolist() == [[0.12, 0.0]]
+    _png(tmp_path / "m.png")
+    assert np.isnan(plots.stability_heatmap(df.drop(columns="max_penetration"), tmp_path / "n.png", dpi=60)["max_penetration"]).all()
+
+
+def test_collider_wireframes_lie_on_their_shapes_and_are_drawn(tmp_path):
+    """Every segment end of a sphere's wireframe lies on the sphere, of a capsule's at its radius from the
+    axis segment, of a half-space's in its plane; a panel with a collider has more dark pixels."""
+    limits = np.array([[-1.0, 1.0], [-1.0, 1.0], [-1.0, 1.0]])
+    sphere = {"type": "sphere", "centre": [0.1, -0.2, 0.3], "radius": 0.25}
+    capsule = {"type": "capsule", "a": [0.0, 0.0, 0.0], "b": [0.3, 0.4, 0.0], "radius": 0.1}
+    plane = {"type": "half_space", "point": [0.0, -0.5, 0.0], "normal": [0.0, 1.0, 1.0]}
+    p = render.collider_segments([sphere], limits).reshape(-1, 3)
+    assert np.allclose(np.linalg.norm(p - sphere["centre"], axis=1), 0.25)
+    p = render.collider_segments([capsule], limits).reshape(-1, 3)
+    a, b = np.array(capsule["a"]), np.array(capsule["b"])
+    t = np.clip((p - a) @ (b - a) / np.dot(b - a, b - a), 0.0, 1.0)
+    assert np.allclose(np.linalg.norm(p - (a + t[:, None] * (b - a)), axis=1), 0.1)
+    p = render.collider_segments([plane], limits).reshape(-1, 3)
+    assert np.allclose((p - plane["point"]) @ (np.array(plane["normal"]) / np.sqrt(2)), 0.0)
+    with pytest.raises(ValueError, match="cone"):
+        render.collider_segments([{"type": "cone"}], limits)
+    model, rest, cells, D = _cloth()
+    gt = _write_traj(tmp_path / "gt.h5", model, rest, cells, {"seq": (_swing(rest, 3), None)}, dirichlet=D)
+    ball = {"type": "sphere", "centre": [0.15, -0.1, 0.05], "radius": 0.05}
+    render.render_frames(gt, {}, "seq", [1], tmp_path / "a.png", dpi=60)
+    render.render_frames(gt, {}, "seq", [1], tmp_path / "b.png", dpi=60, colliders=[ball])
+    a, b = (mpimg.imread(tmp_path / f)[..., :3] for f in ("a.png", "b.png"))
+    assert (b < 0.8).mean() > (a < 0.8).mean()
 
 
 def test_render_frames_errors_name_sequence_and_frame(example, tmp_path):

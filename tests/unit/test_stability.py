@@ -79,6 +79,30 @@ def test_a_contracting_integrator_survives_and_an_exploding_one_fails_where_its_
     assert bad["survived"] == int(np.argmax(ext > 3.0 * diag))
 
 
+def test_with_colliders_a_stress_rollout_reports_how_deep_it_entered_one_before_it_failed():
+    """The deepest entry of any surviving frame, over the diagonal: a half-space cutting through the decoded
+    states gives their deepest vertex; one below every frame gives 0; frames after the failure do not count."""
+    from latentsim.physics.contact import ContactBarrier, HalfSpace
+
+    ae, coords, rest = _tiny_autoencoder()
+    T = 40
+    cond = stability.Condition("still", np.zeros((T, 6)), np.repeat(rest[None, :1].numpy(), T, 0))
+    diag = float(np.linalg.norm(rest.numpy().max(0) - rest.numpy().min(0)))
+    z = torch.zeros(2)
+    with torch.no_grad():
+        x = latent.decode_latents(ae, coords, torch.zeros(1, 2), torch.as_tensor(cond.dirichlet_positions[:1]))[0].numpy()
+    level = float(np.median(x[:, 1]))  # a plane through the middle of the (still) decoded shape
+    cut = ContactBarrier(len(rest), [HalfSpace((0.0, level, 0.0), (0.0, 1.0, 0.0))], 1e-3, 1.0)
+    r = stability.survive_latent(_Linear(0.5), ae, coords, z, z, cond, np.array([0]), diag, max_extent=3.0, contact=cut)
+    assert r["max_penetration"] == pytest.approx((level - x[:, 1].min()) / diag, rel=1e-6)
+    below = ContactBarrier(len(rest), [HalfSpace((0.0, float(x[:, 1].min()) - 1.0, 0.0), (0.0, 1.0, 0.0))], 1e-3, 1.0)
+    assert stability.survive_latent(_Linear(0.5), ae, coords, z, z, cond, np.array([0]), diag, max_extent=3.0, contact=below)["max_penetration"] == 0
+    assert "max_penetration" not in stability.survive_latent(_Linear(0.5), ae, coords, z, z, cond, np.array([0]), diag, max_extent=3.0)
+    # an exploding rollout: only the frames before its failure are measured (finite, however far it flew)
+    bad = stability.survive_latent(_Linear(1.5, 1.0), ae, coords, z, z, cond, np.array([0]), diag, max_extent=3.0, contact=cut)
+    assert bad["survived"] < T and np.isfinite(bad["max_penetration"]) and bad["max_penetration"] < 3.0
+
+
 class _SpeedSensitive(torch.nn.Module):
     """Contracting while the boundary moves slowly; exploding above ``limit`` (|p_t| max-norm), and
     for good once its latent has run away (|z| > 10)."""

@@ -62,6 +62,8 @@ def stress_programs(bc: np.ndarray, train_frames: int, factors, long_factor: int
     ----------
     bc : (T, k) the test sequence's p_t (p_0 = 0: scenes start at rest).
     train_frames : length of the longest training sequence.
+    contact : the scene's contact barrier (its colliders), or None: each result then also holds the
+        deepest entry into one (:func:`survive_latent`).
     factors : speed factors.
     long_factor : the long rollout lasts ``long_factor * train_frames`` frames.
 
@@ -115,7 +117,7 @@ def dirichlet_error(positions: np.ndarray, dirichlet: np.ndarray, targets: np.nd
 
 
 def survive_latent(integrator, ae, coords, z0, z1, condition: Condition, dirichlet, rest_diag: float,
-                   max_extent: float, latent_std=None, seed: int = 0, chunk: int = 256) -> dict:  # fmt: skip
+                   max_extent: float, latent_std=None, seed: int = 0, chunk: int = 256, contact=None) -> dict:  # fmt: skip
     """Roll a latent integrator out under one condition; how long does it survive?
 
     The latents are integrated autoregressively from ``z0, z1`` (perturbed by
@@ -128,7 +130,9 @@ def survive_latent(integrator, ae, coords, z0, z1, condition: Condition, dirichl
     -------
     dict with ``frames`` (T), ``survived`` (frames before the first failure,
     T when none), ``dirichlet_error_end`` (mean Dirichlet error / rest_diag
-    at the last surviving frame) and ``dirichlet_error`` ((survived,) per frame).
+    at the last surviving frame) and ``dirichlet_error`` ((survived,) per frame); with ``contact``
+    (a :class:`~latentsim.physics.contact.ContactBarrier`, the scene's colliders) also
+    ``max_penetration``, the deepest entry into a collider of any surviving frame / rest_diag.
     """
     bc = torch.as_tensor(condition.bc, dtype=torch.float32)
     T = len(bc)
@@ -148,7 +152,7 @@ def survive_latent(integrator, ae, coords, z0, z1, condition: Condition, dirichl
             if not torch.isfinite(Z[t]).all():
                 last = t
                 break
-        errors = []
+        errors, depth = [], 0.0
         survived = last
         xD_all = torch.as_tensor(condition.dirichlet_positions, dtype=torch.float64)
         for s in range(0, last, chunk):
@@ -158,19 +162,25 @@ def survive_latent(integrator, ae, coords, z0, z1, condition: Condition, dirichl
             bad = ~np.isfinite(x).all(axis=(-1, -2)) | (ext > max_extent * rest_diag)
             x = np.where(np.isfinite(x), x, 0.0)
             err = dirichlet_error(x, dirichlet, condition.dirichlet_positions[s:e], rest_diag)
+            k = int(np.argmax(bad)) if bad.any() else e - s
+            if contact is not None and k:
+                d = contact.distances(torch.as_tensor(x[:k], dtype=torch.float64)).amin(-1).numpy()
+                depth = max(depth, float(np.maximum(-d, 0.0).max()))
             if bad.any():
-                k = int(np.argmax(bad))
                 errors.append(err[:k])
                 survived = s + k
                 break
             errors.append(err)
     err = np.concatenate(errors) if errors else np.zeros(0)
-    return {"frames": T, "survived": int(survived), "dirichlet_error": err,
-            "dirichlet_error_end": float(err[-1]) if len(err) else float("nan")}  # fmt: skip
+    out = {"frames": T, "survived": int(survived), "dirichlet_error": err,
+           "dirichlet_error_end": float(err[-1]) if len(err) else float("nan")}  # fmt: skip
+    if contact is not None:
+        out["max_penetration"] = depth / rest_diag
+    return out
 
 
 def stress_test(integrator, ae, coords, sequence: dict, rest_positions, dirichlet, dt: float, train_frames: int,
-                settings: dict, max_extent: float):  # fmt: skip
+                settings: dict, max_extent: float, contact=None):  # fmt: skip
     """Every stress condition of ``settings`` (a scene's ``rollout.stability``; keys absent take the
     config schema's defaults) on one test sequence.
 
@@ -183,6 +193,8 @@ def stress_test(integrator, ae, coords, sequence: dict, rest_positions, dirichle
     sequence : a test sequence (``positions``, ``dirichlet_positions``, ``bc``).
     rest_positions : (n, 3); dirichlet : (m,) indices; dt : time step [s].
     train_frames : length of the longest training sequence.
+    contact : the scene's contact barrier (its colliders), or None: each result then also holds the
+        deepest entry into one (:func:`survive_latent`).
 
     Yields
     ------
@@ -199,4 +211,4 @@ def stress_test(integrator, ae, coords, sequence: dict, rest_positions, dirichle
     )  # fmt: skip
     for c in conditions:
         yield c, survive_latent(integrator, ae, coords, z[0], z[1], c, dirichlet, bbox_diagonal(rest), float(max_extent),
-                                latent_std=z.std(0), seed=0)  # fmt: skip
+                                latent_std=z.std(0), seed=0, contact=contact)  # fmt: skip

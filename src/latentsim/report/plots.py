@@ -87,6 +87,7 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, colours: dict, annotate=True):
     seeds = pts["seeds"].to_numpy(int) if "seeds" in pts.columns else np.ones(len(pts), dtype=int)
     lo = pts["mean_error_min"].to_numpy(float) if "mean_error_min" in pts.columns else np.full(len(pts), np.nan)
     hi = pts["mean_error_max"].to_numpy(float) if "mean_error_max" in pts.columns else np.full(len(pts), np.nan)
+    pen = np.nan_to_num(pts["max_penetration"].to_numpy(float)) if "max_penetration" in pts.columns else np.zeros(len(pts))
     top = np.concatenate([e[positive], emax[np.isfinite(emax) & (emax > 0)]])
     ceil = top.max() * 3 if len(top) else 1.0
     # exact (zero-error) rows sit in a shaded band at the bottom (a log axis has no 0), wholly inside the
@@ -121,6 +122,9 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, colours: dict, annotate=True):
             label += f" (diverged @ {int(r.diverged_frame)})" if annotate else f"diverged @ {int(r.diverged_frame)}"
         elif e[i] == 0 and annotate:
             label += " (exact)"
+        if pen[i] > 0:  # entered a collider: a red ring, and how deep
+            ax.scatter([t[i]], [y[i]], s=120, marker="o", facecolors="none", edgecolors="tab:red", linewidths=1.2, zorder=2, clip_on=False)
+            label += f" (inside by {100 * pen[i]:.2g}%)" if annotate else f"inside {100 * pen[i]:.2g}%"
         if label:
             at = (np.log10(max(t[i], 1e-300)), np.log10(max(y[i], 1e-300)))
             near = sum(abs(at[0] - p[0]) < 0.5 and abs(at[1] - p[1]) < 0.25 for p in placed)
@@ -163,7 +167,9 @@ def speed_accuracy_chart(pts: pd.DataFrame, path, scene=None, title=None, dpi=10
       seeds, a bar from the least to the largest error of the stable seeds;
     - ``diverged_frame`` (int): first diverged frame, -1 when stable, and
       ``diverged_seeds``: diverged methods are drawn hollow and labelled;
-    - ``on_front`` (bool): circled, and joined by the front's staircase.
+    - ``on_front`` (bool): circled, and joined by the front's staircase;
+    - ``max_penetration`` (optional, scenes with colliders): a method that entered one gets a red ring and
+      the depth in its label.
 
     Parameters
     ----------
@@ -209,6 +215,8 @@ def speed_accuracy_chart(pts: pd.DataFrame, path, scene=None, title=None, dpi=10
         Line2D([0, 0], [0, 1], color="0.4", marker="_", ms=8, lw=1.6, label="bar: least to largest error over the seeds"),
         Line2D([], [], marker="o", ls="", mfc="none", mec="k", ms=11, label="on the Pareto front"),
         Line2D([], [], marker="o", ls="", mfc="none", mec="grey", label="diverged (hollow)"),
+        *([Line2D([], [], marker="o", ls="", mfc="none", mec="tab:red", ms=10, label="enters a collider (% of the diagonal, median over seeds)")]
+          if "max_penetration" in pts.columns and (np.nan_to_num(pts["max_penetration"].to_numpy(float)) > 0).any() else []),
         Line2D([], [], color="k", ls="--", label="Pareto front"),
     ]
     if scene is None:
@@ -241,6 +249,9 @@ def stability_heatmap(df: pd.DataFrame, path, title="stability: frames survived"
     - ``seeds`` and ``seeds_survived`` (int, optional): a row that stands for
       several seeds (``frames_survived`` then the least of them): the colour is
       the fraction of seeds that survived, and the cell reads ``k/n seeds``.
+    - ``max_penetration`` (float, optional; scenes with colliders): the deepest
+      entry into one / bbox diagonal, printed as ``in p%`` under the count, and
+      a cell deeper than 1% of the diagonal framed in orange.
 
     Diverged cells are hatched and their count is printed with a cross;
     method/condition pairs with no row are grey and marked ``n/a``.
@@ -249,8 +260,8 @@ def stability_heatmap(df: pd.DataFrame, path, title="stability: frames survived"
     -------
     dict with ``methods`` (rows, in first-appearance order), ``conditions``
     (columns), ``frames`` (R,C) float (frames survived, NaN where missing),
-    ``colour`` (R,C) float (the values coloured), ``bc_error`` (R,C) float and
-    ``diverged`` (R,C) bool.
+    ``colour`` (R,C) float (the values coloured), ``bc_error`` (R,C) float,
+    ``diverged`` (R,C) bool and ``max_penetration`` (R,C) float (NaN without colliders).
     """
     _require_columns(df, ["method", "condition", "frames_survived"], "stability_heatmap")
     if df.empty:
@@ -268,6 +279,7 @@ def stability_heatmap(df: pd.DataFrame, path, title="stability: frames survived"
     diverged = np.zeros((R, C), dtype=bool)
     by_seed = {"seeds", "seeds_survived"} <= set(df.columns)
     n_seeds, k_seeds = np.full((R, C), np.nan), np.full((R, C), np.nan)
+    pen = np.full((R, C), np.nan)
     for r in df.itertuples(index=False):
         i, j = methods.index(str(r.method)), conditions.index(str(r.condition))
         frames[i, j] = float(r.frames_survived)
@@ -277,6 +289,8 @@ def stability_heatmap(df: pd.DataFrame, path, title="stability: frames survived"
             bc[i, j] = float(r.bc_error)
         if by_seed:
             n_seeds[i, j], k_seeds[i, j] = float(r.seeds), float(r.seeds_survived)
+        if "max_penetration" in df.columns:
+            pen[i, j] = float(r.max_penetration)
         if "diverged" in df.columns:
             diverged[i, j] = bool(r.diverged)
         elif "diverged_frame" in df.columns:
@@ -302,6 +316,10 @@ def stability_heatmap(df: pd.DataFrame, path, title="stability: frames survived"
                 text = f"{int(k_seeds[i, j])}/{int(n_seeds[i, j])} seeds" + (f"\nleast {int(frames[i, j])}" if diverged[i, j] else "")
             if not np.isnan(bc[i, j]):
                 text += f"\nBC {bc[i, j]:.1e}"
+            if not np.isnan(pen[i, j]):
+                text += f"\nin {100 * pen[i, j]:.2g}%"
+                if pen[i, j] > 0.01:
+                    ax.add_patch(plt.Rectangle((j - 0.45, i - 0.45), 0.9, 0.9, fill=False, edgecolor="tab:orange", lw=2.0))
             ax.text(
                 j, i, text, ha="center", va="center", fontsize=8, color="white" if dark else "black",
                 bbox={"boxstyle": "round,pad=0.15", "fc": "red", "alpha": 0.55, "lw": 0} if diverged[i, j] else None,
@@ -314,7 +332,7 @@ def stability_heatmap(df: pd.DataFrame, path, title="stability: frames survived"
         fraction=0.04, pad=0.02,
     )
     save_figure(fig, path, dpi=dpi)
-    return {"methods": methods, "conditions": conditions, "frames": frames, "colour": colour, "bc_error": bc, "diverged": diverged}
+    return {"methods": methods, "conditions": conditions, "frames": frames, "colour": colour, "bc_error": bc, "diverged": diverged, "max_penetration": pen}
 
 
 # --------------------------------------------------------------------------- rollouts over time

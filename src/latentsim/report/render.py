@@ -109,14 +109,71 @@ def _setup_axes(ax, limits, vertical: int, elev, azim):
     ax.set_zticks([])
 
 
-def _draw_panel(ax, motion: Motion, frame: int, limits, vertical, elev, azim, colour, title=True, values=None, cmap=None):
+def _circle(centre, e1, e2, radius, n=24, arc=2 * np.pi) -> np.ndarray:
+    """(n-1, 2, 3) segments of a circle (or an arc of ``arc`` radians from e1) in the plane of e1, e2."""
+    t = np.linspace(0.0, arc, n)
+    p = np.asarray(centre, float) + radius * (np.cos(t)[:, None] * e1 + np.sin(t)[:, None] * e2)
+    return np.stack([p[:-1], p[1:]], axis=1)
+
+
+def _frame_of(axis) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A unit vector along ``axis`` and two unit vectors perpendicular to it and to each other."""
+    u = np.asarray(axis, float) / np.linalg.norm(axis)
+    e1 = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    return u, e1, np.cross(u, e1)
+
+
+def collider_segments(colliders, limits) -> np.ndarray:
+    """(S, 2, 3) line segments of a wireframe of each collider (a scene's ``contact.colliders`` entries:
+    dicts of ``type`` half_space, sphere or capsule and their parameters); a half-space's plane as a grid
+    across the axis ``limits`` (3, 2)."""
+    segs = []
+    span = float(np.max(limits[:, 1] - limits[:, 0]))
+    for c in colliders:
+        kind = c["type"]
+        if kind == "sphere":
+            o, r = np.asarray(c["centre"], float), float(c["radius"])
+            z = np.eye(3)
+            for k in range(6):  # meridians through the poles on the y axis, and parallels
+                a = np.pi * k / 6
+                segs.append(_circle(o, np.cos(a) * z[0] + np.sin(a) * z[2], z[1], r))
+            for h in (-0.7, -0.35, 0.0, 0.35, 0.7):
+                segs.append(_circle(o + h * r * z[1], z[0], z[2], r * np.sqrt(1 - h * h)))
+        elif kind == "capsule":
+            a, b, r = np.asarray(c["a"], float), np.asarray(c["b"], float), float(c["radius"])
+            u, e1, e2 = _frame_of(b - a)
+            for k in range(8):
+                d = r * (np.cos(np.pi * k / 4) * e1 + np.sin(np.pi * k / 4) * e2)
+                segs.append(np.array([[a + d, b + d]]))
+            for end, s in ((a, -1.0), (b, 1.0)):
+                segs.append(_circle(end, e1, e2, r))
+                for k in range(4):  # the end cap's half meridians
+                    w = np.cos(np.pi * k / 4) * e1 + np.sin(np.pi * k / 4) * e2
+                    segs.append(_circle(end, w, s * u, r, n=12, arc=np.pi))
+        elif kind == "half_space":
+            p, (n, e1, e2) = np.asarray(c["point"], float), _frame_of(c["normal"])
+            centre = limits.mean(axis=1)
+            base = centre - np.dot(centre - p, n) * n  # the view's centre projected onto the plane
+            for t in np.linspace(-span, span, 9):
+                segs.append(np.array([[base + t * e1 - span * e2, base + t * e1 + span * e2]]))
+                segs.append(np.array([[base + t * e2 - span * e1, base + t * e2 + span * e1]]))
+        else:
+            raise ValueError(f"collider_segments: unknown collider type {kind!r}")
+    return np.concatenate(segs) if segs else np.zeros((0, 2, 3))
+
+
+def _draw_panel(ax, motion: Motion, frame: int, limits, vertical, elev, azim, colour, title=True, values=None, cmap=None, colliders=()):
     """Draw one motion at one frame on a 3D axis; returns the panel's status.
 
     ``values`` (n,) in [0, 1], optional, colour the elements through ``cmap``
-    (mean over each element's vertices) instead of the flat ``colour``.
+    (mean over each element's vertices) instead of the flat ``colour``; ``colliders`` (a scene's
+    ``contact.colliders``) are drawn as grey wireframes.
     """
     ax.cla()
     _setup_axes(ax, limits, vertical, elev, azim)
+    if len(colliders):
+        ax.add_collection3d(Line3DCollection(collider_segments(colliders, limits), colors="0.55", linewidths=0.4), autolim=False, axlim_clip=True)
     status = motion.status(frame)
     head = f"{motion.label}\nframe {frame}" if title else None
     if status != "ok":
@@ -217,6 +274,7 @@ def render_frames(
     color_by_error=False,
     error_max=None,
     wrap=None,
+    colliders=(),
 ) -> dict:
     """Ground truth against each method, side by side, at chosen frames.
 
@@ -238,6 +296,7 @@ def render_frames(
         ``"row"`` fits each row (frame) to the ground truth at that frame, for
         motions that travel far (the panels of a row still share their axes).
     elev, azim : float, view angles [degrees]; the vertical axis is y (gravity).
+    colliders : a scene's ``contact.colliders`` (dicts), drawn as grey wireframes in every panel.
     color_by_error : bool
         Colour each method's elements by the distance of their vertices to the
         ground truth at the same frame (viridis, one scale for the whole
@@ -290,7 +349,7 @@ def render_frames(
         for j, m in enumerate(motions):
             ax = fig.add_subplot(shape[0], shape[1], place(i, j), projection="3d")
             values = _error_values(per_vertex, i, j, top) if color_by_error else None
-            status[i, j] = _draw_panel(ax, m, fr, limits[i], m.vertical, elev, azim, colours[j], values=values, cmap=_ERROR_CMAP)
+            status[i, j] = _draw_panel(ax, m, fr, limits[i], m.vertical, elev, azim, colours[j], values=values, cmap=_ERROR_CMAP, colliders=colliders)
     fig.suptitle(title or f"{sequence}: ground truth vs methods (red: Dirichlet vertices)", fontsize=10)
     fig.subplots_adjust(
         left=0.01, right=0.99, bottom=(footer + 0.05) / height, top=1 - header / height, wspace=0.02, hspace=0.2 if per_line is None else 0.3
@@ -328,6 +387,7 @@ def render_clip(
     color_by_error=False,
     error_max=None,
     wrap=None,
+    colliders=(),
 ) -> dict:
     """Animated clip of ground truth and methods side by side (GIF, or MP4 with ffmpeg).
 
@@ -346,6 +406,7 @@ def render_clip(
     fps : int, frames per second of the clip.
     color_by_error, error_max : as in :func:`render_frames`; the scale is
         fixed over the whole clip (default: the largest error in any frame).
+    colliders : as in :func:`render_frames`.
 
     Returns
     -------
@@ -387,7 +448,7 @@ def render_clip(
     def update(i, fr):
         for j, (ax, m, c) in enumerate(zip(axes, motions, colours)):
             values = _error_values(per_vertex, i, j, top) if color_by_error else None
-            _draw_panel(ax, m, fr, limits, m.vertical, elev, azim, c, title=False, values=values, cmap=_ERROR_CMAP)
+            _draw_panel(ax, m, fr, limits, m.vertical, elev, azim, c, title=False, values=values, cmap=_ERROR_CMAP, colliders=colliders)
             ax.set_title(m.label, fontsize=8)
         head.set_text(f"{title or sequence}   frame {fr}   t = {fr * motions[0].dt:.2f} s")
 

@@ -66,28 +66,39 @@ def write_table(df: pd.DataFrame, path):
 def stress_over_seeds(stress: pd.DataFrame) -> pd.DataFrame:
     """The stress rows (:func:`stress_table`) as one row per scene, method and condition over the seeds:
     ``frames``, ``frames_survived`` (the least), ``diverged`` (in any seed), ``seeds``, ``seeds_survived``,
-    ``bc_error`` (the largest); what :func:`latentsim.report.plots.stability_heatmap` colours by seed."""
+    ``bc_error`` (the largest) and, with colliders, ``max_penetration`` (the deepest); what
+    :func:`latentsim.report.plots.stability_heatmap` colours by seed."""
     st = stress.assign(seed=_seeds(stress), diverged=stress["diverged"].astype(bool))
+    extra = {"max_penetration": ("max_penetration", "max")} if "max_penetration" in st.columns else {}
     return st.groupby(["scene", "method", "condition"], sort=False).agg(
         frames=("frames", "max"), frames_survived=("frames_survived", "min"), diverged=("diverged", "any"), seeds=("seed", "nunique"),
-        seeds_survived=("diverged", lambda d: int((~d).sum())), bc_error=("bc_error", "max")).reset_index()  # fmt: skip
+        seeds_survived=("diverged", lambda d: int((~d).sum())), bc_error=("bc_error", "max"), **extra).reset_index()  # fmt: skip
 
 
 def stress_table(scene: str, rollouts) -> pd.DataFrame:
     """Stability map rows (method x stress condition) from the rollouts' ``stability`` groups.
 
     Columns: scene, method, seed (-1: no seed changes the method), condition, frames, frames_survived, diverged,
-    bc_error (mean Dirichlet error / bbox diagonal at the last surviving frame).
+    bc_error (mean Dirichlet error / bbox diagonal at the last surviving frame); in a scene with colliders,
+    max_penetration (the deepest entry into one of any surviving frame / bbox diagonal).
     """
-    rows = []
+    rows, contact = [], False
     for path in rollouts:
         with open_artefact(path) as f:
             method, seed = str(f.attrs.get("method", "self_supervised")), int(f.attrs.get("seed", -1))
             for cond, g in f.get("stability", {}).items():
                 frames, survived = int(g.attrs["frames"]), int(g.attrs["survived"])
                 rows.append(dict(scene=scene, method=method, seed=seed, condition=cond, frames=frames, frames_survived=survived,
-                                 diverged=survived < frames, bc_error=float(g.attrs["dirichlet_error_end"])))  # fmt: skip
-    return pd.DataFrame(rows, columns=["scene", "method", "seed", "condition", "frames", "frames_survived", "diverged", "bc_error"])
+                                 diverged=survived < frames, bc_error=float(g.attrs["dirichlet_error_end"]),
+                                 max_penetration=float(g.attrs.get("max_penetration", np.nan))))  # fmt: skip
+                contact = contact or "max_penetration" in g.attrs
+    columns = ["scene", "method", "seed", "condition", "frames", "frames_survived", "diverged", "bc_error"] + (["max_penetration"] if contact else [])
+    return pd.DataFrame(rows, columns=columns)
+
+
+PENETRATION_LIMIT = 0.01
+"""The deepest entry into a collider (over the rest bounding-box diagonal) a method may make and still stand on
+a scene's speed-accuracy front: the contact issue's bound on the learned integrator."""
 
 
 def speed_accuracy_points(df: pd.DataFrame) -> pd.DataFrame:
@@ -98,7 +109,9 @@ def speed_accuracy_points(df: pd.DataFrame) -> pd.DataFrame:
     columns are :func:`over_seeds` of :func:`per_seed` (medians over the seeds, least and largest); the
     full space (``method`` ``full_space``, one "seed") runs at the median over the test sequences of its
     ``full_ms``, at error 0, stable.  ``on_front``: the scene's Pareto front over ``ms_per_frame`` and
-    ``mean_error``, never a method that diverged in any seed.  Sorted by scene, then method.
+    ``mean_error``, never a method that diverged in any seed, nor, in a scene with colliders, one whose
+    median ``max_penetration`` exceeds :data:`PENETRATION_LIMIT` of the diagonal (the full space's is 0).
+    Sorted by scene, then method.
     """
     methods = over_seeds(per_seed(df))
     full = df.groupby(["scene", "sequence"], sort=False)["full_ms"].first().groupby("scene", sort=False).median()
@@ -108,10 +121,15 @@ def speed_accuracy_points(df: pd.DataFrame) -> pd.DataFrame:
                               mean_error=0.0, mean_error_min=0.0, mean_error_max=0.0, max_error=0.0, **ones, sequences=int(n_seq[scene]),
                               test_survived=f"{n_seq[scene]}/{n_seq[scene]}", diverged_frame=-1, diverged_seeds=0)
                          for scene, ms in full.items()])  # fmt: skip
+    if "max_penetration" in methods.columns:  # the full space never enters a collider (simulate refuses a frame that does)
+        inside = methods.groupby("scene")["max_penetration"].apply(lambda v: bool(v.notna().any()))
+        full["max_penetration"] = [0.0 if inside.get(sc, False) else np.nan for sc in full["scene"]]
     pts = pd.concat([full, methods], ignore_index=True).sort_values(["scene", "method"], kind="stable").reset_index(drop=True)
     pts["on_front"] = False
     for _, g in pts.groupby("scene", sort=False):
         eligible = np.where(g["diverged_frame"].to_numpy() >= 0, np.nan, g["mean_error"].to_numpy(float))
+        if "max_penetration" in g.columns:
+            eligible = np.where(g["max_penetration"].to_numpy(float) > PENETRATION_LIMIT, np.nan, eligible)
         pts.loc[g.index, "on_front"] = pareto_front(g["ms_per_frame"].to_numpy(float), eligible)
     return pts
 
@@ -305,13 +323,15 @@ def per_seed(df: pd.DataFrame) -> pd.DataFrame:
     the sequences), ``full_ms`` and ``latent_ms`` (means), ``speedup`` (their ratio), ``mean_error`` (mean;
     infinite where a sequence diverged), ``max_error`` (max), ``kinetic_ratio`` (mean; NaN where a sequence
     diverged), ``sequences``, ``survived`` (test sequences stable to the end), ``diverged_frame`` (the
-    earliest frame a sequence diverged at, -1 where none did).
+    earliest frame a sequence diverged at, -1 where none did); in a scene with colliders (column
+    ``max_penetration``), ``max_penetration`` (the deepest entry of any sequence / the diagonal).
     """
     g = df.assign(seed=_seeds(df)).groupby(["scene", "method", "seed"], sort=False)
+    extra = {"max_penetration": ("max_penetration", "max")} if "max_penetration" in df.columns else {}
     out = g.agg(ms_per_frame=("latent_ms", "median"), full_ms=("full_ms", "mean"), latent_ms=("latent_ms", "mean"),
                 mean_error=("mean_error", lambda v: v.mean(skipna=False)), max_error=("max_error", lambda v: v.max(skipna=False)),
                 kinetic_ratio=("kinetic_ratio", lambda v: v.mean(skipna=False)), sequences=("sequence", "nunique"),
-                survived=("diverged_frame", lambda v: int((v < 0).sum())), diverged_frame=("diverged_frame", _earliest)).reset_index()  # fmt: skip
+                survived=("diverged_frame", lambda v: int((v < 0).sum())), diverged_frame=("diverged_frame", _earliest), **extra).reset_index()  # fmt: skip
     out["speedup"] = out["full_ms"] / out["latent_ms"]
     return out
 
@@ -330,14 +350,15 @@ def over_seeds(ps: pd.DataFrame) -> pd.DataFrame:
     ``<name>_min`` and ``<name>_max`` the least and largest (the mean error's over the stable seeds alone,
     NaN where none was); ``max_error``: the largest; ``test_survived``: ``k/N`` test rollouts (sequences
     times seeds) stable to the end; ``sequences`` (per seed); ``diverged_frame``: the earliest divergence
-    of any seed (-1: none), ``diverged_seeds``: the seeds in which a test sequence diverged.
+    of any seed (-1: none), ``diverged_seeds``: the seeds in which a test sequence diverged; with
+    colliders, ``max_penetration`` (median over seeds, ``_min``, ``_max``).
     """
     rows = []
     for (scene, method), g in ps.groupby(["scene", "method"], sort=False):
         stable = g["survived"] == g["sequences"]
         row = dict(scene=scene, method=method, seeds=len(g), seeds_stable=int(stable.sum()), sequences=int(g["sequences"].max()),
                    diverged_frame=_earliest(g["diverged_frame"]), diverged_seeds=int((~stable).sum()))  # fmt: skip
-        for c in ("ms_per_frame", "speedup", "mean_error", "kinetic_ratio"):
+        for c in ("ms_per_frame", "speedup", "mean_error", "kinetic_ratio") + (("max_penetration",) if "max_penetration" in g.columns else ()):
             v = g.loc[stable, c] if c == "mean_error" else g[c]
             row[c] = g[c].median()
             row[f"{c}_min"], row[f"{c}_max"] = (v.min(), v.max()) if len(v) else (np.nan, np.nan)
@@ -373,6 +394,8 @@ def glance_table(df: pd.DataFrame, stress: pd.DataFrame | None = None) -> pd.Dat
             surv[k] = f"{int((~st['diverged'].astype(bool)).sum())}/{len(st)}"
     cols = ["seeds", "ms_per_frame", "ms_per_frame_min", "ms_per_frame_max", "speedup", "speedup_min", "speedup_max", "mean_error",
             "mean_error_min", "mean_error_max", "max_error", "kinetic_ratio", "kinetic_ratio_min", "kinetic_ratio_max"]  # fmt: skip
+    if "max_penetration" in pts.columns:  # a config with colliders: how deep each method entered them
+        cols += ["max_penetration", "max_penetration_min", "max_penetration_max"]
     out = pts.assign(seeds=pts["seeds"].astype(int), seeds_stable=[f"{int(k)}/{int(n)}" for k, n in zip(pts["seeds_stable"], pts["seeds"])],
                      stress_survived=[surv.get(k, "") for k in zip(pts["scene"], pts["method"])], on_front=pts["on_front"].astype(bool))  # fmt: skip
     order = ["scene", "method", *cols, "seeds_stable", "test_survived", "stress_survived", "on_front"]
@@ -385,13 +408,16 @@ def glance_grid(glance: pd.DataFrame, methods=GLANCE_METHODS) -> pd.DataFrame:
     alone (the long table's ``on_front`` also counts the scene's variants), ``-`` a method the scene did not
     run.  A method that diverged on a test sequence (infinite error) reads ``diverged k/N (ms per frame)``
     (k of its N test rollouts survived) or, over several seeds, ``diverged in j/n seeds``, and is never on
-    the front."""
+    the front; nor is one that entered a collider deeper than :data:`PENETRATION_LIMIT` of the diagonal
+    (median over seeds), whose cell ends ``inside p%``."""
     present = [m for m in methods if m in set(glance["method"])]
     rows = []
     for scene, g in glance.groupby("scene", sort=True):
         by = g[g["method"].isin(present)].set_index("method")
         stable = [s.split("/")[0] == s.split("/")[1] for s in by["test_survived"]]
-        front = pareto_front(by["ms_per_frame"], np.where(stable, by["mean_error"], np.nan))
+        pen = by["max_penetration"].to_numpy(float) if "max_penetration" in by.columns else np.full(len(by), np.nan)
+        ok = np.asarray(stable) & ~(pen > PENETRATION_LIMIT)
+        front = pareto_front(by["ms_per_frame"], np.where(ok, by["mean_error"], np.nan))
         row = {"scene": scene}
         for m in present:
             if m not in by.index:
@@ -408,7 +434,7 @@ def glance_grid(glance: pd.DataFrame, methods=GLANCE_METHODS) -> pd.DataFrame:
                 error = f"diverged in {n - k}/{n} seeds"
             else:
                 error = f"diverged {r['test_survived']}"
-            row[m] = f"{error} ({r['ms_per_frame']:.3g})" + (" *" if front[i] else "")
+            row[m] = f"{error} ({r['ms_per_frame']:.3g})" + (f" inside {100 * pen[i]:.2g}%" if pen[i] > 0 else "") + (" *" if front[i] else "")
         rows.append(row)
     return pd.DataFrame(rows, columns=["scene", *present])
 
@@ -454,8 +480,8 @@ def claims(glance: pd.DataFrame, divergence: pd.DataFrame) -> str:
     :func:`divergence_table` (for the README and the report: generated, never typed).
 
     One line per scene and learned method (several seeds): its mean error (median, least and largest over
-    the stable seeds), how many seeds survived the test sequences, and the stress conditions it failed in
-    how many seeds."""
+    the stable seeds), how many seeds survived the test sequences, the stress conditions it failed in how
+    many seeds, and in a scene with colliders how deep it entered them."""
     out = []
     dv = divergence.set_index(["scene", "method"])
     for r in glance.itertuples(index=False):
@@ -477,7 +503,14 @@ def claims(glance: pd.DataFrame, divergence: pd.DataFrame) -> str:
             stress_text = "; fails " + ", ".join(failed)
         else:
             stress_text = f"; survives every stress condition in {n} of {n} seeds"
-        out.append(f"- {r.scene}, {r.method}: {error}; {test}{stress_text}.")
+        pen = float(getattr(r, "max_penetration", float("nan")))
+        contact = ""
+        if pen == 0 and r.max_penetration_max == 0:
+            contact = f"; never enters a collider in {n} of {n} seeds"
+        elif pen == pen:
+            contact = (f"; enters a collider by {100 * pen:.2g}% of the diagonal (median of {n} seeds; "
+                       f"{100 * r.max_penetration_min:.2g}% to {100 * r.max_penetration_max:.2g}%)")  # fmt: skip
+        out.append(f"- {r.scene}, {r.method}: {error}; {test}{stress_text}{contact}.")
     return "\n".join(out) + ("\n" if out else "")
 
 

@@ -17,6 +17,8 @@
 
 from __future__ import annotations
 
+import json
+
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +46,7 @@ from latentsim.report.tables import (
     table2,
     write_table,
 )
-from latentsim.scene import contact_from_artefact
+from latentsim.scene import CONTACT_ATTR, contact_from_artefact
 
 __all__ = ["evaluate_scene", "render_scene", "summarise", "write_scene_evaluation"]
 
@@ -242,7 +244,8 @@ def summarise(tables: list, csv_path, md_path, fig_path, table1_path=None, stabi
 def render_scene(scene: str, trajectories, rollouts, frames_png, clip_gif, paraview_dir, clip_frames: int = 60) -> dict:
     """Pictures of one scene's first test sequence: every method beside the ground truth.
 
-    - ``frames_png``: four frames (start, a third, two thirds, end), one column per method;
+    - ``frames_png``: four frames (start, a third (with colliders: the ground truth's nearest approach
+      to one), two thirds, end), one column per method, the colliders drawn;
     - ``clip_gif``: the ground truth, the self-supervised integrator and the method that
       diverged first (if any, the most telling failure) as an animation;
     - ``paraview_dir``: an XDMF series per method with displacement and per-vertex error.
@@ -263,9 +266,13 @@ def render_scene(scene: str, trajectories, rollouts, frames_png, clip_gif, parav
     with open_artefact(rollouts[0]) as f:
         sequence = next(iter(require(f, "sequences")))
     with open_artefact(trajectories) as f:
-        T = require(f["sequences"], sequence)["positions"].shape[0]
-    picks = [0, T // 3, (2 * T) // 3, T - 1]
-    render_frames(trajectories, methods, sequence, picks, frames_png, title=f"{scene} / {sequence}: ground truth and every method")
+        g = require(f["sequences"], sequence)
+        T = g["positions"].shape[0]
+        colliders = json.loads(str(f.attrs[CONTACT_ATTR]))["colliders"] if CONTACT_ATTR in f.attrs else []
+        # with colliders, the second picture is the ground truth's nearest approach to one
+        second = int(np.argmin(g["min_contact_distance"][()])) if colliders and "min_contact_distance" in g else T // 3
+    picks = sorted({0, second, (2 * T) // 3, T - 1})
+    render_frames(trajectories, methods, sequence, picks, frames_png, title=f"{scene} / {sequence}: ground truth and every method", colliders=colliders)
     clip = {m: methods[m] for m in ("self_supervised",) if m in methods}
     failed = sorted((d, m) for m, d in diverged.items() if d >= 0)
     if failed:
@@ -274,7 +281,7 @@ def render_scene(scene: str, trajectories, rollouts, frames_png, clip_gif, parav
         first = next(iter(methods))
         clip[first] = methods[first]
     stride = max(1, T // clip_frames)
-    render_clip(trajectories, clip, sequence, clip_gif, stride=stride, max_frames=clip_frames, title=f"{scene} / {sequence}")
+    render_clip(trajectories, clip, sequence, clip_gif, stride=stride, max_frames=clip_frames, title=f"{scene} / {sequence}", colliders=colliders)
     out = Path(paraview_dir)
     out.mkdir(parents=True, exist_ok=True)
     for m, p in methods.items():

@@ -23,7 +23,7 @@ from latentsim.latent.serialization import load_autoencoder, load_extra, load_in
 from latentsim.latent.stability import stress_test
 from latentsim.latent.timing import EagerStepper, time_full_space, time_jvps, time_steppers
 from latentsim.runtime import compiled as runtime_compiled
-from latentsim.scene import potential_from_artefact
+from latentsim.scene import contact_from_artefact, potential_from_artefact
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +68,8 @@ def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out, m
 
 def _read_scene(trajectories, coordinates: str | None, cfg: dict) -> dict:
     """What the rollout needs of a scene's ``trajectories.h5``: ``coords``, the ``tests``
-    sequences, ``train_frames`` (the longest training sequence), the ``potential``, the scene's
+    sequences, ``train_frames`` (the longest training sequence), the ``potential`` and its
+    ``contact`` barrier (None without colliders), the scene's
     ``arrays`` and ``attrs`` (copied to the output) and ``full``, the full-space timing."""
     with open_artefact(trajectories) as f:
         tests = load_sequences(f, "test")
@@ -77,6 +78,7 @@ def _read_scene(trajectories, coordinates: str | None, cfg: dict) -> dict:
             "tests": tests,
             "train_frames": max(len(s["positions"]) for s in load_sequences(f, "train").values()),
             "potential": potential_from_artefact(f),
+            "contact": contact_from_artefact(f),
             "arrays": {k: f[k][()] for k in SCENE_ARRAYS if k in f},
             "attrs": {k: f.attrs[k] for k in SCENE_ATTRS},
             "full": time_full_space(f, next(iter(tests)), int(cfg["full_frames_timed"])) if tests else {},
@@ -128,11 +130,12 @@ def _stress(grp, integ, ae, scene: dict, cfg: dict) -> None:
     grp.attrs["sequence"] = name
     arrays = scene["arrays"]
     conditions = stress_test(integ, ae, scene["coords"], s, arrays["rest_positions"], arrays["dirichlet"], float(scene["attrs"]["dt"]),
-                             scene["train_frames"], cfg["stability"], float(cfg["max_extent"]))  # fmt: skip
+                             scene["train_frames"], cfg["stability"], float(cfg["max_extent"]), contact=scene["contact"])  # fmt: skip
     for c, r in conditions:
         h = grp.create_group(c.name)
-        for k in ("frames", "survived", "dirichlet_error_end"):
-            h.attrs[k] = r[k]
+        for k in ("frames", "survived", "dirichlet_error_end", "max_penetration"):
+            if k in r:
+                h.attrs[k] = r[k]
         h.attrs["perturbation"] = c.perturbation
         write_dataset(h, "dirichlet_error", r["dirichlet_error"])
         log.info("stability %s: survived %d of %d frames, Dirichlet error at the end %.3e", c.name, r["survived"], r["frames"], r["dirichlet_error_end"])
