@@ -111,7 +111,8 @@ def test_a_method_that_enters_a_collider_is_off_the_front_and_ringed(tmp_path):
     """With colliders (column max_penetration): the deepest entry of each seed, its median over seeds; a
     method whose median exceeds 1% of the diagonal is off the front however fast and accurate, the full
     space stands at 0, and the chart still draws."""
-    from latentsim.report.tables import PENETRATION_LIMIT, speed_accuracy_points
+    from latentsim.report.metrics import PENETRATION_LIMIT
+    from latentsim.report.tables import speed_accuracy_points
 
     base = {"scene": "s", "sequence": "q", "frames": 100, "full_ms": 10.0, "kinetic_ratio": 1.0, "diverged_frame": -1}
     rows = [{**base, "method": "fast", "seed": k, "latent_ms": 0.01, "mean_error": 0.01, "max_error": 0.05, "max_penetration": pen}

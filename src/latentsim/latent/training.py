@@ -119,14 +119,16 @@ def fit_integrator(
     Returns
     -------
     integrator : trained, eval mode, on ``device``.
-    history : ``loss`` (per-epoch mean weighted training loss), ``latent_mse``
+    history : ``loss`` (per-epoch mean weighted training loss; with own rollouts, of the data's
+        triplets alone), ``latent_mse``
         (per-epoch mean |z_pred - z_t|^2 / r on the clean half of each
         batch), ``start_epoch`` (0, or the epoch resumed from), ``n_triplets``,
         ``loss_start``, ``loss_scale`` (:class:`~latentsim.latent.base.LossHealth`),
         ``latent_radius`` R and ``latent_distance`` (per epoch, the largest |z_pred - c|, see
         below), ``train_seconds`` (this call's time from its start, setup included, plus that
         of the run a checkpoint resumed, up to that checkpoint; time spent after the last
-        checkpoint of a killed run is lost with its epochs).
+        checkpoint of a killed run is lost with its epochs); with own rollouts, ``own_triplets``
+        (the rolled-out triplets of each rollout).
 
     Raises
     ------

@@ -119,6 +119,12 @@ def rollout_metrics(pred, truth, dirichlet_truth, dirichlet, masses, dt: float, 
     return metrics, curves
 
 
+PENETRATION_LIMIT = 0.01
+"""The deepest entry into a collider (over the rest bounding-box diagonal) a method may make and still stand on
+a scene's speed-accuracy front (:func:`latentsim.report.tables.speed_accuracy_points`); the stability map
+frames a stress condition deeper than it."""
+
+
 def pareto_front(times, errors) -> np.ndarray:
     """Mask of the non-dominated points (lower-left front: fast and accurate).
 

@@ -35,7 +35,7 @@ from matplotlib.lines import Line2D
 from matplotlib.ticker import NullFormatter
 
 from latentsim.io import ArtefactError, atomic_path, open_artefact, require
-from latentsim.report.metrics import kinetic_energy
+from latentsim.report.metrics import PENETRATION_LIMIT, kinetic_energy
 
 __all__ = [
     "empty_figure",
@@ -251,7 +251,7 @@ def stability_heatmap(df: pd.DataFrame, path, title="stability: frames survived"
       the fraction of seeds that survived, and the cell reads ``k/n seeds``.
     - ``max_penetration`` (float, optional; scenes with colliders): the deepest
       entry into one / bbox diagonal, printed as ``in p%`` under the count, and
-      a cell deeper than 1% of the diagonal framed in orange.
+      a cell deeper than ``PENETRATION_LIMIT`` (1% of the diagonal) framed in orange.
 
     Diverged cells are hatched and their count is printed with a cross;
     method/condition pairs with no row are grey and marked ``n/a``.
@@ -318,7 +318,7 @@ def stability_heatmap(df: pd.DataFrame, path, title="stability: frames survived"
                 text += f"\nBC {bc[i, j]:.1e}"
             if not np.isnan(pen[i, j]):
                 text += f"\nin {100 * pen[i, j]:.2g}%"
-                if pen[i, j] > 0.01:
+                if pen[i, j] > PENETRATION_LIMIT:
                     ax.add_patch(plt.Rectangle((j - 0.45, i - 0.45), 0.9, 0.9, fill=False, edgecolor="tab:orange", lw=2.0))
             ax.text(
                 j, i, text, ha="center", va="center", fontsize=8, color="white" if dark else "black",

@@ -29,7 +29,7 @@ import numpy as np
 import pandas as pd
 
 from latentsim.io import atomic_path, open_artefact, require
-from latentsim.report.metrics import pareto_front
+from latentsim.report.metrics import PENETRATION_LIMIT, pareto_front
 from latentsim.report.paper import li2025_table1, li2025_table2
 
 __all__ = [
@@ -94,11 +94,6 @@ def stress_table(scene: str, rollouts) -> pd.DataFrame:
                 contact = contact or "max_penetration" in g.attrs
     columns = ["scene", "method", "seed", "condition", "frames", "frames_survived", "diverged", "bc_error"] + (["max_penetration"] if contact else [])
     return pd.DataFrame(rows, columns=columns)
-
-
-PENETRATION_LIMIT = 0.01
-"""The deepest entry into a collider (over the rest bounding-box diagonal) a method may make and still stand on
-a scene's speed-accuracy front: the contact issue's bound on the learned integrator."""
 
 
 def speed_accuracy_points(df: pd.DataFrame) -> pd.DataFrame:
