@@ -457,11 +457,13 @@ def test_own_rollouts_chain_the_integrators_own_predictions_sequence_by_sequence
     """Each training sequence rolled out by the integrator from its first two ground-truth latents: a
     row's inputs are the two latents before it in that rollout, its boundary conditions and targets
     the frame's own; a rollout that leaves the range stops there."""
+    from latentsim.latent.data import triplet_rows
     from latentsim.latent.training import own_rollout_triplets
 
     ch, seqs, coords, ae = chain_setup
     integ, tr = _untrained(chain_setup)
-    lengths = [len(s["positions"]) - 2 for s in seqs]
+    lengths = triplet_rows(seqs)
+    assert sum(lengths) == tr["z"].shape[0]  # build_triplets' rows, sequence by sequence
     centre = tr["z"].mean(0)
     own = own_rollout_triplets(integ, tr, lengths, centre, math.inf)
     assert own["z"].shape == tr["z"].shape

@@ -55,6 +55,12 @@ def load_split(paths, split=None) -> dict:
     return out
 
 
+def triplet_rows(sequences: Sequence[dict]) -> list[int]:
+    """How many rows :func:`build_triplets` makes of each sequence that gives any (T - 2 of a
+    sequence of T >= 3 frames), in its order."""
+    return [len(s["positions"]) - 2 for s in sequences if len(s["positions"]) >= 3]
+
+
 def build_triplets(ae: Autoencoder, coords: RelativeCoordinates, sequences: Sequence[dict]) -> dict:
     """Ground-truth training triplets of all sequences.
 

@@ -29,7 +29,7 @@ from latentsim.latent.autoencoder import Autoencoder
 from latentsim.latent.base import LossHealth, TrainingDiverged, minibatches, potential_on, resolve_device
 from latentsim.latent.conditioning import CONDITION_DIM, Conditioning, with_condition
 from latentsim.latent.coordinates import RelativeCoordinates
-from latentsim.latent.data import build_triplets
+from latentsim.latent.data import build_triplets, triplet_rows
 from latentsim.latent.integrator import LatentIntegrator
 from latentsim.latent.loss import integrator_loss
 from latentsim.latent.serialization import atomic_save, load_checked
@@ -159,7 +159,7 @@ def fit_integrator(
     device = resolve_device(device)
     ae_f, pot, data = _training_setup(ae, coords, potential, sequences, device, compiled, cfg)
     integ = _new_integrator(data, cfg, seed, device, conditioning)
-    rows_per_sequence = [len(q["positions"]) - 2 for q in sequences if len(q["positions"]) >= 3]  # build_triplets' order
+    rows_per_sequence = triplet_rows(sequences)
     opt = torch.optim.Adam(integ.parameters(), lr=float(cfg["lr"]))
     gen = torch.Generator().manual_seed(seed)
     health = LossHealth(cfg["divergence_factor"], cfg["max_loss"], key="integrator")
