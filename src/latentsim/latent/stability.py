@@ -62,8 +62,6 @@ def stress_programs(bc: np.ndarray, train_frames: int, factors, long_factor: int
     ----------
     bc : (T, k) the test sequence's p_t (p_0 = 0: scenes start at rest).
     train_frames : length of the longest training sequence.
-    contact : the scene's contact barrier (its colliders), or None: each result then also holds the
-        deepest entry into one (:func:`survive_latent`).
     factors : speed factors.
     long_factor : the long rollout lasts ``long_factor * train_frames`` frames.
 
