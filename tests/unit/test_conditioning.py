@@ -199,3 +199,61 @@ def test_the_conditioned_integrator_learns_the_step_at_each_condition():
         right = error(true, true)
         wrong = min(error(told, true) for told in corners if told != true)
         assert right < 0.25 and right < 0.5 * wrong, (true, right, wrong)
+
+
+def test_conditioned_own_rollouts_run_and_score_each_sequence_at_one_drawn_condition(tmp_path):
+    """A conditioned training's own rollouts: each sequence rolled out by the network told one condition
+    drawn from the box, its Dirichlet targets the program's at that time step, and its rows' loss taken
+    at that condition (the ground truth's rows draw theirs); the rows travel with the checkpoint."""
+    from latentsim.latent.data import triplet_rows
+    from latentsim.latent.training import _at_sampled_conditions, _with_own_rows, own_rollout_triplets_at_conditions
+
+    ch = Chain()
+    seqs = [_six(ch.simulate(a, f)) for a, f in [(0.5, 1.0), (-0.8, 0.7), (1.0, 1.5)]]
+    coords = RelativeCoordinates(ch.n, [0], "roots", root_of=[0] * ch.n)
+    ae = Autoencoder(coords.dim, coords.dim, [16], pca_dim=coords.dim)
+    ae.init_pca(torch.cat([coords.encode(s["positions"], s["dirichlet_positions"]) for s in seqs]))
+    ae.eval()
+    box = Conditioning((1 / 60, 1 / 15), (0.5, 2.0), ch.pot.dt, 1.0)
+    cfg = dict(widths=[16], epochs=1, lr=1e-3, batch_size=32)
+    integ, _ = fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=0, conditioning=box)
+    tr = build_triplets(ae, coords, seqs)
+    lengths = triplet_rows(seqs)
+    own = own_rollout_triplets_at_conditions(integ, tr, lengths, tr["z"].mean(0), math.inf, box, torch.Generator().manual_seed(1))
+    assert own["z"].shape == tr["z"].shape and own["condition"].shape == (sum(lengths), 2)
+    start, drawn = 0, []
+    for seq, n in zip(seqs, lengths):
+        rows = slice(start, start + n)
+        h, E = (float(v) for v in own["condition"][start])
+        assert torch.equal(own["condition"][rows], own["condition"][start].expand(n, 2)) and box.contains(h, E)
+        drawn.append(h)
+        with torch.no_grad():
+            at = AtCondition(integ, box.normalise(h, E))
+            pred = at(own["z_prev"][rows], own["z_prev2"][rows], own["p"][rows], own["p_prev"][rows], own["p_prev2"][rows])
+            other = AtCondition(integ, box.normalise(1 / 15 if h < 1 / 30 else 1 / 60, E))(
+                own["z_prev"][rows], own["z_prev2"][rows], own["p"][rows], own["p_prev"][rows], own["p_prev2"][rows]
+            )
+        # the rows chain the network's predictions at that condition, not at another
+        assert torch.allclose(own["z_prev"][rows][1:], pred[:-1], atol=1e-6)
+        assert not torch.allclose(own["z_prev"][rows][1:], other[:-1], atol=1e-4)
+        # the Dirichlet targets: the program stepped at h from the sequence's first frame
+        xD = dirichlet_trajectory(np.asarray(seq["dirichlet_positions"][0]), np.asarray(seq["bc"]), h)
+        assert np.allclose(own["xD"][rows].numpy(), xD[2 : n + 2]) and np.allclose(own["xD_prev2"][rows].numpy(), xD[:n])
+        start += n
+    assert len(set(drawn)) == len(seqs)
+    # in a minibatch the rolled-out rows keep their condition, the ground truth's draw theirs in the box
+    both = _with_own_rows(tr, own)
+    batch = _at_sampled_conditions(both, box, torch.Generator().manual_seed(2))
+    m = tr["z"].shape[0]
+    assert torch.equal(batch["dt"][m:], own["condition"][:, 0]) and "condition" not in batch
+    assert not torch.equal(batch["dt"][:m], tr["z"].new_full((m,), float(ch.pot.dt), dtype=torch.float64))
+    assert ((batch["dt"][:m] >= 1 / 60 - 1e-12) & (batch["dt"][:m] <= 1 / 15 + 1e-12)).all()
+    # a training on them, resumed between two rollouts, equals the uninterrupted one to the bit
+    cfg = dict(widths=[16], epochs=5, lr=1e-3, batch_size=40, own_rollouts_every=2, own_rollouts_start=1)
+    full, hf = fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=3, conditioning=box)
+    assert len(hf["own_triplets"]) == 2
+    path = tmp_path / "ckpt.pt"
+    fit_integrator(ae, coords, ch.pot, seqs, {**cfg, "epochs": 2}, seed=3, conditioning=box, checkpoint_path=path, checkpoint_every=1)
+    resumed, hr = fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=3, conditioning=box, checkpoint_path=path, checkpoint_every=1)
+    assert hr["start_epoch"] == 2 and hr["loss"] == hf["loss"]
+    assert all(torch.equal(full.state_dict()[k], v) for k, v in resumed.state_dict().items())

@@ -27,7 +27,7 @@ from tqdm import tqdm
 from latentsim.config import with_defaults
 from latentsim.latent.autoencoder import Autoencoder
 from latentsim.latent.base import LossHealth, TrainingDiverged, minibatches, potential_on, resolve_device
-from latentsim.latent.conditioning import CONDITION_DIM, Conditioning, with_condition
+from latentsim.latent.conditioning import CONDITION_DIM, AtCondition, Conditioning, with_condition
 from latentsim.latent.coordinates import RelativeCoordinates
 from latentsim.latent.data import build_triplets, triplet_rows
 from latentsim.latent.integrator import LatentIntegrator
@@ -107,14 +107,16 @@ def fit_integrator(
         at every time step.  A box of more than one point appends the normalised condition to each
         boundary-condition vector (``bc_dim`` + 2); a point trains an unconditioned integrator there.
 
-    Own rollouts (``own_rollouts_every`` k > 0, self-supervised mode, not conditioned; not in the
-    paper): from epoch ``own_rollouts_start`` on, every k epochs the integrator rolls out each
-    training sequence in the latent space from its first two ground-truth latents, under its
-    boundary conditions, until it ends or a latent leaves twice the training latents' radius; the
-    triplets whose inputs are those rolled-out latents (with the frames' boundary conditions and
-    Dirichlet targets) join the ground-truth ones until the next rollout.  The loss needs no
-    ground truth at the predicted frame, so the integrator learns from the states it drifts into,
-    in contact among them, and not only from those of the training data.
+    Own rollouts (``own_rollouts_every`` k > 0, self-supervised mode; not in the paper): from epoch
+    ``own_rollouts_start`` on, every k epochs the integrator rolls out each training sequence in
+    the latent space from its first two ground-truth latents, under its boundary conditions, until
+    it ends or a latent leaves twice the training latents' radius; the triplets whose inputs are
+    those rolled-out latents (with the frames' boundary conditions and Dirichlet targets) join the
+    ground-truth ones until the next rollout.  The loss needs no ground truth at the predicted
+    frame, so the integrator learns from the states it drifts into, in contact among them, and not
+    only from those of the training data.  A conditioned training rolls each sequence out at a
+    condition drawn from its box (:func:`own_rollout_triplets_at_conditions`), and those rows' loss
+    is taken at that condition: states of conditions no training sequence was simulated at.
 
     Returns
     -------
@@ -154,8 +156,8 @@ def fit_integrator(
             "at the conditions of the training sequences"
         )
     own_every = int(cfg["own_rollouts_every"])
-    if own_every > 0 and (conditioning is not None or cfg["mode"] != "self_supervised"):
-        raise ValueError(f"{label or 'integrator'}: own_rollouts_every needs a self-supervised, unconditioned training")
+    if own_every > 0 and cfg["mode"] != "self_supervised":
+        raise ValueError(f"{label or 'integrator'}: own_rollouts_every needs a self-supervised training")
     device = resolve_device(device)
     ae_f, pot, data = _training_setup(ae, coords, potential, sequences, device, compiled, cfg)
     integ = _new_integrator(data, cfg, seed, device, conditioning)
@@ -176,9 +178,12 @@ def fit_integrator(
         for epoch in bar:
             _set_learning_rate(opt, cfg, epoch, epochs)
             if own_every > 0 and epoch >= int(cfg["own_rollouts_start"]) and (epoch - int(cfg["own_rollouts_start"])) % own_every == 0:
-                own = own_rollout_triplets(integ, data, rows_per_sequence, centre, 2.0 * radius)
+                if conditioning is None:
+                    own = own_rollout_triplets(integ, data, rows_per_sequence, centre, 2.0 * radius)
+                else:
+                    own = own_rollout_triplets_at_conditions(integ, data, rows_per_sequence, centre, 2.0 * radius, conditioning, gen)
                 history.setdefault("own_triplets", []).append(int(own["z"].shape[0]))
-            train_data = data if own is None else {key: torch.cat([val, own[key]]) for key, val in data.items()}
+            train_data = data if own is None else _with_own_rows(data, own)
             n_ground_truth = None if own is None else data["z"].shape[0]
             loss, mse, distance = _integrator_epoch(integ, opt, ae_f, coords, pot, train_data, cfg, gen, epoch, health, centre, conditioning, n_ground_truth)
             health.check(epoch, loss)
@@ -269,6 +274,44 @@ def own_rollout_triplets(integ: LatentIntegrator, data: dict, rows_per_sequence:
     return own
 
 
+@torch.no_grad()
+def own_rollout_triplets_at_conditions(
+    integ: LatentIntegrator, data: dict, rows_per_sequence: Sequence[int], centre: torch.Tensor, max_distance: float, conditioning: Conditioning, gen: torch.Generator,
+) -> dict:  # fmt: skip
+    """:func:`own_rollout_triplets` of a conditioned integrator: each training sequence rolled out at
+    one condition (h, E) drawn from ``conditioning``'s box by ``gen``, its boundary-condition program
+    (the frames' p_t) stepped at h from the sequence's first Dirichlet positions.  Each row holds
+    the Dirichlet targets of its frames at h and its ``condition`` (h, E) (float64, (N, 2)), at
+    which its loss is to be taken (:func:`_at_sampled_conditions`)."""
+    ends = np.cumsum(rows_per_sequence).tolist()
+    h, E = conditioning.sample(len(ends), gen)
+    parts = []
+    for a, b, hi, Ei in zip([0] + ends[:-1], ends, h.tolist(), E.tolist()):
+        sub = {key: val[a:b] for key, val in data.items()}
+        at = AtCondition(integ, conditioning.normalise(hi, Ei)).to(data["z"].device) if conditioning.conditioned else integ
+        own = own_rollout_triplets(at, sub, [b - a], centre, max_distance)
+        n = own["z"].shape[0]
+        p = torch.cat([sub["p_prev2"][:1], sub["p_prev"][:1], sub["p"][: n]])  # frames 0 .. n + 1
+        xD = [sub["xD_prev2"][0]]
+        for t in range(1, n + 2):
+            xD.append(dirichlet_step(xD[-1][None], p[t : t + 1], hi)[0])
+        xD = torch.stack(xD)
+        own["xD_prev2"], own["xD_prev"], own["xD"] = xD[:n], xD[1 : n + 1], xD[2:]
+        own["condition"] = torch.tensor([hi, Ei], dtype=torch.float64, device=xD.device).expand(n, 2).clone()
+        parts.append(own)
+    return {key: torch.cat([q[key] for q in parts]) for key in parts[0]}
+
+
+def _with_own_rows(data: dict, own: dict) -> dict:
+    """The ground-truth triplets and the rolled-out ones in one set; where the rolled-out rows carry
+    a ``condition``, the ground-truth rows get NaN there (a condition drawn per sample)."""
+    out = {key: torch.cat([val, own[key]]) for key, val in data.items()}
+    if "condition" in own:
+        nan = torch.full((data["z"].shape[0], 2), float("nan"), dtype=own["condition"].dtype, device=own["condition"].device)
+        out["condition"] = torch.cat([nan, own["condition"]])
+    return out
+
+
 def _new_integrator(data: dict, cfg: dict, seed: int, device: torch.device, conditioning: Conditioning | None = None) -> LatentIntegrator:
     """An untrained integrator of settings ``cfg`` (weights seeded by ``seed``), normalised by the
     statistics of the triplets ``data`` (a conditioned one's conditions by those of one draw from
@@ -289,13 +332,19 @@ def _new_integrator(data: dict, cfg: dict, seed: int, device: torch.device, cond
 
 
 def _at_sampled_conditions(batch: dict, conditioning: Conditioning, gen: torch.Generator) -> dict:
-    """The minibatch with a condition drawn for each sample (:class:`Conditioning`): its time step
+    """The minibatch with a condition drawn for each sample (:class:`Conditioning`; a row with a
+    finite ``condition`` (h, E), rolled out at it, keeps it): its time step
     ``dt``, elastic factor ``stiffness`` and weight ``scale`` (h / h_0)^2, the frame-t Dirichlet
     targets that the boundary-condition program gives at its time step, and (for a conditioned
     integrator) the normalised condition appended to each boundary-condition vector."""
     h, E = conditioning.sample(batch["z"].shape[0], gen)
-    dev = batch["xD"].device
     out = dict(batch)
+    fixed = out.pop("condition", None)
+    if fixed is not None:  # a rolled-out row keeps the condition it was rolled out at
+        keep = torch.isfinite(fixed[:, 0]).cpu()
+        h = torch.where(keep, fixed[:, 0].cpu().to(h.dtype), h)
+        E = torch.where(keep, fixed[:, 1].cpu().to(E.dtype), E)
+    dev = batch["xD"].device
     out["dt"] = h.to(dev)
     out["stiffness"] = (E / conditioning.base_modulus).to(dev)
     out["scale"] = ((h / conditioning.base_time_step) ** 2).to(dev)
