@@ -160,6 +160,33 @@ def test_speed_accuracy_labels_of_nearby_divergences_do_not_overlap():
     assert offsets["diverged @ 40"] == (5, 4)
 
 
+def test_speed_accuracy_labels_stay_inside_their_axes():
+    """A long label of a point near the right edge is written to its left, inside the axes (not over
+    the legend); one near the left edge, and a failed row's label (under the top edge), stay right."""
+    import matplotlib.pyplot as plt
+
+    pts = pd.DataFrame(
+        [
+            {"scene": "s", "method": "a_method_with_a_long_name", "ms_per_frame": 9.0, "mean_error": 0.01, "diverged_frame": -1,
+             "on_front": False, "max_penetration": 0.123},
+            {"scene": "s", "method": "fast", "ms_per_frame": 0.01, "mean_error": 0.02, "diverged_frame": -1, "on_front": False},
+            {"scene": "s", "method": "failed", "ms_per_frame": 0.02, "mean_error": np.inf, "diverged_frame": 7, "on_front": False},
+        ]
+    )
+    fig, ax = plt.subplots(figsize=(4, 3))
+    plots._draw_speed_accuracy(ax, pts, {m: "k" for m in pts["method"]}, annotate=True)
+    plots._labels_inside(fig, [ax])
+    renderer = fig.canvas.get_renderer()
+    box = ax.get_window_extent(renderer)
+    labels = {t.get_text().split(" ")[0]: t for t in ax.texts if hasattr(t, "xyann")}
+    long = labels["a_method_with_a_long_name"]
+    assert long.get_horizontalalignment() == "right" and long.xyann[0] < 0
+    assert long.get_window_extent(renderer).x1 <= box.x1
+    assert labels["fast"].get_horizontalalignment() == "left"
+    assert labels["failed"].get_horizontalalignment() == "left" and labels["failed"].xyann[1] < 0
+    plt.close(fig)
+
+
 def test_speed_accuracy_chart_bad_input_names_the_problem(tmp_path):
     df = _speed_df()
     with pytest.raises(KeyError, match="ms_per_frame"):

@@ -97,6 +97,9 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, colours: dict, annotate=True):
     if (e == 0).any():
         ax.axhspan(bottom, floor, color="0.9", zorder=0)
         ax.text(0.01, np.sqrt(bottom * floor), "error 0 (exact)", transform=ax.get_yaxis_transform(), fontsize=7, va="center", color="0.35")
+    # whole decades of ms
+    ms = t[np.isfinite(t) & (t > 0)]
+    xlim = (10.0 ** np.floor(np.log10(ms.min())), 10.0 ** np.ceil(np.log10(ms.max()) + 1e-9)) if len(ms) else None
     placed = []  # (log10 ms, log10 error) of the labels so far: a label near one moves up a line
     for i, r in enumerate(pts.itertuples(index=False)):
         c = colours[str(r.method)]
@@ -117,19 +120,21 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, colours: dict, annotate=True):
         label = str(r.method) if annotate else ""
         if diverged[i] and seeds[i] > 1:
             n_div = int(pts["diverged_seeds"].iloc[i])
-            label += f" (diverged in {n_div}/{seeds[i]} seeds)" if annotate else f"diverged {n_div}/{seeds[i]}"
+            label += f" (diverged in {n_div}/{seeds[i]} seeds)" if annotate else f"diverged {n_div}/{seeds[i]}; "
         elif diverged[i]:
-            label += f" (diverged @ {int(r.diverged_frame)})" if annotate else f"diverged @ {int(r.diverged_frame)}"
+            label += f" (diverged @ {int(r.diverged_frame)})" if annotate else f"diverged @ {int(r.diverged_frame)}; "
         elif e[i] == 0 and annotate:
             label += " (exact)"
         if pen[i] > 0:  # entered a collider: a red ring, and how deep
             ax.scatter([t[i]], [y[i]], s=120, marker="o", facecolors="none", edgecolors="tab:red", linewidths=1.2, zorder=2, clip_on=False)
             label += f" (inside by {100 * pen[i]:.2g}%)" if annotate else f"inside {100 * pen[i]:.2g}%"
+        label = label.removesuffix("; ")
         if label:
             at = (np.log10(max(t[i], 1e-300)), np.log10(max(y[i], 1e-300)))
             near = sum(abs(at[0] - p[0]) < 0.5 and abs(at[1] - p[1]) < 0.25 for p in placed)
             placed.append(at)
-            ax.annotate(label, (t[i], y[i]), xytext=(5, 4 + 9 * near), textcoords="offset points", fontsize=7)
+            dy = -11 - 9 * near if y[i] >= ceil else 4 + 9 * near  # a failed row's label under the top edge
+            ax.annotate(label, (t[i], y[i]), xytext=(5, dy), textcoords="offset points", fontsize=7)
     front = pts["on_front"].to_numpy()
     if front.any():
         order = np.argsort(t[front], kind="stable")
@@ -141,9 +146,8 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, colours: dict, annotate=True):
     ax.set_ylim(bottom, ceil)
     # whole decades: at least two labelled major ticks, and no labels on the minor ones (on a range
     # under two decades matplotlib labels its minor ticks, which overlap)
-    ms = t[np.isfinite(t) & (t > 0)]
-    if len(ms):
-        ax.set_xlim(10.0 ** np.floor(np.log10(ms.min())), 10.0 ** np.ceil(np.log10(ms.max()) + 1e-9))
+    if xlim is not None:
+        ax.set_xlim(*xlim)
     ax.xaxis.set_minor_formatter(NullFormatter())
     ax.grid(True, which="both", alpha=0.25)
 
@@ -226,7 +230,23 @@ def speed_accuracy_chart(pts: pd.DataFrame, path, scene=None, title=None, dpi=10
     else:
         axes[0, 0].legend(handles=handles, fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False)
         fig.tight_layout()
+    _labels_inside(fig, axes.flat[: len(scenes)])
     save_figure(fig, path, dpi=dpi)
+
+
+def _labels_inside(fig, axes) -> None:
+    """Write a point's label to its left where, to its right, it would run past the axes (into the next
+    panel or the legend) and there is more room on the left."""
+    renderer = fig.canvas.get_renderer()
+    for ax in axes:
+        box = ax.get_window_extent(renderer)
+        for text in ax.texts:
+            if not hasattr(text, "xyann"):
+                continue
+            extent = text.get_window_extent(renderer)
+            if extent.x1 > box.x1 and extent.x0 - box.x0 > box.x1 - extent.x0:
+                text.set_horizontalalignment("right")
+                text.xyann = (-abs(text.xyann[0]), text.xyann[1])
 
 
 # --------------------------------------------------------------------------- stability map
