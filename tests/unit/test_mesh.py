@@ -432,6 +432,23 @@ def test_rod_bundle():
         M.rod_bundle(2, 1, 1.0, 0.1)
 
 
+def test_rod_bundle_ring():
+    """Roots evenly on a circle about the origin, rods hanging straight down from each."""
+    n_rods, m = 8, 5
+    v, _, roots = M.rod_bundle(n_rods, m, 0.2, 0.01, origin=(0.1, 0.3, -0.2), ring_radius=0.05)
+    root_xyz = v[roots]
+    np.testing.assert_allclose(root_xyz[:, 1], 0.3)
+    np.testing.assert_allclose(np.hypot(root_xyz[:, 0] - 0.1, root_xyz[:, 2] + 0.2), 0.05)
+    np.testing.assert_allclose(root_xyz.mean(0), [0.1, 0.3, -0.2], atol=1e-15)
+    # neighbours one chord apart, the same all round
+    chord = np.linalg.norm(np.roll(root_xyz, -1, 0) - root_xyz, axis=1)
+    np.testing.assert_allclose(chord, 2 * 0.05 * np.sin(np.pi / n_rods))
+    for r in range(n_rods):
+        np.testing.assert_allclose(v[r * m:(r + 1) * m, 1], 0.3 - np.linspace(0, 0.2, m))
+    with pytest.raises(MeshError, match="ring_radius"):
+        M.rod_bundle(2, 3, 1.0, 0.1, ring_radius=-1.0)
+
+
 # ---------------------------------------------------------------------------
 # normalise
 # ---------------------------------------------------------------------------

@@ -106,7 +106,8 @@ def _generated(model: str, cfg: dict) -> dict[str, np.ndarray]:
         if model != "rods":
             raise MeshError(f"mesh.generator 'rod_bundle' needs model 'rods', not '{model}'")
         out["rest_positions"], _, _ = rod_bundle(cfg["n_rods"], cfg["vertices_per_rod"],
-                                                 cfg["length"], cfg["spacing"], cfg["direction"])
+                                                 cfg["length"], cfg["spacing"], cfg["direction"],
+                                                 ring_radius=cfg.get("ring_radius"))
         out["edges"], out["triples"], out["root_of"] = rod_stencils(cfg["n_rods"],
                                                                     cfg["vertices_per_rod"])
     elif gen == "cloth_grid":

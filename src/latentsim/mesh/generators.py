@@ -1,7 +1,7 @@
 """Procedural meshes: rod bundles (hair), triangulated cloth grids, tetrahedralised boxes (beams).
 
 * :func:`rod_bundle` and :func:`rod_stencils`: straight rods hanging from a grid
-  of roots, with their edge (stretching) and vertex-triple (bending) stencils,
+  or a ring of roots, with their edge (stretching) and vertex-triple (bending) stencils,
   the discrete elastic rods of Li et al. 2025's hair scenes;
 * :func:`cloth_grid`: a rectangle of ``nx x ny`` cells, two triangles each
   (the Neural Modes square is 10 x 10);
@@ -57,13 +57,17 @@ def rod_bundle(
     spacing: float,
     direction: Sequence[float] = (0.0, -1.0, 0.0),
     origin: Sequence[float] = (0.0, 0.0, 0.0),
+    ring_radius: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Straight rods hanging from a grid of roots in the xz plane.
+    """Straight rods hanging from a grid or a ring of roots in the xz plane.
 
     Roots sit on a ``ceil(sqrt(n_rods))``-column grid with the given spacing,
     filled row by row (x fastest, then z), the full grid centred on ``origin``
-    in the plane ``y = origin[1]``.  Each rod runs ``length`` from its root
-    along ``direction`` with uniformly spaced vertices.
+    in the plane ``y = origin[1]``; or, with ``ring_radius``, evenly on the
+    circle of that radius about ``origin`` in that plane (root ``r`` at the
+    angle ``2 pi r / n_rods`` from +x towards +z; ``spacing`` is then unused):
+    hair around a head.  Each rod runs ``length`` from its root along
+    ``direction`` with uniformly spaced vertices.
 
     Parameters
     ----------
@@ -73,7 +77,8 @@ def rod_bundle(
         ``r*m`` is its root.
     length, spacing : float > 0
     direction : (3,) array-like, normalised internally.
-    origin : (3,) array-like, centre of the root grid.
+    origin : (3,) array-like, centre of the root grid or ring.
+    ring_radius : float > 0 or None (a grid).
 
     Returns
     -------
@@ -91,8 +96,13 @@ def rod_bundle(
     rows = math.ceil(n / cols)
     r = np.arange(n)
     roots_xyz = np.zeros((n, 3))
-    roots_xyz[:, 0] = (r % cols - (cols - 1) / 2.0) * spacing
-    roots_xyz[:, 2] = (r // cols - (rows - 1) / 2.0) * spacing
+    if ring_radius is None:
+        roots_xyz[:, 0] = (r % cols - (cols - 1) / 2.0) * spacing
+        roots_xyz[:, 2] = (r // cols - (rows - 1) / 2.0) * spacing
+    else:
+        rho = finite_float(ring_radius, "ring_radius", positive=True)
+        angle = 2.0 * np.pi * r / n
+        roots_xyz[:, 0], roots_xyz[:, 2] = rho * np.cos(angle), rho * np.sin(angle)
     roots_xyz += vector3(origin, "rod origin")
     s = np.linspace(0.0, length, m)
     vertices = (roots_xyz[:, None, :] + s[None, :, None] * d[None, None, :]).reshape(-1, 3)
