@@ -187,6 +187,30 @@ def test_speed_accuracy_labels_stay_inside_their_axes():
     plt.close(fig)
 
 
+def test_speed_accuracy_labels_of_crowded_points_do_not_overlap():
+    """Four methods with long names a little over half a decade of ms apart, at nearly the same error
+    (drawn as they come, 3 pairs of labels overlap and 2 labels leave the axes): after placement no two
+    labels overlap, and each stays inside the axes."""
+    import matplotlib.pyplot as plt
+
+    pts = pd.DataFrame(
+        [{"scene": "s", "method": f"a_method_with_a_long_name_{k}", "ms_per_frame": 0.01 * 4.0**k, "mean_error": 0.01 * 1.1**k,
+          "diverged_frame": -1, "on_front": False} for k in range(4)]  # fmt: skip
+    )
+    fig, ax = plt.subplots(figsize=(4, 3))
+    plots._draw_speed_accuracy(ax, pts, {m: "k" for m in pts["method"]}, annotate=True)
+    plots._labels_inside(fig, [ax])
+    renderer = fig.canvas.get_renderer()
+    box = ax.get_window_extent(renderer)
+    extents = [t.get_window_extent(renderer) for t in ax.texts if hasattr(t, "xyann")]
+    plt.close(fig)
+    assert len(extents) == 4
+    for i, a in enumerate(extents):
+        assert box.x0 <= a.x0 and a.x1 <= box.x1 and box.y0 <= a.y0 and a.y1 <= box.y1
+        for b in extents[:i]:
+            assert min(a.x1, b.x1) <= max(a.x0, b.x0) or min(a.y1, b.y1) <= max(a.y0, b.y0), (a, b)
+
+
 def test_speed_accuracy_chart_bad_input_names_the_problem(tmp_path):
     df = _speed_df()
     with pytest.raises(KeyError, match="ms_per_frame"):

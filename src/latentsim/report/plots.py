@@ -235,18 +235,34 @@ def speed_accuracy_chart(pts: pd.DataFrame, path, scene=None, title=None, dpi=10
 
 
 def _labels_inside(fig, axes) -> None:
-    """Write a point's label to its left where, to its right, it would run past the axes (into the next
-    panel or the legend) and there is more room on the left."""
+    """Place each point's label, after layout, where it stays inside its axes (not over the legend or the
+    next panel) and clear of the labels placed before it: of the positions right or left of its point, a
+    line or more above or below, the first that fits, else the one that overlaps least."""
     renderer = fig.canvas.get_renderer()
     for ax in axes:
         box = ax.get_window_extent(renderer)
+        placed = []
         for text in ax.texts:
             if not hasattr(text, "xyann"):
                 continue
-            extent = text.get_window_extent(renderer)
-            if extent.x1 > box.x1 and extent.x0 - box.x0 > box.x1 - extent.x0:
-                text.set_horizontalalignment("right")
-                text.xyann = (-abs(text.xyann[0]), text.xyann[1])
+            dy0 = text.xyann[1]
+            candidates = [(dx, dy0 + sign * step) for step in (0, 9, 18, 27) for sign in ((1,) if step == 0 else (1, -1))
+                          for dx in (5, -5)]  # fmt: skip
+            best, best_cost = None, None
+            for dx, dy in candidates:
+                text.xyann = (dx, dy)
+                text.set_horizontalalignment("left" if dx > 0 else "right")
+                e = text.get_window_extent(renderer)
+                outside = max(0.0, e.x1 - box.x1) + max(0.0, box.x0 - e.x0) + max(0.0, e.y1 - box.y1) + max(0.0, box.y0 - e.y0)
+                overlap = sum(max(0.0, min(e.x1, p.x1) - max(e.x0, p.x0)) * max(0.0, min(e.y1, p.y1) - max(e.y0, p.y0)) for p in placed)
+                cost = outside * e.height + overlap
+                if best_cost is None or cost < best_cost:
+                    best, best_cost = (dx, dy), cost
+                if cost == 0:
+                    break
+            text.xyann = best
+            text.set_horizontalalignment("left" if best[0] > 0 else "right")
+            placed.append(text.get_window_extent(renderer))
 
 
 # --------------------------------------------------------------------------- stability map
