@@ -175,7 +175,7 @@ def test_speed_accuracy_labels_stay_inside_their_axes():
     )
     fig, ax = plt.subplots(figsize=(4, 3))
     plots._draw_speed_accuracy(ax, pts, {m: "k" for m in pts["method"]}, annotate=True)
-    plots._labels_inside(fig, [ax])
+    plots._place_labels(fig, [ax])
     renderer = fig.canvas.get_renderer()
     box = ax.get_window_extent(renderer)
     labels = {t.get_text().split(" ")[0]: t for t in ax.texts if hasattr(t, "xyann")}
@@ -199,7 +199,7 @@ def test_speed_accuracy_labels_of_crowded_points_do_not_overlap():
     )
     fig, ax = plt.subplots(figsize=(4, 3))
     plots._draw_speed_accuracy(ax, pts, {m: "k" for m in pts["method"]}, annotate=True)
-    plots._labels_inside(fig, [ax])
+    plots._place_labels(fig, [ax])
     renderer = fig.canvas.get_renderer()
     box = ax.get_window_extent(renderer)
     extents = [t.get_window_extent(renderer) for t in ax.texts if hasattr(t, "xyann")]

@@ -97,9 +97,6 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, colours: dict, annotate=True):
     if (e == 0).any():
         ax.axhspan(bottom, floor, color="0.9", zorder=0)
         ax.text(0.01, np.sqrt(bottom * floor), "error 0 (exact)", transform=ax.get_yaxis_transform(), fontsize=7, va="center", color="0.35")
-    # whole decades of ms
-    ms = t[np.isfinite(t) & (t > 0)]
-    xlim = (10.0 ** np.floor(np.log10(ms.min())), 10.0 ** np.ceil(np.log10(ms.max()) + 1e-9)) if len(ms) else None
     placed = []  # (log10 ms, log10 error) of the labels so far: a label near one moves up a line
     for i, r in enumerate(pts.itertuples(index=False)):
         c = colours[str(r.method)]
@@ -146,8 +143,9 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, colours: dict, annotate=True):
     ax.set_ylim(bottom, ceil)
     # whole decades: at least two labelled major ticks, and no labels on the minor ones (on a range
     # under two decades matplotlib labels its minor ticks, which overlap)
-    if xlim is not None:
-        ax.set_xlim(*xlim)
+    ms = t[np.isfinite(t) & (t > 0)]
+    if len(ms):
+        ax.set_xlim(10.0 ** np.floor(np.log10(ms.min())), 10.0 ** np.ceil(np.log10(ms.max()) + 1e-9))
     ax.xaxis.set_minor_formatter(NullFormatter())
     ax.grid(True, which="both", alpha=0.25)
 
@@ -230,11 +228,11 @@ def speed_accuracy_chart(pts: pd.DataFrame, path, scene=None, title=None, dpi=10
     else:
         axes[0, 0].legend(handles=handles, fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False)
         fig.tight_layout()
-    _labels_inside(fig, axes.flat[: len(scenes)])
+    _place_labels(fig, axes.flat[: len(scenes)])
     save_figure(fig, path, dpi=dpi)
 
 
-def _labels_inside(fig, axes) -> None:
+def _place_labels(fig, axes) -> None:
     """Place each point's label, after layout, where it stays inside its axes (not over the legend or the
     next panel) and clear of the labels placed before it: of the positions right or left of its point, a
     line or more above or below, the first that fits, else the one that overlaps least."""
