@@ -273,6 +273,7 @@ def _check_sequences(config: dict) -> None:
                         "one name holds one sequence in the trajectories file: give each sequence its own name"
                     )
                 stored[n] = what
+            _check_free_body(q, scene, f"{key}.{i}")
         splits = {q.get("split", "train") for q in scene.get("sequences", [])}
         if any(q.get("train_frames") for q in scene.get("sequences", [])):
             splits.add("train")
@@ -283,6 +284,22 @@ def _check_sequences(config: dict) -> None:
                     f"its sequences: {[(q['name'], q.get('split', 'train')) for q in scene.get('sequences', [])]}"
                     + ("; a test sequence with train_frames also trains on its first frames" if split == "train" else "")
                 )
+
+
+def _check_free_body(q: dict, scene: dict, key: str) -> None:
+    """A free body (``dirichlet: {type: free}``) has no prescribed set for a segment to move: its sequences
+    start it with ``initial_velocity`` / ``initial_angular_velocity`` instead, which only a free body takes."""
+    free = scene.get("dirichlet", {}).get("type") == "free"
+    initial = [k for k in ("initial_velocity", "initial_angular_velocity") if k in q]
+    if initial and not free:
+        raise ConfigError(f"config key '{key}.{initial[0]}': only a free body (dirichlet: {{type: free}}) starts with a "
+                          "velocity; a prescribed set moves by its sequence's segments")
+    if free:
+        for j, seg in enumerate(q.get("segments", [])):
+            for k in ("velocity", "angular_velocity"):
+                if any(float(c) != 0.0 for c in seg.get(k, ())):
+                    raise ConfigError(f"config key '{key}.segments.{j}.{k}': a free body (dirichlet: {{type: free}}) has no "
+                                      f"prescribed set to move; start it with the sequence's initial_{k} instead")
 
 
 def _train_frames(scene: dict) -> list[int]:

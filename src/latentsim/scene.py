@@ -64,9 +64,33 @@ def bc_parameters(sequence: dict, frames: int) -> np.ndarray:
     return p
 
 
+def initial_velocity(sequence: dict) -> np.ndarray | None:
+    """A free body's rigid velocity at frame 0, [v, w] (6,), from a sequence's ``initial_velocity`` and
+    ``initial_angular_velocity``; None when it sets neither (the scene starts at rest)."""
+    keys = ("initial_velocity", "initial_angular_velocity")
+    if not any(k in sequence for k in keys):
+        return None
+    return np.concatenate([np.asarray(sequence.get(k, [0.0, 0.0, 0.0]), dtype=float) for k in keys])
+
+
+def previous_positions(x0: np.ndarray, masses: np.ndarray, velocity, dt: float) -> np.ndarray:
+    """x_{-1}, the state one time step before frame 0 (n, 3): x_0 itself at rest (``velocity`` None), else
+    x_0 - dt (v + w x (x_0 - c)) with c the centre of mass, so that frame 1's inertia starts the body with
+    the rigid velocity [v, w]."""
+    x0 = np.asarray(x0, dtype=float)
+    if velocity is None:
+        return x0.copy()
+    m = np.asarray(masses, dtype=float)
+    c = (m[:, None] * x0).sum(0) / m.sum()
+    v = velocity[:3] + np.cross(velocity[3:], x0 - c)
+    return x0 - dt * v
+
+
 def dirichlet_trajectory(rest_D: np.ndarray, p: np.ndarray, dt: float) -> np.ndarray:
     """Prescribed positions (T, m, 3) of the Dirichlet vertices from p (T, 6)."""
     rest_D = np.asarray(rest_D, dtype=float)
+    if len(rest_D) == 0:  # a free body: nothing prescribed
+        return np.zeros((len(p), 0, 3))
     c0 = rest_D.mean(axis=0)
     local = rest_D - c0
     c = c0.copy()

@@ -178,3 +178,20 @@ def test_partial_settings_take_the_schema_defaults_nested_blocks_key_by_key():
         with_defaults("integrator", {"checkpoint_every": 1}, "fit_integrator")
     with pytest.raises(ConfigError, match=r"stress_test: unknown setting\(s\) \['stability.speed'\]"):
         with_defaults("rollout", {"stability": {"speed": [2.0]}}, "stress_test")
+
+
+def test_a_free_body_starts_with_a_velocity_and_only_a_free_body_does(tiny):
+    """dirichlet type free: a sequence's segments have no prescribed set to move (named, with the keys that
+    start the body instead); a pinned scene's sequence cannot take a free body's initial velocity."""
+    free = copy.deepcopy(tiny)
+    free["scenes"]["tiny_cloth"]["dirichlet"] = {"type": "free"}
+    with pytest.raises(ConfigError, match=r"scenes\.tiny_cloth\.sequences\.0\.segments\.0\.velocity.*free body.*initial_velocity"):
+        validate_config(free)
+    for seg in free["scenes"]["tiny_cloth"]["sequences"][0]["segments"]:
+        seg["velocity"] = [0, 0, 0]
+    free["scenes"]["tiny_cloth"]["sequences"][0]["initial_angular_velocity"] = [0.0, 0.0, 1.0]
+    seq = validate_config(free)["scenes"]["tiny_cloth"]["sequences"][0]
+    assert seq["initial_angular_velocity"] == [0.0, 0.0, 1.0] and "initial_velocity" not in seq  # no default: at rest
+    tiny["scenes"]["tiny_cloth"]["sequences"][0]["initial_velocity"] = [0.0, 1.0, 0.0]
+    with pytest.raises(ConfigError, match=r"scenes\.tiny_cloth\.sequences\.0\.initial_velocity.*only a free body"):
+        validate_config(tiny)

@@ -647,6 +647,14 @@ def test_scene_mesh_beam():
         M.build_mesh("tets", {"generator": "rod_bundle"}, sources={})
 
 
+def test_a_free_body_has_no_dirichlet_vertex_and_only_the_free_rule_selects_none():
+    cfg = {"generator": "beam_tets", "nx": 2, "ny": 1, "nz": 1, "length": 1.0, "width": 0.5, "height": 0.5}
+    arrays, _ = M.scene_mesh("block", "tets", cfg, {"type": "free"}, sources={})
+    assert arrays["dirichlet"].shape == (0,) and arrays["dirichlet"].dtype == np.int64
+    with pytest.raises(MeshError, match="selects no vertex"):  # an empty selection is a mistake, not a free body
+        M.scene_mesh("block", "tets", cfg, {"type": "indices", "indices": []}, sources={})
+
+
 # ---------------------------------------------------------------------------
 # a user's own mesh file (mesh.file a path, optional mesh.sha256)
 # ---------------------------------------------------------------------------

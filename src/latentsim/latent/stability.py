@@ -29,7 +29,7 @@ import torch
 
 from latentsim.config import with_defaults
 from latentsim.latent.autoencoder import decode_latents, encode_positions
-from latentsim.report.metrics import bbox_diagonal
+from latentsim.report.metrics import bbox_diagonal, dirichlet_error
 from latentsim.scene import dirichlet_trajectory
 
 
@@ -103,15 +103,6 @@ def stress_conditions(bc, rest_dirichlet, dt: float, train_frames: int, factors,
         xD = dirichlet_trajectory(rest_dirichlet, p, dt)
         out.append(Condition(name, p, xD, perturbation if name == "perturbed_start" else 0.0))
     return out
-
-
-def dirichlet_error(positions: np.ndarray, dirichlet: np.ndarray, targets: np.ndarray, diag: float) -> np.ndarray:
-    """Mean distance of the Dirichlet vertices from their targets / diag, per frame.
-
-    positions : (T, n, 3); dirichlet : (m,) indices; targets : (T, m, 3) -> (T,).
-    """
-    d = np.linalg.norm(positions[:, dirichlet] - targets, axis=-1)
-    return d.mean(-1) / diag
 
 
 def survive_latent(integrator, ae, coords, z0, z1, condition: Condition, dirichlet, rest_diag: float,

@@ -168,7 +168,7 @@ def scene_mesh(scene: str, model: str, mesh_cfg: dict, dirichlet_rule: dict,
                          min_dihedral_deg=gate if gate > 0 else None)
     arrays["dirichlet"] = select_dirichlet(arrays["rest_positions"], dirichlet_rule,
                                            arrays.get("root_of"))
-    if len(arrays["dirichlet"]) == 0:
+    if len(arrays["dirichlet"]) == 0 and dirichlet_rule["type"] != "free":
         raise MeshError(f"scene '{scene}': the Dirichlet rule {dirichlet_rule} selects no vertex")
     if model == "tets":
         arrays["surface"] = surface_of(arrays["tets"])

@@ -152,7 +152,7 @@ def select_dirichlet(rest_positions: np.ndarray, rule: Mapping[str, Any],
                      root_of: np.ndarray | None = None) -> np.ndarray:
     """Indices (k,) int64 of a scene's Dirichlet vertices.
 
-    Rule ``{"type": "roots"}`` selects each rod's root and, with ``clamp``
+    Rule ``{"type": "free"}`` selects none (a free body).  Rule ``{"type": "roots"}`` selects each rod's root and, with ``clamp``
     (the default), also the next vertex, so the root edge's direction is held:
     a clamped rod (hair in its follicle) rather than a pinned pendulum.  Other
     rules go to :func:`select_vertices` with only their own keys (the config
@@ -164,6 +164,8 @@ def select_dirichlet(rest_positions: np.ndarray, rule: Mapping[str, Any],
     rule : mapping, a scene's ``dirichlet`` config.
     root_of : (n,) int, the root vertex of each vertex (rod scenes only).
     """
+    if rule["type"] == "free":
+        return np.zeros(0, dtype=np.int64)
     if rule["type"] == "roots":
         if root_of is None:
             raise MeshError("dirichlet rule 'roots' needs a rod scene")

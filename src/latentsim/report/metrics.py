@@ -72,6 +72,18 @@ def vertex_errors(pred: np.ndarray, truth: np.ndarray, diag: float):
     return d.mean(axis=-1), d.max(axis=-1)
 
 
+def dirichlet_error(positions: np.ndarray, dirichlet: np.ndarray, targets: np.ndarray, diag: float) -> np.ndarray:
+    """Mean distance of the Dirichlet vertices from their targets / diag, per frame; NaN for a free body
+    (no Dirichlet vertex).
+
+    positions : (T, n, 3); dirichlet : (m,) indices; targets : (T, m, 3) -> (T,).
+    """
+    if len(dirichlet) == 0:
+        return np.full(len(positions), np.nan)
+    d = np.linalg.norm(positions[:, dirichlet] - targets, axis=-1)
+    return d.mean(-1) / diag
+
+
 def rollout_metrics(pred, truth, dirichlet_truth, dirichlet, masses, dt: float, diag: float, diverged_frame: int):
     """The metrics of one rollout of a test sequence against the ground truth (see the module docstring).
 
@@ -98,7 +110,7 @@ def rollout_metrics(pred, truth, dirichlet_truth, dirichlet, masses, dt: float, 
         raise ValueError(f"rollout_metrics: diverged_frame {div} is outside -1 (stable) .. {T - 1} (a frame of the {T})")
     ok = slice(0, T if div < 0 else div)
     mean_e, max_e = vertex_errors(pred[ok], truth[ok], diag)
-    bc_e = np.linalg.norm(pred[ok][:, dirichlet] - dirichlet_truth[ok], axis=-1).mean(-1) / diag
+    bc_e = dirichlet_error(pred[ok], dirichlet, dirichlet_truth[ok], diag)
     ke_t, ke_p = kinetic_energy(truth[ok], masses, dt), kinetic_energy(pred[ok], masses, dt)
     # the end of the sequence (last 10% of frames; Li et al. Fig. 10's steady state): error and
     # residual motion (RMS vertex displacement per frame / diag; 0 at rest)

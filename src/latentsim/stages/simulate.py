@@ -8,7 +8,9 @@ per sequence ``/sequences/<name>`` with ``positions (T,n,3)``,
 ``gradient_norm (T,)``, ``frame_ms (T,)`` and attribute ``split``; tet scenes add
 ``min_volume_ratio (T,)`` (the smallest det F = V / V0 over the tets) and
 ``inverted_tets (T,)`` (how many have det F <= 0) at the end of each frame.
-Frame 0 is the initial state (at rest); frame 1 is solved with x_{-1} = x_0.
+Frame 0 is the initial state (the rest state); frame 1 is solved with x_{-1} = x_0 (at rest) or, for a free
+body's sequence with an initial velocity, the rigid motion's x_{-1} (:func:`latentsim.scene.previous_positions`;
+the group's attribute ``initial_velocity`` = [v, w] records it).
 """
 
 from __future__ import annotations
@@ -27,7 +29,8 @@ from latentsim.io import atomic_h5, atomic_path, open_artefact, write_dataset
 from latentsim.mesh.geometry import tet_volumes
 from latentsim.report.paraview import single_block_xdmf
 from latentsim.stages.mesh import cells_for
-from latentsim.scene import CONTACT_ATTR, MATERIAL_MODEL_ATTR, bc_parameters, build_potential, dirichlet_trajectory
+from latentsim.scene import (CONTACT_ATTR, MATERIAL_MODEL_ATTR, bc_parameters, build_potential, dirichlet_trajectory,
+                             initial_velocity, previous_positions)
 from latentsim.solve.implicit_euler import ImplicitEuler, NewtonFailed, NewtonSettings, StepInfo
 from latentsim.utils import progress_bar, working_directory
 
@@ -76,7 +79,8 @@ def simulate_sequence(solver: ImplicitEuler, rest, seq: dict, dt: float, label: 
     gnorm = np.full(T, np.nan)
     ms = np.zeros(T)
     pos[0] = rest
-    x_prev2 = x_prev = rest.copy()
+    x_prev = rest.copy()
+    x_prev2 = previous_positions(rest, solver.masses, initial_velocity(seq), dt)
     timings = dict.fromkeys(StepInfo().timings, 0.0)
     for t in progress_bar(range(1, T), enabled=progress, desc=label, unit="frame"):
         t0 = time.perf_counter()
@@ -155,17 +159,20 @@ def simulate_scene(scene: str, mesh_h5, cfg: dict, out_h5, paraview_dir=None, pr
                 write_dataset(f, k, arrays[k])
         grp = f.create_group("sequences", track_order=True)
         for name, (seq, data) in results.items():
-            _write_sequence(grp, name, data, seq.get("split", "train"))
+            v0 = initial_velocity(seq)
+            _write_sequence(grp, name, data, seq.get("split", "train"), v0)
             if seq.get("train_frames"):
                 n = int(seq["train_frames"])
-                _write_sequence(grp, f"{name}_train", {k: v[:n] for k, v in data.items()}, "train")
+                _write_sequence(grp, f"{name}_train", {k: v[:n] for k, v in data.items()}, "train", v0)
     if paraview_dir is not None:
         write_paraview(paraview_dir, model, arrays, {k: v[1]["positions"] for k, v in results.items()}, cfg["dt"])
 
 
-def _write_sequence(grp, name, data, split):
+def _write_sequence(grp, name, data, split, initial_velocity=None):
     g = grp.create_group(name)
     g.attrs["split"] = split
+    if initial_velocity is not None:
+        g.attrs["initial_velocity"] = initial_velocity
     for k, v in data.items():
         write_dataset(g, k, v)
 
