@@ -5,6 +5,7 @@ import h5py
 import html
 import re
 
+import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 import pytest
@@ -108,6 +109,11 @@ def test_evaluate_scene_one_row_per_method_and_sequence(tmp_path):
     assert set(curves) == {"self_supervised", "supervised_5x256"} and len(curves["supervised_5x256"]["s1"]["mean_error"]) == 8
     rollout_curves("a", curves, tmp_path / "errors.png")
     assert (tmp_path / "errors.png").stat().st_size > 0
+    # a free body has no Dirichlet error to draw: its figure has the error and energy rows alone
+    free = {m: {q: dict(c, dirichlet_error=np.full_like(c["dirichlet_error"], np.nan)) for q, c in per.items()} for m, per in curves.items()}
+    rollout_curves("a", free, tmp_path / "free.png")
+    height = {k: plt.imread(tmp_path / f"{k}.png").shape[0] for k in ("errors", "free")}
+    assert height["free"] == pytest.approx(2 / 3 * height["errors"], rel=0.02)
 
 
 def _metrics():

@@ -373,7 +373,8 @@ def stability_heatmap(df: pd.DataFrame, path, title="stability: frames survived"
 
 
 def rollout_curves(scene: str, curves: dict, path) -> None:
-    """Per test sequence (columns): vertex error, Dirichlet error and kinetic energy over time, one line per method.
+    """Per test sequence (columns): vertex error, Dirichlet error (not for a free body, which has no prescribed
+    vertex: every curve NaN) and kinetic energy over time, one line per method.
 
     A method's curve ends where it diverged (marked with a cross).  This one
     figure holds the paper's Figs. 8-12 for the scene: stability of the
@@ -388,7 +389,10 @@ def rollout_curves(scene: str, curves: dict, path) -> None:
     """
     sequences = list(dict.fromkeys(name for per in curves.values() for name in per))
     n = max(len(sequences), 1)
-    fig, axes = plt.subplots(3, n, figsize=(4.8 * n, 9), squeeze=False)
+    prescribed = any(np.isfinite(c["dirichlet_error"]).any() for per in curves.values() for c in per.values())
+    rows = ["error", "dirichlet", "energy"] if prescribed else ["error", "energy"]
+    fig, grid = plt.subplots(len(rows), n, figsize=(4.8 * n, 3 * len(rows)), squeeze=False)
+    axes = dict(zip(rows, grid))
     for j, name in enumerate(sequences):
         truth = None  # ground-truth KE: the longest (undiverged) copy among the methods
         for k, (method, per) in enumerate(curves.items()):
@@ -397,22 +401,24 @@ def rollout_curves(scene: str, curves: dict, path) -> None:
             c = per[name]
             colour = f"C{k % 10}"
             t = np.arange(len(c["mean_error"])) * c["dt"]
-            axes[0, j].semilogy(t, np.maximum(c["mean_error"], 1e-12), color=colour, label=method)
-            axes[1, j].semilogy(t, np.maximum(c["dirichlet_error"], 1e-12), color=colour, label=method)
-            axes[2, j].plot(t, c["ke_pred"], color=colour, ls="--", label=method)
+            axes["error"][j].semilogy(t, np.maximum(c["mean_error"], 1e-12), color=colour, label=method)
+            if prescribed:
+                axes["dirichlet"][j].semilogy(t, np.maximum(c["dirichlet_error"], 1e-12), color=colour, label=method)
+            axes["energy"][j].plot(t, c["ke_pred"], color=colour, ls="--", label=method)
             if c["diverged_frame"] >= 0 and len(t):
-                axes[0, j].plot(t[-1], max(c["mean_error"][-1], 1e-12), "x", color=colour, ms=9)
+                axes["error"][j].plot(t[-1], max(c["mean_error"][-1], 1e-12), "x", color=colour, ms=9)
             if truth is None or len(c["ke_truth"]) > len(truth[1]):
                 truth = (c["dt"], c["ke_truth"])
         if truth is not None:
-            axes[2, j].plot(np.arange(len(truth[1])) * truth[0], truth[1], color="k", lw=2.0, alpha=0.5, label="full space")
-        axes[0, j].set_title(f"{scene} / {name}")
-        axes[0, j].set_ylabel("mean vertex error / bbox diag")
-        axes[1, j].set_ylabel("Dirichlet error / bbox diag")
-        axes[2, j].set_ylabel("kinetic energy [J]")
-        axes[2, j].set_xlabel("time [s]")
-        for i in range(3):
-            axes[i, j].legend(fontsize=7)
+            axes["energy"][j].plot(np.arange(len(truth[1])) * truth[0], truth[1], color="k", lw=2.0, alpha=0.5, label="full space")
+        axes["error"][j].set_title(f"{scene} / {name}")
+        axes["error"][j].set_ylabel("mean vertex error / bbox diag")
+        if prescribed:
+            axes["dirichlet"][j].set_ylabel("Dirichlet error / bbox diag")
+        axes["energy"][j].set_ylabel("kinetic energy [J]")
+        axes["energy"][j].set_xlabel("time [s]")
+        for row in axes.values():
+            row[j].legend(fontsize=7)
     fig.tight_layout()
     save_figure(fig, path)
 
