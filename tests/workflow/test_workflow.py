@@ -148,6 +148,27 @@ def test_dry_run_of_the_hair_head_example_plans_a_ring_of_hair_against_its_head(
     assert sorted(m for r_, s, m in jobs if r_ == "reduced_rollout") == ["newton_1it", "pca_reduced"]
 
 
+def test_dry_run_of_the_bunny_drop_example_plans_a_free_body_thrown_straight_up_and_down(tmp_path):
+    """config/examples/bunny_drop.yaml (the bunny, free, dropped onto a frictionless ground) validates and plans
+    every stage of its scene; its throws are vertical and without spin (else it slides or turns for ever), and
+    the test throw's speed lies between the training ones' (its run: docs/measurements.md)."""
+    config = ROOT / "config" / "examples" / "bunny_drop.yaml"
+    scene = yaml.safe_load(config.read_text())["scenes"]["bunny_drop"]
+    assert scene["dirichlet"] == {"type": "free"}
+    speeds = {q["split"]: [] for q in scene["sequences"]}
+    for q in scene["sequences"]:
+        v = q.get("initial_velocity", [0.0, 0.0, 0.0])
+        assert v[0] == v[2] == 0 and "initial_angular_velocity" not in q and "segments" not in q
+        speeds[q["split"]].append(v[1])
+    assert min(speeds["train"]) < min(speeds["test"]) <= max(speeds["test"]) < max(speeds["train"])
+    assert not set(speeds["test"]) & set(speeds["train"])
+    jobs = planned_jobs(snakemake("-n", "all", "--cores", "2", "--configfile", str(config), "--directory", str(tmp_path)).stdout, methods=True)
+    for stage in ("prepare_mesh", "simulate", "train_autoencoder", "evaluate"):
+        assert {s for r_, s, _ in jobs if r_ == stage} == {"bunny_drop"}, stage
+    assert sum(r_ == "train_integrator" for r_, _, _ in jobs) == 3  # one per seed
+    assert sorted(m for r_, s, m in jobs if r_ == "reduced_rollout") == ["newton_1it", "pca_reduced"]
+
+
 def test_slurm_profile_dry_run(tmp_path):
     out = snakemake("-n", "all", "--workflow-profile", str(ROOT / "profiles" / "slurm"), "--configfile", str(TINY), "--directory", str(tmp_path)).stdout
     jobs = planned_jobs(out)
