@@ -28,6 +28,17 @@ def test_programs_scale_stop_reverse_and_repeat(program):
     assert np.allclose(out["sudden_reversal"][cut:], -program[cut:])
 
 
+def test_a_program_without_motion_keeps_only_the_conditions_that_change_it():
+    """A free body (no prescribed set) has p_t = 0 throughout: scaling, stopping or reversing it would give the
+    test sequence back, so only the long rollout and the perturbed start are stress conditions; with no
+    Dirichlet vertex their prescribed trajectories are empty."""
+    still = np.zeros((30, 6))
+    out = stability.stress_programs(still, train_frames=20, factors=(0.5, 5.0), long_factor=10)
+    assert set(out) == {"long_x10", "perturbed_start"} and out["long_x10"].shape == (200, 6) and not out["long_x10"].any()
+    conds = stability.stress_conditions(still, np.zeros((0, 3)), 0.1, train_frames=20, factors=(2.0,), long_factor=10, perturbation=0.5)
+    assert [(c.name, c.dirichlet_positions.shape) for c in conds] == [("long_x10", (200, 0, 3)), ("perturbed_start", (30, 0, 3))]
+
+
 def test_conditions_prescribe_the_rigid_motion_of_their_program(program):
     rest_D = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]])
     conds = {c.name: c for c in stability.stress_conditions(program, rest_D, 0.1, train_frames=20, factors=(2.0,), long_factor=10, perturbation=0.5)}

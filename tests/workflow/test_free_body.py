@@ -58,12 +58,13 @@ def test_the_full_space_keeps_a_thrown_free_body_out_of_the_ground_from_its_reco
 
 def test_every_method_is_measured_with_no_prescribed_set_to_compare(free_run):
     """Every method has its row, its error and its penetration; the Dirichlet error, with nothing prescribed, is
-    empty rather than a number; the stress conditions ran; the report's pages were written."""
+    empty rather than a number; the stress conditions a free body has ran; the report's pages were written."""
     ev = free_run / "results" / "evaluation"
     metrics = pd.read_csv(ev / "tiny_drop" / "metrics.csv")
     assert sorted(metrics["method"]) == ["newton_1it", "self_supervised"]
     assert metrics["dirichlet_error"].isna().all()
     assert np.isfinite(metrics["mean_error"]).all() and (metrics["max_penetration"] >= 0).all()
     stress = pd.read_csv(ev / "tiny_drop" / "stress.csv")
-    assert {"long_x10", "perturbed_start"} <= set(stress["condition"]) and stress["bc_error"].isna().all()
+    # nothing prescribed, no program to speed up, stop or reverse: the long rollout and the perturbed start alone
+    assert sorted(stress["condition"]) == ["long_x10", "perturbed_start"] and stress["bc_error"].isna().all()
     assert (ev / "summary.html").is_file() and (ev / "tiny_drop" / "clip.gif").is_file()

@@ -67,7 +67,10 @@ def stress_programs(bc: np.ndarray, train_frames: int, factors, long_factor: int
 
     Returns
     -------
-    {name: (T', k)} with p_0 = 0 in every program.
+    {name: (T', k)} with p_0 = 0 in every program.  A program without motion (a free body, which has
+    no prescribed set, or a scene held still) has no speed to scale, stop or reverse: those conditions
+    would be the test sequence itself and are left out, so only ``long_x{f}`` and ``perturbed_start``
+    remain.
     """
     bc = np.asarray(bc, dtype=float)
     if bc.ndim != 2 or len(bc) < 3:
@@ -78,6 +81,9 @@ def stress_programs(bc: np.ndarray, train_frames: int, factors, long_factor: int
     motion = bc[1:]
     reps = int(np.ceil((n_long - 1) / len(motion)))
     out[f"long_x{long_factor}"] = np.concatenate([bc[:1], np.tile(motion, (reps, 1))[: n_long - 1]])
+    if not bc.any():
+        out["perturbed_start"] = bc.copy()
+        return out
     for f in factors:
         out[_label(f)] = bc * f
     cut = max(T // 3, 2)
