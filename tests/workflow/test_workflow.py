@@ -126,6 +126,16 @@ def test_dry_run_of_the_soft_solids_example_plans_every_stage_of_both_scenes(tmp
     assert [s for r, s, _ in jobs if r == "nm_train"] == ["giraffe_neohookean"]
 
 
+def _assert_example_plans_its_scene(config, scene, tmp_path):
+    """A contact example's dry run of `all`: every stage of its one scene, an integrator per seed (three), and the
+    two reduced baselines."""
+    jobs = planned_jobs(snakemake("-n", "all", "--cores", "2", "--configfile", str(config), "--directory", str(tmp_path)).stdout, methods=True)
+    for stage in ("prepare_mesh", "simulate", "train_autoencoder", "evaluate"):
+        assert {s for r_, s, _ in jobs if r_ == stage} == {scene}, stage
+    assert sum(r_ == "train_integrator" for r_, _, _ in jobs) == 3  # one per seed
+    assert sorted(m for r_, s, m in jobs if r_ == "reduced_rollout") == ["newton_1it", "pca_reduced"]
+
+
 def test_dry_run_of_the_hair_head_example_plans_a_ring_of_hair_against_its_head(tmp_path):
     """config/examples/hair_head.yaml (hair on a ring of roots about a sphere collider) validates and plans every
     stage of its scene; its ring of roots lies outside the head, each root as far from the head's centre (the
@@ -141,11 +151,7 @@ def test_dry_run_of_the_hair_head_example_plans_a_ring_of_hair_against_its_head(
     r = np.linalg.norm(x - np.asarray(head["centre"]), axis=1)
     np.testing.assert_allclose(r[clamped], r[clamped[0]])
     assert r.min() > head["radius"]
-    jobs = planned_jobs(snakemake("-n", "all", "--cores", "2", "--configfile", str(config), "--directory", str(tmp_path)).stdout, methods=True)
-    for stage in ("prepare_mesh", "simulate", "train_autoencoder", "evaluate"):
-        assert {s for r_, s, _ in jobs if r_ == stage} == {"hair_head"}, stage
-    assert sum(r_ == "train_integrator" for r_, _, _ in jobs) == 3  # one per seed
-    assert sorted(m for r_, s, m in jobs if r_ == "reduced_rollout") == ["newton_1it", "pca_reduced"]
+    _assert_example_plans_its_scene(config, "hair_head", tmp_path)
 
 
 def test_dry_run_of_the_bunny_drop_example_plans_a_free_body_thrown_straight_up_and_down(tmp_path):
@@ -162,11 +168,7 @@ def test_dry_run_of_the_bunny_drop_example_plans_a_free_body_thrown_straight_up_
         speeds[q["split"]].append(v[1])
     assert min(speeds["train"]) < min(speeds["test"]) <= max(speeds["test"]) < max(speeds["train"])
     assert not set(speeds["test"]) & set(speeds["train"])
-    jobs = planned_jobs(snakemake("-n", "all", "--cores", "2", "--configfile", str(config), "--directory", str(tmp_path)).stdout, methods=True)
-    for stage in ("prepare_mesh", "simulate", "train_autoencoder", "evaluate"):
-        assert {s for r_, s, _ in jobs if r_ == stage} == {"bunny_drop"}, stage
-    assert sum(r_ == "train_integrator" for r_, _, _ in jobs) == 3  # one per seed
-    assert sorted(m for r_, s, m in jobs if r_ == "reduced_rollout") == ["newton_1it", "pca_reduced"]
+    _assert_example_plans_its_scene(config, "bunny_drop", tmp_path)
 
 
 def test_slurm_profile_dry_run(tmp_path):
