@@ -74,6 +74,13 @@ def test_normalise_sample_and_contain():
     point = Conditioning.at(1 / 30, 1e6, 1 / 30, 1e6)
     assert not point.conditioned and torch.equal(point.normalise(1 / 30, 1e6), torch.zeros(2))
     assert Conditioning.from_dict(box.to_dict()) == box
+    # the loss weight (h / h_0)^p: the schema's p = 2 evens out the inertia term, p = 0 weighs time steps alike
+    h = torch.tensor([1 / 60, 1 / 30, 1 / 15], dtype=torch.float64)
+    assert torch.allclose(box.weight(h), torch.tensor([0.25, 1.0, 4.0], dtype=torch.float64))
+    flat = Conditioning((1 / 60, 1 / 15), (3e5, 3e6), 1 / 30, 1e6, time_step_weight_power=0.0)
+    assert torch.equal(flat.weight(h), torch.ones(3, dtype=torch.float64)) and Conditioning.from_dict(flat.to_dict()) == flat
+    old = {k: v for k, v in box.to_dict().items() if k != "time_step_weight_power"}  # a file from before the setting
+    assert Conditioning.from_dict(old).time_step_weight_power == 2.0
     with pytest.raises(ValueError, match="time_step"):
         Conditioning((0.1, 0.01), (1.0, 2.0), 0.1, 1.0)
 
@@ -248,6 +255,10 @@ def test_conditioned_own_rollouts_run_and_score_each_sequence_at_one_drawn_condi
     assert torch.equal(batch["dt"][m:], own["condition"][:, 0]) and "condition" not in batch
     assert not torch.equal(batch["dt"][:m], tr["z"].new_full((m,), float(ch.pot.dt), dtype=torch.float64))
     assert ((batch["dt"][:m] >= 1 / 60 - 1e-12) & (batch["dt"][:m] <= 1 / 15 + 1e-12)).all()
+    # each row's loss weight follows its own time step, to the box's power
+    assert torch.allclose(batch["scale"], (batch["dt"] / ch.pot.dt) ** 2)
+    flat = Conditioning(box.time_step, box.youngs_modulus, box.base_time_step, box.base_modulus, time_step_weight_power=0.0)
+    assert torch.equal(_at_sampled_conditions(both, flat, torch.Generator().manual_seed(2))["scale"], torch.ones_like(batch["scale"]))
     # a training on them, resumed between two rollouts, equals the uninterrupted one to the bit
     cfg = dict(widths=[16], epochs=5, lr=1e-3, batch_size=40, own_rollouts_every=2, own_rollouts_start=1)
     full, hf = fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=3, conditioning=box)

@@ -346,8 +346,12 @@ def conditioned_integrator_params(wildcards):
     """
     c = config["scenes"][wildcards.scene]["conditioning"]
     if wildcards.model == "conditioned":
-        box = {"time_step": c["time_step"], "youngs_modulus": c["youngs_modulus"]}
-    else:
+        box = {
+            "time_step": c["time_step"],
+            "youngs_modulus": c["youngs_modulus"],
+            "time_step_weight_power": c["time_step_weight_power"],
+        }
+    else:  # one point, where the loss's weight (h / h_0)^p is one constant factor
         q = conditions(config, wildcards.scene)[wildcards.model]
         box = {
             "time_step": [q["time_step"]] * 2,

@@ -26,10 +26,12 @@ physical time has ``k = h_0 / h`` times as many frames (:func:`scaled_sequence`)
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import torch
 from torch import nn
+
+from latentsim.config import schema_defaults
 
 #: the entries the condition appends to each boundary-condition vector
 CONDITION_DIM = 2
@@ -45,12 +47,15 @@ class Conditioning:
     youngs_modulus : (lo, hi) [Pa].
     base_time_step, base_modulus : the time step and modulus the scene's potential is built with;
         a condition (h, E) evaluates it with time step h and elastic factor E / base_modulus.
+    time_step_weight_power : a sample's loss is weighted by (h / base_time_step) to this power
+        (the schema's ``conditioning.time_step_weight_power``).
     """
 
     time_step: tuple[float, float]
     youngs_modulus: tuple[float, float]
     base_time_step: float
     base_modulus: float
+    time_step_weight_power: float = field(default_factory=lambda: float(schema_defaults("conditioning")["time_step_weight_power"]))
 
     def __post_init__(self):
         for name in ("time_step", "youngs_modulus"):
@@ -60,9 +65,9 @@ class Conditioning:
             object.__setattr__(self, name, (lo, hi))
 
     @classmethod
-    def at(cls, time_step: float, modulus: float, base_time_step: float, base_modulus: float) -> "Conditioning":
+    def at(cls, time_step: float, modulus: float, base_time_step: float, base_modulus: float, **kw) -> "Conditioning":
         """The box of one condition: an unconditioned integrator trained there."""
-        return cls((time_step, time_step), (modulus, modulus), base_time_step, base_modulus)
+        return cls((time_step, time_step), (modulus, modulus), base_time_step, base_modulus, **kw)
 
     @property
     def conditioned(self) -> bool:
@@ -97,7 +102,13 @@ class Conditioning:
 
     @classmethod
     def from_dict(cls, d: dict) -> "Conditioning":
-        return cls(tuple(d["time_step"]), tuple(d["youngs_modulus"]), float(d["base_time_step"]), float(d["base_modulus"]))
+        # a file written before the weight's power was a setting was trained with the schema's default
+        kw = {"time_step_weight_power": float(d["time_step_weight_power"])} if "time_step_weight_power" in d else {}
+        return cls(tuple(d["time_step"]), tuple(d["youngs_modulus"]), float(d["base_time_step"]), float(d["base_modulus"]), **kw)
+
+    def weight(self, time_step: torch.Tensor) -> torch.Tensor:
+        """Each sample's loss weight at time steps ``time_step``: (h / base_time_step)^power."""
+        return (time_step / self.base_time_step) ** self.time_step_weight_power
 
 
 def with_condition(p: torch.Tensor, c: torch.Tensor) -> torch.Tensor:

@@ -103,8 +103,9 @@ def fit_integrator(
         (:mod:`latentsim.latent.conditioning`; self-supervised mode only, without supervision):
         each sample of each minibatch draws its condition from the box, its Dirichlet targets
         follow by the boundary-condition program at its time step, and its loss is the incremental
-        potential at its condition, weighted by (h / h_0)^2 so that the inertia term weighs the same
-        at every time step.  A box of more than one point appends the normalised condition to each
+        potential at its condition, weighted by (h / h_0)^p (``time_step_weight_power`` p of the
+        box: 2 makes the inertia term weigh the same at every time step, 0 weighs every time step
+        alike).  A box of more than one point appends the normalised condition to each
         boundary-condition vector (``bc_dim`` + 2); a point trains an unconditioned integrator there.
 
     Own rollouts (``own_rollouts_every`` k > 0, self-supervised mode; not in the paper): from epoch
@@ -334,7 +335,7 @@ def _new_integrator(data: dict, cfg: dict, seed: int, device: torch.device, cond
 def _at_sampled_conditions(batch: dict, conditioning: Conditioning, gen: torch.Generator) -> dict:
     """The minibatch with a condition drawn for each sample (:class:`Conditioning`; a row with a
     finite ``condition`` (h, E), rolled out at it, keeps it): its time step
-    ``dt``, elastic factor ``stiffness`` and weight ``scale`` (h / h_0)^2, the frame-t Dirichlet
+    ``dt``, elastic factor ``stiffness`` and weight ``scale`` (:meth:`Conditioning.weight`), the frame-t Dirichlet
     targets that the boundary-condition program gives at its time step, and (for a conditioned
     integrator) the normalised condition appended to each boundary-condition vector."""
     h, E = conditioning.sample(batch["z"].shape[0], gen)
@@ -347,7 +348,7 @@ def _at_sampled_conditions(batch: dict, conditioning: Conditioning, gen: torch.G
     dev = batch["xD"].device
     out["dt"] = h.to(dev)
     out["stiffness"] = (E / conditioning.base_modulus).to(dev)
-    out["scale"] = ((h / conditioning.base_time_step) ** 2).to(dev)
+    out["scale"] = conditioning.weight(h).to(dev)
     out["xD"] = dirichlet_step(batch["xD_prev"], batch["p"], out["dt"])
     if conditioning.conditioned:
         c = conditioning.normalise(h, E).to(dev)

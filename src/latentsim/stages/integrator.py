@@ -35,7 +35,8 @@ def train_integrator(trajectories, ae_path, settings: dict, seed: int, device: s
 
     ``trajectories``: a scene's ``trajectories.h5``, or a list of several of one mesh (a conditioned
     scene's training conditions).  ``conditioning``: None, or the box to train over, ``{time_step:
-    [lo, hi], youngs_modulus: [lo, hi]}`` (:mod:`latentsim.latent.conditioning`; the first file's
+    [lo, hi], youngs_modulus: [lo, hi]}`` and optionally the loss weight's ``time_step_weight_power``
+    (:mod:`latentsim.latent.conditioning`; the first file's
     time step and modulus are the potential's own); the model file records it.
     """
     cfg = with_defaults("integrator", settings, "train_integrator")
@@ -45,7 +46,8 @@ def train_integrator(trajectories, ae_path, settings: dict, seed: int, device: s
         potential = potential_from_artefact(f)
         box = None
         if conditioning is not None:
-            box = Conditioning(tuple(conditioning["time_step"]), tuple(conditioning["youngs_modulus"]), float(f.attrs["dt"]), float(f.attrs["youngs_modulus"]))
+            power = {k: float(v) for k, v in conditioning.items() if k == "time_step_weight_power"}  # absent: the schema's
+            box = Conditioning(tuple(conditioning["time_step"]), tuple(conditioning["youngs_modulus"]), float(f.attrs["dt"]), float(f.attrs["youngs_modulus"]), **power)
     train = load_split(paths, "train")
     ae = load_autoencoder(ae_path)
     integ, history = fit_integrator(
