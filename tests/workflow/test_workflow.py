@@ -273,6 +273,7 @@ def test_tiny_cloth_trains_one_integrator_over_its_box_and_a_reference_at_each_h
     assert conditioned.bc_dim == 8 and load_integrator(d / "seed0/30hz_1e05pa/integrator.pt").bc_dim == 6
     box = load_extra(d / "seed0/conditioned/integrator.pt")["conditioning"]
     assert box["time_step"] == c["time_step"] and box["youngs_modulus"] == c["youngs_modulus"]
+    assert box["time_step_weight_power"] == 2.0  # the loss's weight (h / h_0)^p, the schema's p, recorded with the model
     m = pd.read_csv(d / "seed0/metrics.csv")
     assert sorted(zip(m["condition"], m["method"])) == sorted((n, k) for n in ("30hz_1e05pa", "60hz_1e05pa") for k in ("conditioned", "reference"))
     assert np.isfinite(m["mean_error"]).all() and (m["stress_total"] == 8).all()
@@ -293,6 +294,13 @@ def test_tiny_cloth_trains_one_integrator_over_its_box_and_a_reference_at_each_h
     assert {r for r, _ in jobs} <= {"conditioned_simulate", "conditioned_autoencoder", "conditioned_integrator", "conditioned_evaluate",
                                     "conditioned_summary", "report_conditioned_page", "all"}, jobs  # fmt: skip
     assert ("conditioned_integrator", "tiny_cloth") in jobs
+    # the loss's time-step weight retrains the conditioned integrator alone: a reference trains at one point
+    cfg = yaml.safe_load(TINY.read_text())
+    cfg["scenes"]["tiny_cloth"]["conditioning"]["time_step_weight_power"] = 0
+    edited.write_text(yaml.safe_dump(cfg))
+    jobs = planned_jobs(snakemake("-n", "all", "--configfile", str(edited), "--directory", str(work)).stdout)
+    assert {r for r, _ in jobs} <= {"conditioned_integrator", "conditioned_evaluate", "conditioned_summary", "report_conditioned_page", "all"}, jobs
+    assert [r for r, _ in jobs].count("conditioned_integrator") == 1, jobs  # one seed, the conditioned model
 
 
 def test_tiny_contact_stays_out_of_its_ball_in_the_full_space_and_every_method_is_measured_for_penetration(tiny_run):

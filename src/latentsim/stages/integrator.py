@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import os
+from dataclasses import replace
 
 import numpy as np
 
@@ -46,8 +47,9 @@ def train_integrator(trajectories, ae_path, settings: dict, seed: int, device: s
         potential = potential_from_artefact(f)
         box = None
         if conditioning is not None:
-            power = {k: float(v) for k, v in conditioning.items() if k == "time_step_weight_power"}  # absent: the schema's
-            box = Conditioning(tuple(conditioning["time_step"]), tuple(conditioning["youngs_modulus"]), float(f.attrs["dt"]), float(f.attrs["youngs_modulus"]), **power)
+            box = Conditioning(tuple(conditioning["time_step"]), tuple(conditioning["youngs_modulus"]), float(f.attrs["dt"]), float(f.attrs["youngs_modulus"]))
+            if "time_step_weight_power" in conditioning:  # absent: the schema's default
+                box = replace(box, time_step_weight_power=float(conditioning["time_step_weight_power"]))
     train = load_split(paths, "train")
     ae = load_autoencoder(ae_path)
     integ, history = fit_integrator(
