@@ -858,8 +858,9 @@ def test_same_seed_gives_identical_artefacts(tiny_run, tmp_path):
 # reference to the bit.  Re-recorded again when tiny_cloth's sweep moved to the scene's own widths (its points' rows
 # and the sizes table changed; every other file not derived from linear modes was equal to the bit).  Re-recorded when
 # tiny_cloth gained its conditioned study and the config tiny_contact (their files added; of the earlier files not
-# derived from linear modes only evaluation/summary.csv changed, by its penetration columns).  Re-record it
-# (and say so in the commit) when a change is meant to change results.
+# derived from linear modes only evaluation/summary.csv changed, by its penetration columns).  The conditioned
+# models' time_step_weight_power (2.0, the schema's) was added to the reference when the loss weight's power became a
+# setting; nothing else changed.  Re-record it (and say so in the commit) when a change is meant to change results.
 REFERENCE = ROOT / "tests" / "workflow" / "data" / "tiny_reference.json"
 
 
