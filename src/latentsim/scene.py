@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from latentsim.physics import neohookean, rods, shells, stvk_nm, tets
-from latentsim.physics.contact import Capsule, ContactBarrier, HalfSpace, Sphere
+from latentsim.physics.contact import Capsule, ContactBarrier, HalfSpace, Sphere, rigid_pose
 from latentsim.physics.incremental_potential import ElasticPotential, IncrementalPotential
 
 BC_DIM = 6
@@ -277,7 +277,7 @@ def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity
     barrier = None
     if contact and contact.get("colliders"):
         c = contact_settings(contact, arrays["rest_positions"], elastic.masses.numpy(), g.numpy())
-        barrier = ContactBarrier(elastic.n_vertices, [collider(q) for q in c["colliders"]], c["d_hat"], c["kappa"])
+        barrier = contact_barrier(c, elastic.n_vertices, arrays["rest_positions"], arrays.get("dirichlet", ()))
     return IncrementalPotential(
         terms=elastic.terms,
         masses=elastic.masses,
@@ -294,9 +294,39 @@ COLLIDERS = {"half_space": (HalfSpace, ("point", "normal")), "sphere": (Sphere, 
 
 
 def collider(q: dict):
-    """The collider of one ``contact.colliders`` entry (``type`` and the shape's keys)."""
+    """The collider of one ``contact.colliders`` entry (``type`` and the shape's keys) at rest."""
     cls, keys = COLLIDERS[q["type"]]
     return cls(*(q[k] for k in keys))
+
+
+def contact_barrier(contact: dict, n_vertices: int, rest_positions, dirichlet) -> ContactBarrier:
+    """The barrier of a resolved ``contact`` block (:func:`contact_settings`): its colliders, those with
+    ``attached: true`` moving rigidly with the prescribed vertices ``dirichlet`` (indices into
+    ``rest_positions``)."""
+    attached = [bool(q.get("attached", False)) for q in contact["colliders"]]
+    rest_D = np.asarray(rest_positions, dtype=float)[np.asarray(dirichlet, dtype=np.int64)] if any(attached) else None
+    try:
+        return ContactBarrier(n_vertices, [collider(q) for q in contact["colliders"]], contact["d_hat"], contact["kappa"],
+                              attached=attached, rest_dirichlet=rest_D)  # fmt: skip
+    except ValueError as e:
+        raise ValueError(f"contact.colliders: {e}") from None
+
+
+def posed_collider_entries(entries, rest_dirichlet, targets) -> list[dict]:
+    """A scene's ``contact.colliders`` entries where they stand when the prescribed vertices (rest positions
+    ``rest_dirichlet`` (m, 3)) are at ``targets`` (m, 3): every attached one carried by their rigid motion
+    (:func:`~latentsim.physics.contact.rigid_pose`), the static ones as they are."""
+    if not any(q.get("attached") for q in entries):
+        return list(entries)
+    R, c = rigid_pose(rest_dirichlet, np.asarray(targets, dtype=float))
+    c0 = np.asarray(rest_dirichlet, dtype=float).mean(0)
+    out = []
+    for q in entries:
+        if q.get("attached"):
+            moved = collider(q).moved(R.numpy(), c0, c.numpy())
+            q = {**q, **{k: list(getattr(moved, k)) for k in moved.points + moved.directions}}
+        out.append(q)
+    return out
 
 
 def contact_settings(contact: dict, rest_positions, masses, gravity) -> dict:
@@ -323,7 +353,7 @@ def contact_from_artefact(f) -> ContactBarrier | None:
     if CONTACT_ATTR not in f.attrs:
         return None
     c = json.loads(str(f.attrs[CONTACT_ATTR]))
-    return ContactBarrier(len(f["rest_positions"]), [collider(q) for q in c["colliders"]], c["d_hat"], c["kappa"])
+    return contact_barrier(c, len(f["rest_positions"]), f["rest_positions"][()], f["dirichlet"][()] if "dirichlet" in f else ())
 
 
 def potential_from_artefact(f, w_bc: float = 1e5, free_only: bool = False) -> IncrementalPotential:

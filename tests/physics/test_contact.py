@@ -189,10 +189,13 @@ def test_a_cloth_dropped_on_a_collider_never_enters_it_and_every_frame_solves_it
         assert x1[:, 1].max() < -0.12
 
 
-def test_the_simulation_stage_with_a_collider_and_the_independent_frame_check(tmp_path):
+@pytest.mark.parametrize("attached", [False, True])
+def test_the_simulation_stage_with_a_collider_and_the_independent_frame_check(tmp_path, attached):
     """A pinned cloth swung onto a ball through the simulation stage: the file records the resolved
     contact block and each frame's nearest approach; the independent check (autograd of the rebuilt
-    potential, barrier included) finds every frame at the tolerance and no vertex inside."""
+    potential, barrier included) finds every frame at the tolerance and no vertex inside.  Attached, the
+    ball rides with the held corner (three vertices) as the program swings and turns it, and the cloth
+    drapes on it all the way."""
     import importlib.util
     from pathlib import Path
 
@@ -206,11 +209,17 @@ def test_the_simulation_stage_with_a_collider_and_the_independent_frame_check(tm
     mesh_h5 = tmp_path / "mesh.h5"
     with lio.atomic_h5(mesh_h5) as f:
         f.attrs["model"] = "shell"
-        for k, v in {"rest_positions": np.asarray(X), "triangles": np.asarray(tris), "dirichlet": np.array([30, 35])}.items():
+        held = np.array([29, 34, 35] if attached else [30, 35])
+        for k, v in {"rest_positions": np.asarray(X), "triangles": np.asarray(tris), "dirichlet": held}.items():
             lio.write_dataset(f, k, v)
+    ball = {"type": "sphere", "centre": [0.0, -0.03, 0.05], "radius": 0.035}
+    segments = [dict(start=0, velocity=[0, 0, 0.2])]
+    if attached:  # behind the cloth, pushing it as the held corner moves forward, then turning with it about the vertical
+        ball = {"type": "sphere", "centre": [0.02, 0.0, -0.04], "radius": 0.035, "attached": True}
+        segments = [dict(start=0, velocity=[0, 0, 0.2]), dict(start=15, angular_velocity=[0, 1.0, 0])]
     cfg = dict(model="shell", material={"youngs_modulus": 1e5, "poisson_ratio": 0.3, "density": 200.0, "thickness": 0.001}, dt=1 / 30,
-               gravity=[0, -9.81, 0], newton=dict(tolerance=1e-6), contact={"colliders": [{"type": "sphere", "centre": [0.0, -0.03, 0.05], "radius": 0.035}]},
-               sequences=[dict(name="s", split="train", frames=30, segments=[dict(start=0, velocity=[0, 0, 0.2])])])  # fmt: skip
+               gravity=[0, -9.81, 0], newton=dict(tolerance=1e-6), contact={"colliders": [ball]},
+               sequences=[dict(name="s", split="train", frames=30, segments=segments)])  # fmt: skip
     out = tmp_path / "trajectories.h5"
     simulate_scene("contact", mesh_h5, cfg, out)
     spec = importlib.util.spec_from_file_location("check_frames", Path(__file__).resolve().parents[2] / "benchmarks" / "check_frames.py")
@@ -322,3 +331,155 @@ def test_a_free_body_thrown_falls_as_implicit_euler_says_and_lands_on_the_ground
     with h5py.File(out, "r+") as f:  # the same frames judged as if the block had started at rest
         del f["sequences/toss"].attrs["initial_velocity"]
     assert _check_frames_module().check(out)["worst"] > 10.0
+
+
+# --- colliders attached to the prescribed vertices ------------------------------------------------
+
+
+def _rigid(seed):
+    g = torch.Generator().manual_seed(seed)
+    q, _ = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=F64))
+    q = q * torch.sign(torch.linalg.det(q))  # a proper rotation
+    return q, torch.randn(3, generator=g, dtype=F64)
+
+
+REST_D = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.0, 0.1], [0.1, 0.02, 0.1]])
+
+
+def test_rigid_pose_recovers_a_rigid_motion_of_the_prescribed_vertices_batched():
+    from latentsim.physics.contact import rigid_pose
+
+    motions = [_rigid(s) for s in range(4)]
+    c0 = REST_D.mean(0)
+    targets = torch.stack([(torch.as_tensor(REST_D - c0) @ R.T) + t for R, t in motions])
+    R, c = rigid_pose(REST_D, targets)
+    for k, (Rk, tk) in enumerate(motions):
+        assert torch.allclose(R[k], Rk, atol=1e-12) and torch.allclose(c[k], tk, atol=1e-12)
+    # a planar set (the cantilever's clamped face) determines the pose as well
+    flat = REST_D[:3]
+    Rf, cf = rigid_pose(flat, (torch.as_tensor(flat - flat.mean(0)) @ motions[0][0].T) + motions[0][1])
+    assert torch.allclose(Rf, motions[0][0], atol=1e-12)
+
+
+@pytest.mark.parametrize("name", COLLIDERS)
+def test_an_attached_collider_is_its_rest_shape_carried_by_the_prescribed_vertices_motion(name):
+    """Rigid-motion invariance: with the prescribed vertices carried by (R, t), the attached collider's
+    distance of x is the rest shape's distance of x carried back, and the moved shape's distance of x;
+    the barrier's energy with the frame's targets equals the posed (static) barrier's, batched over frames."""
+    col = COLLIDERS[name]
+    x_rest = _points_near(col, n=60)
+    term = ContactBarrier(len(x_rest), [col], d_hat=0.05, kappa=2.0, attached=[True], rest_dirichlet=REST_D)
+    assert term.moving and not ContactBarrier(1, [col], 0.05, 2.0).moving
+    c0 = torch.as_tensor(REST_D.mean(0))
+    xs, targets = [], []
+    for seed in range(3):
+        R, t = _rigid(seed)
+        xs.append((x_rest - c0) @ R.T + t)
+        targets.append((torch.as_tensor(REST_D) - c0) @ R.T + t)
+        moved = col.moved(R.numpy(), c0.numpy(), t.numpy())
+        assert torch.allclose(moved.distance(xs[-1]), col.distance(x_rest), atol=1e-12)
+        posed = term.posed(targets[-1].numpy())
+        assert not posed.moving and torch.allclose(posed.energy(xs[-1]), term.energy(x_rest, torch.as_tensor(REST_D)), rtol=1e-10)
+    X, XD = torch.stack(xs), torch.stack(targets)
+    assert torch.allclose(term.distances(X, XD), col.distance(x_rest).expand(3, -1), atol=1e-12)
+    assert torch.allclose(term.energy(X, XD), term.energy(x_rest[None], torch.as_tensor(REST_D)[None]).expand(3), rtol=1e-10)
+    with pytest.raises(ValueError, match="Dirichlet targets"):
+        term.energy(X)
+
+
+def test_an_attached_collider_needs_a_pose_the_prescribed_vertices_determine():
+    line = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.2, 0.0, 0.0]])
+    for rest in (line, REST_D[:2], None):
+        with pytest.raises(ValueError, match="three of them not on one line"):
+            ContactBarrier(5, [COLLIDERS["sphere"]], 0.05, 2.0, attached=[True], rest_dirichlet=rest)
+    with pytest.raises(ValueError, match="2 attached flags for 1 colliders"):
+        ContactBarrier(5, [COLLIDERS["sphere"]], 0.05, 2.0, attached=[True, False], rest_dirichlet=REST_D)
+
+
+def test_first_impact_between_follows_the_collider_as_it_moves():
+    """A point carried with the collider never meets it; a still point that a translating sphere sweeps
+    over is met at the fraction of the step where it lies on the sphere's surface."""
+    ball = Sphere((0.0, 0.0, 0.0), 0.1)
+    term = ContactBarrier(1, [ball], 0.01, 1.0, attached=[True], rest_dirichlet=REST_D + [0.0, 0.5, 0.0])
+    shift = np.array([0.4, 0.0, 0.0])
+    carried = np.array([[0.15, 0.0, 0.0]])
+    assert term.first_impact_between(carried, REST_D + [0.0, 0.5, 0.0], carried + shift, REST_D + [0.4, 0.5, 0.0]) == np.inf
+    still = np.array([[0.3, 0.0, 0.0]])
+    t = term.first_impact_between(still, REST_D + [0.0, 0.5, 0.0], still, REST_D + [0.4, 0.5, 0.0])
+    assert t == pytest.approx(0.5)  # the ball's surface reaches x = 0.3 when its centre is at 0.2
+    # a static collider beside it is still tested along the straight step
+    both = ContactBarrier(1, [ball, HalfSpace((0, -0.1, 0), (0, 1, 0))], 0.01, 1.0, attached=[True, False], rest_dirichlet=REST_D)
+    assert both.first_impact_between(still, REST_D, still + [0.0, -0.4, 0.0], REST_D) == pytest.approx(0.25)
+
+
+def test_a_cloth_carried_by_a_tray_that_moves_with_its_held_corner():
+    """Full space with an attached collider: a cloth held at one corner (three vertices) over a plane attached
+    to them; the program lifts the corner and tilts it.  The plane lifts the cloth with it: in every frame no
+    vertex is below the plane where the program carries it, every frame solves its equations of motion by
+    autograd of the potential with that frame's targets, and at the end the whole cloth is far above the
+    plane's rest height, where a static plane would have held it."""
+    from latentsim.mesh import cloth_grid
+    from latentsim.scene import bc_parameters, build_potential, dirichlet_trajectory
+    from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings
+
+    X, tris = cloth_grid(4, 4, 0.3, 0.3, plane="xz")
+    X = np.asarray(X, dtype=np.float64)
+    corner = int(np.argmin(X[:, 0] + X[:, 2]))
+    near = np.argsort(np.linalg.norm(X - X[corner], axis=1))[:3]  # the corner and its two neighbours
+    arrays = {"rest_positions": X, "triangles": tris, "dirichlet": np.sort(near)}
+    material = {"youngs_modulus": 1e5, "poisson_ratio": 0.3, "density": 200.0, "thickness": 0.001}
+    tray = {"type": "half_space", "point": [0.0, float(X[:, 1].min()) - 0.02, 0.0], "normal": [0, 1, 0], "attached": True}
+    contact = {"colliders": [tray]}
+    dt = 1 / 60
+    pot = build_potential("shell", arrays, material, dt, [0, -9.81, 0], free_only=True, contact=contact)
+    check = build_potential("shell", arrays, material, dt, [0, -9.81, 0], contact=contact)
+    assert pot.contact.moving
+    solver = ImplicitEuler(pot, NewtonSettings(tolerance=1e-6))
+    tol = 1e-6 * solver.f_ref
+    frames = 80
+    seq = {"segments": [{"start": 20, "velocity": [0, 0.5, 0]}, {"start": 50, "angular_velocity": [0.8, 0, 0]}, {"start": 65}]}
+    XD = dirichlet_trajectory(X[arrays["dirichlet"]], bc_parameters(seq, frames), dt)
+    free = np.setdiff1d(np.arange(len(X)), arrays["dirichlet"])
+    x2 = x1 = X.copy()
+    nearest = []
+    for t in range(1, frames):
+        x, _ = solver.step(x1, x2, XD[t])
+        xt = torch.as_tensor(x).requires_grad_(True)
+        (g,) = torch.autograd.grad(check(xt, torch.as_tensor(x1), torch.as_tensor(x2), targets=torch.as_tensor(XD[t]), penalty=False), xt)
+        assert float(g[free].norm()) <= 1.5 * tol
+        nearest.append(float(pot.contact.distances(torch.as_tensor(x), XD[t]).min()))
+        x2, x1 = x1, x
+    assert min(nearest) > 0 and min(nearest) < pot.contact.d_hat  # it rested on the tray, and never went through
+    # the corner rose 0.25 m (then tilted the tray by 0.2 rad): the whole cloth rose with the tray, where a static
+    # tray would have held the cloth hanging from the corner at the tray's rest height
+    assert x1[:, 1].min() > tray["point"][1] + 0.15
+
+
+def test_attached_collider_entries_are_placed_per_frame_and_penetration_is_measured_there():
+    """What the report draws and measures: an attached entry carried by the frame's prescribed positions
+    (a point moved, a normal turned), a static entry as it is; a rollout that keeps its place relative
+    to a moving ball never enters it, one that stays where the ball arrives does."""
+    from latentsim.scene import contact_barrier, posed_collider_entries
+    from latentsim.stages.evaluate import penetration
+
+    R, t = _rigid(5)
+    c0 = REST_D.mean(0)
+    targets = (REST_D - c0) @ R.numpy().T + t.numpy()
+    entries = [{"type": "sphere", "centre": [0.3, 0.0, 0.0], "radius": 0.1, "attached": True},
+               {"type": "half_space", "point": [0, -1.0, 0], "normal": [0, 1, 0], "attached": True},
+               {"type": "sphere", "centre": [2.0, 0.0, 0.0], "radius": 0.1}]  # fmt: skip
+    ball, plane, still = posed_collider_entries(entries, REST_D, targets)
+    assert np.allclose(ball["centre"], R.numpy() @ (np.array([0.3, 0.0, 0.0]) - c0) + t.numpy())
+    assert np.allclose(plane["normal"], R.numpy() @ [0, 1, 0]) and still == entries[2]
+    assert posed_collider_entries(entries[2:], REST_D, targets) == entries[2:]
+    # a ball carried 0.5 m along x over 11 frames by the prescribed vertices (indices 0-3 of 5 vertices)
+    rest = np.vstack([REST_D, [[0.3, 0.15, 0.0]]])  # the fifth, 5 cm above the ball
+    contact = contact_barrier({"colliders": entries[:1], "d_hat": 0.01, "kappa": 1.0}, 5, rest, [0, 1, 2, 3])
+    shifts = np.linspace(0, 0.5, 11)[:, None, None] * [1.0, 0.0, 0.0]
+    XD = REST_D[None] + shifts
+    riding = rest[None] + shifts
+    staying = riding.copy()
+    staying[:, 4] = rest[4] - [0.0, 0.1, 0.0] + [0.25, 0.0, 0.0]  # 5 cm above the ball's centre when it reaches x = 0.55
+    assert penetration(contact, riding, 1.0, -1, XD) == {"max_penetration": 0.0, "penetrating_frames": 0}
+    out = penetration(contact, staying, 1.0, -1, XD)
+    assert out["max_penetration"] == pytest.approx(0.05) and out["penetrating_frames"] > 0

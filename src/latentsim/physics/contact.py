@@ -7,10 +7,14 @@ with d the signed distance of the vertex from the collider's surface.  b, b' and
 d = d_hat (b is C2 there, as IPC requires of its barrier), b grows without bound as d -> 0+, and
 b' < 0 < b'' on (0, d_hat): the barrier only ever pushes a vertex away.
 
-The colliders are static analytic shapes (:class:`HalfSpace`, :class:`Sphere`, :class:`Capsule`), each
-with its signed distance, the distance's gradient and Hessian in closed form, and the time of impact
-along a straight step (continuous collision detection against an analytic shape is a closed-form
-root), which a line search uses to keep every iterate outside.
+The colliders are analytic shapes (:class:`HalfSpace`, :class:`Sphere`, :class:`Capsule`), each with
+its signed distance, the distance's gradient and Hessian in closed form, and the time of impact along a
+straight step (continuous collision detection against an analytic shape is a closed-form root), which a
+line search uses to keep every iterate outside.  A collider is static, or *attached* to the prescribed
+(Dirichlet) vertices: it then moves rigidly with the boundary-condition program, its pose at a frame the
+rigid motion that carries the prescribed vertices' rest positions onto their targets (:func:`rigid_pose`).
+A signed distance is invariant under rigid motion, so an attached collider's distance at a pose is its
+rest shape's distance of the point carried back to the rest frame.
 
 :class:`ContactBarrier` is an energy term of the contract of :mod:`latentsim.physics.base` (one vertex
 per stencil), with its per-vertex gradient and PSD-projected Hessian in closed form; the autograd
@@ -19,6 +23,7 @@ oracle of the base class checks them.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -56,9 +61,40 @@ def barrier_derivatives(d: torch.Tensor, d_hat: float, kappa: float) -> tuple[to
     return torch.where(inside, db, zero), torch.where(inside, d2b, zero)
 
 
+def rigid_pose(rest: np.ndarray, targets) -> tuple[torch.Tensor, torch.Tensor]:
+    """The rigid motion x -> R (x - c_0) + c that best carries ``rest`` (m, 3) onto ``targets`` (..., m, 3)
+    in least squares (Kabsch: c_0 and c the centroids, R from the SVD of the cross-covariance, a proper
+    rotation), exact when the targets are a rigid motion of the rest positions, as a boundary-condition
+    program's are.  Returns R (..., 3, 3) and c (..., 3) in the targets' dtype (float64 for numpy input)."""
+    targets = torch.as_tensor(targets)
+    if not targets.is_floating_point():
+        targets = targets.to(torch.float64)
+    rest = torch.as_tensor(np.asarray(rest, dtype=float), dtype=targets.dtype, device=targets.device)
+    c0, c = rest.mean(0), targets.mean(-2)
+    cov = (rest - c0).transpose(0, 1) @ (targets - c[..., None, :])  # (..., 3, 3): sum_i p_i q_i^T
+    U, _, Vh = torch.linalg.svd(cov)
+    V = Vh.transpose(-1, -2)
+    sign = torch.sign(torch.linalg.det(V @ U.transpose(-1, -2)))
+    sign = torch.where(sign == 0, torch.ones_like(sign), sign)
+    D = torch.ones(sign.shape + (3,), dtype=targets.dtype, device=targets.device)
+    D[..., 2] = sign
+    return (V * D[..., None, :]) @ U.transpose(-1, -2), c
+
+
 class Collider:
-    """A static analytic shape: signed distance (positive outside), its gradient and Hessian, and
-    the time of impact along a straight step."""
+    """An analytic shape: signed distance (positive outside), its gradient and Hessian, the time of
+    impact along a straight step, and the shape carried by a rigid motion (:meth:`moved`)."""
+
+    #: the fields that are points (carried by the whole motion) and directions (turned only)
+    points: tuple = ()
+    directions: tuple = ()
+
+    def moved(self, R, c0, c) -> "Collider":
+        """The shape carried by the rigid motion x -> R (x - c0) + c (R (3, 3), c0 and c (3,))."""
+        R, c0, c = (np.asarray(v, dtype=float) for v in (R, c0, c))
+        new = {k: tuple(R @ (np.asarray(getattr(self, k)) - c0) + c) for k in self.points}
+        new.update({k: tuple(R @ np.asarray(getattr(self, k))) for k in self.directions})
+        return dataclasses.replace(self, **new)
 
     def distance(self, x: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
         """x (..., 3) -> signed distance (...)."""
@@ -80,6 +116,8 @@ class HalfSpace(Collider):
 
     point: tuple
     normal: tuple
+    points = ("point",)
+    directions = ("normal",)
 
     def __post_init__(self):
         n = np.asarray(self.normal, dtype=float)
@@ -122,6 +160,7 @@ class Sphere(Collider):
 
     centre: tuple
     radius: float
+    points = ("centre",)
 
     def __post_init__(self):
         if not float(self.radius) > 0:
@@ -151,6 +190,7 @@ class Capsule(Collider):
     a: tuple
     b: tuple
     radius: float
+    points = ("a", "b")
 
     def __post_init__(self):
         if not float(self.radius) > 0:
@@ -201,26 +241,84 @@ class ContactBarrier(EnergyTerm):
 
     Parameters
     ----------
-    n_vertices : n; colliders : the static shapes; d_hat : activation distance [m]; kappa : stiffness.
+    n_vertices : n; colliders : the shapes (at rest); d_hat : activation distance [m]; kappa : stiffness.
+    extend_below : see :func:`barrier`.
+    attached : one flag per collider (default: none attached): an attached collider moves rigidly with
+        the prescribed vertices, its pose at a frame :func:`rigid_pose` of ``rest_dirichlet`` onto that
+        frame's targets.
+    rest_dirichlet : (m, 3) the prescribed vertices' rest positions; needed (at least three of them, not on
+        one line, so that the pose is determined) when a collider is attached.
+
+    With an attached collider the barrier depends on the frame: :meth:`energy` and :meth:`distances` take
+    the frame's ``targets``, and :meth:`posed` gives the static barrier of one frame (what a solver's
+    step, its closed-form derivatives and its line search work with).
     """
 
     name = "contact_barrier"
 
-    def __init__(self, n_vertices: int, colliders, d_hat: float, kappa: float, extend_below: float | None = None):
+    def __init__(self, n_vertices: int, colliders, d_hat: float, kappa: float, extend_below: float | None = None,
+                 attached=None, rest_dirichlet=None):  # fmt: skip
         if not (d_hat > 0 and kappa > 0):
             raise ValueError(f"contact barrier: d_hat {d_hat!r} and kappa {kappa!r} must be positive")
         if extend_below is not None and not 0 < extend_below < d_hat:
             raise ValueError(f"contact barrier: extend_below {extend_below!r} must lie in (0, d_hat = {d_hat})")
         self.colliders = list(colliders)
+        self.attached = tuple(bool(a) for a in attached) if attached is not None else (False,) * len(self.colliders)
+        if len(self.attached) != len(self.colliders):
+            raise ValueError(f"contact barrier: {len(self.attached)} attached flags for {len(self.colliders)} colliders")
+        self.rest_dirichlet = None
+        if any(self.attached):
+            rest = np.asarray(rest_dirichlet if rest_dirichlet is not None else np.zeros((0, 3)), dtype=float).reshape(-1, 3)
+            spread = np.linalg.svd(rest - rest.mean(0), compute_uv=False) if len(rest) else np.zeros(3)
+            if len(rest) < 3 or not spread[1] > 1e-9 * max(spread[0], 1e-300):
+                raise ValueError(f"contact barrier: an attached collider moves with the prescribed vertices, and their pose needs at "
+                                 f"least three of them not on one line ({len(rest)} prescribed)")  # fmt: skip
+            self.rest_dirichlet = rest
         self.d_hat, self.kappa, self.extend_below = float(d_hat), float(kappa), extend_below
         self.stencils = torch.arange(int(n_vertices)).reshape(-1, 1)
+
+    @property
+    def moving(self) -> bool:
+        """Whether a collider is attached (the barrier then depends on the frame's targets)."""
+        return any(self.attached)
 
     def extended(self, fraction: float = 0.1, d_hat_factor: float = 1.0, kappa_factor: float = 1.0) -> "ContactBarrier":
         """The barrier of activation distance ``d_hat_factor`` d_hat and stiffness ``kappa_factor``
         kappa, continued below ``fraction`` of that distance by its quadratic Taylor expansion
         (:func:`barrier`'s ``extend_below``): finite inside the colliders, for learned losses."""
         d_hat = d_hat_factor * self.d_hat
-        return ContactBarrier(len(self.stencils), self.colliders, d_hat, kappa_factor * self.kappa, fraction * d_hat)
+        return ContactBarrier(len(self.stencils), self.colliders, d_hat, kappa_factor * self.kappa, fraction * d_hat, self.attached, self.rest_dirichlet)
+
+    def posed(self, targets) -> "ContactBarrier":
+        """The static barrier of one frame: every attached collider carried to its pose at ``targets`` (m, 3),
+        the prescribed vertices' positions; this barrier itself when none is attached."""
+        if not self.moving:
+            return self
+        R, c = rigid_pose(self.rest_dirichlet, np.asarray(targets, dtype=float))
+        c0 = self.rest_dirichlet.mean(0)
+        moved = [col.moved(R.numpy(), c0, c.numpy()) if a else col for col, a in zip(self.colliders, self.attached)]
+        return ContactBarrier(len(self.stencils), moved, self.d_hat, self.kappa, self.extend_below)
+
+    def _signed_distances(self, x: torch.Tensor, targets) -> list[torch.Tensor]:
+        """Each collider's signed distance of every vertex, x (..., n, 3) -> [(..., n)]; an attached
+        collider's at its pose of ``targets`` (..., m, 3) (the same leading shape as x, or none), by
+        carrying x back to the rest frame."""
+        if not self.moving:
+            return [c.distance(x) for c in self.colliders]
+        if targets is None:
+            raise ValueError("contact barrier: an attached collider's distance needs the frame's Dirichlet targets")
+        targets = torch.as_tensor(targets, dtype=x.dtype, device=x.device)
+        R, c = rigid_pose(self.rest_dirichlet, targets)
+        c0 = torch.as_tensor(self.rest_dirichlet.mean(0), dtype=x.dtype, device=x.device)
+        x_rest = (x - c[..., None, :]) @ R + c0  # R^T (x - c) + c0, row-wise
+        return [col.distance(x_rest if a else x) for col, a in zip(self.colliders, self.attached)]
+
+    def energy(self, x: torch.Tensor, targets=None) -> torch.Tensor:
+        """Total barrier energy, x (..., n, 3) -> (...); ``targets`` (..., m, 3) the frame's prescribed
+        positions, needed with an attached collider."""
+        if not self.moving:
+            return super().energy(x)
+        return sum(barrier(d, self.d_hat, self.kappa, self.extend_below).sum(-1) for d in self._signed_distances(x, targets))
 
     def local_energy(self, xe: torch.Tensor) -> torch.Tensor:
         x = xe[..., 0, :]
@@ -229,9 +327,10 @@ class ContactBarrier(EnergyTerm):
             total = total + barrier(c.distance(x), self.d_hat, self.kappa, self.extend_below)
         return total
 
-    def distances(self, x: torch.Tensor) -> torch.Tensor:
-        """The signed distance of every vertex from its nearest collider, x (..., n, 3) -> (..., n)."""
-        return torch.stack([c.distance(x) for c in self.colliders]).amin(0)
+    def distances(self, x: torch.Tensor, targets=None) -> torch.Tensor:
+        """The signed distance of every vertex from its nearest collider, x (..., n, 3) -> (..., n);
+        ``targets`` as in :meth:`energy`."""
+        return torch.stack(self._signed_distances(x, targets)).amin(0)
 
     def local_gradient_hessian(self, xe: torch.Tensor, project: bool = True, hessian: bool = True):
         """Per vertex: g = b'(d) grad d and H = b''(d) grad d grad d^T + b'(d) Hess d, summed over the
@@ -255,9 +354,29 @@ class ContactBarrier(EnergyTerm):
         return g, H
 
     def first_impact(self, x: np.ndarray, dx: np.ndarray) -> float:
-        """The first time t >= 0 at which a vertex of x + t dx (x, dx (n, 3)) reaches a collider; inf if none does."""
+        """The first time t >= 0 at which a vertex of x + t dx (x, dx (n, 3)) reaches a collider (where
+        it stands: :meth:`posed` first when one is attached); inf if none does."""
         x, dx = np.asarray(x, dtype=float).reshape(-1, 3), np.asarray(dx, dtype=float).reshape(-1, 3)
         return min((float(np.min(c.time_of_impact(x, dx), initial=np.inf)) for c in self.colliders), default=np.inf)
+
+    def first_impact_between(self, x0: np.ndarray, targets0, x1: np.ndarray, targets1) -> float:
+        """As :meth:`first_impact` for the step from x0 to x1 (n, 3) while every attached collider moves
+        from its pose at ``targets0`` to its pose at ``targets1``: each vertex's path taken straight in the
+        collider's rest frame (exact for a translation; for a turn, a straight path between the carried-back
+        ends, which a solver's step of a small rotation follows closely)."""
+        x0, x1 = np.asarray(x0, dtype=float).reshape(-1, 3), np.asarray(x1, dtype=float).reshape(-1, 3)
+        if not self.moving:
+            return self.first_impact(x0, x1 - x0)
+        c0 = self.rest_dirichlet.mean(0)
+        back = []
+        for x, targets in ((x0, targets0), (x1, targets1)):
+            R, c = rigid_pose(self.rest_dirichlet, np.asarray(targets, dtype=float))
+            back.append((x - c.numpy()) @ R.numpy() + c0)
+        t = np.inf
+        for col, a in zip(self.colliders, self.attached):
+            start, end = back if a else (x0, x1)
+            t = min(t, float(np.min(col.time_of_impact(start, end - start), initial=np.inf)))
+        return t
 
     def max_step(self, x: np.ndarray, dx: np.ndarray, safety: float = 0.9) -> float:
         """The largest step fraction alpha in (0, 1] that keeps every vertex outside every collider

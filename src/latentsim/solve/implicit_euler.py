@@ -177,6 +177,7 @@ class ImplicitEuler:
         )
         if self.contact is not None:
             self.assembly.with_contact(self.contact)
+        self.step_contact = self.contact  # the barrier where the colliders stand this step (pose_colliders)
         self._last_iterations = 0  # the previous step's Newton iterations (NewtonSettings.fused_trial)
 
     # -- E_total and its derivatives ------------------------------------------
@@ -241,6 +242,14 @@ class ImplicitEuler:
         return dx
 
     # -- one time step --------------------------------------------------------
+    def pose_colliders(self, dirichlet_targets):
+        """Put every collider attached to the prescribed vertices where ``dirichlet_targets`` (m, 3) carry it
+        (``ContactBarrier.posed``): the energy, its derivatives and the line search of what follows see that
+        pose.  :meth:`step` calls it; a solver that steps otherwise (a reduced one) calls it per step."""
+        if self.contact is not None and self.contact.moving:
+            self.step_contact = self.contact.posed(dirichlet_targets)
+            self.assembly.contact = self.step_contact
+
     def initial_guess(self, x_prev, x_prev2, dirichlet_targets):
         """The lowest-energy of the constant-velocity predictor, x_{t-1}, and x_{t-1} carried by
         the rigid motion that best maps its Dirichlet vertices onto their targets (when the
@@ -259,8 +268,8 @@ class ImplicitEuler:
         best, e_best, energies = None, np.inf, []
         for c in candidates:
             c[D] = dirichlet_targets
-            if self.contact is not None and not self.contact.first_impact(x_prev, c - x_prev) > 1.0:
-                energies.append(np.inf)  # its path from x_{t-1} passes through a collider
+            if self.contact is not None and not self.contact.first_impact_between(x_prev, x_prev[D], c, dirichlet_targets) > 1.0:
+                energies.append(np.inf)  # its path from x_{t-1} passes through a collider (as the attached ones move)
                 continue
             e = self.energy(c, x_prev, x_prev2)
             energies.append(e)
@@ -296,6 +305,7 @@ class ImplicitEuler:
         s = self.settings
         info = StepInfo()
         t0 = time.perf_counter()
+        self.pose_colliders(dirichlet_targets)
         x = self.initial_guess(x_prev, x_prev2, dirichlet_targets)
         e, grad = self._evaluate(x, x_prev, x_prev2)
         info.timings["guess"] += time.perf_counter() - t0
@@ -371,7 +381,7 @@ class _StepProblem:
     def max_step(self, x, dx) -> float:
         """The contact barrier's ``max_step``: the step fraction that keeps every vertex outside the
         colliders (1 without colliders)."""
-        contact = self.solver.contact
+        contact = self.solver.step_contact
         return 1.0 if contact is None else contact.max_step(x, dx)
 
     def _time_line_search(self, seconds):

@@ -131,7 +131,7 @@ def simulate_scene(scene: str, mesh_h5, cfg: dict, out_h5, paraview_dir=None, pr
             label, len(data["positions"]), data["frame_ms"][1:].mean(), it.mean(), {k: round(v, 3) for k, v in timings.items()},
         )
         if pot.contact is not None:
-            data["min_contact_distance"] = pot.contact.distances(torch.as_tensor(data["positions"])).amin(-1).numpy()
+            data["min_contact_distance"] = pot.contact.distances(torch.as_tensor(data["positions"]), data["dirichlet_positions"]).amin(-1).numpy()
             inside = np.flatnonzero(data["min_contact_distance"] <= 0)
             if inside.size:
                 raise SimulationError(f"{label}, frame {inside[0]}: a vertex lies inside a collider (signed distance {data['min_contact_distance'][inside[0]]:.3e} m)")
