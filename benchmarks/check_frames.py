@@ -31,15 +31,16 @@ def check(path: Path) -> dict:
             if name.endswith("_train") and name[: -len("_train")] in f["sequences"]:
                 continue  # the first frames of a sequence stored whole
             X = torch.as_tensor(grp["positions"][()])
+            XD = torch.as_tensor(grp["dirichlet_positions"][()])  # where the colliders attached to them stand
             # x_{-1}: x_0 at rest, else a free body's initial rigid motion (the sequence's initial_velocity)
             x_before = torch.as_tensor(previous_positions(X[0].numpy(), f["masses"][()], grp.attrs.get("initial_velocity"), float(f.attrs["dt"])))
             for t in range(1, len(X)):
                 x = X[t].clone().requires_grad_(True)
-                (g,) = torch.autograd.grad(pot(x, X[t - 1], X[t - 2] if t >= 2 else x_before, penalty=False), x)
+                (g,) = torch.autograd.grad(pot(x, X[t - 1], X[t - 2] if t >= 2 else x_before, targets=XD[t], penalty=False), x)
                 worst = max(worst, float(g[free].norm()) / tol)
             frames += len(X) - 1
             if pot.contact is not None:
-                nearest = min(nearest, float(pot.contact.distances(X).min()))
+                nearest = min(nearest, float(pot.contact.distances(X, XD).min()))
             if "inverted_tets" in grp:
                 inverted += int((grp["inverted_tets"][1:] > 0).sum())
     return dict(law=law, frames=frames, worst=worst, inverted=inverted, nearest=nearest)

@@ -504,6 +504,10 @@ def test_collider_wireframes_lie_on_their_shapes_and_are_drawn(tmp_path):
     render.render_frames(gt, {}, "seq", [1], tmp_path / "b.png", dpi=60, colliders=[ball])
     a, b = (mpimg.imread(tmp_path / f)[..., :3] for f in ("a.png", "b.png"))
     assert (b < 0.8).mean() > (a < 0.8).mean()
+    # colliders that move with the program: a function of the frame, drawn where it places them at that frame
+    away = {**ball, "centre": [5.0, 5.0, 5.0]}
+    render.render_frames(gt, {}, "seq", [1], tmp_path / "c.png", dpi=60, colliders=lambda frame: [ball] if frame == 1 else [away])
+    assert np.array_equal(mpimg.imread(tmp_path / "c.png"), mpimg.imread(tmp_path / "b.png"))
 
 
 def test_render_frames_errors_name_sequence_and_frame(example, tmp_path):

@@ -159,7 +159,7 @@ def survive_latent(integrator, ae, coords, z0, z1, condition: Condition, dirichl
             err = dirichlet_error(x, dirichlet, condition.dirichlet_positions[s:e], rest_diag)
             k = int(np.argmax(bad)) if bad.any() else e - s
             if contact is not None and k:
-                d = contact.distances(torch.as_tensor(x[:k], dtype=torch.float64)).amin(-1).numpy()
+                d = contact.distances(torch.as_tensor(x[:k], dtype=torch.float64), xD_all[s : s + k]).amin(-1).numpy()
                 depth = max(depth, float(np.maximum(-d, 0.0).max()))
             if bad.any():
                 errors.append(err[:k])

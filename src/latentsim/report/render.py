@@ -163,6 +163,12 @@ def collider_segments(colliders, limits) -> np.ndarray:
     return np.concatenate(segs) if segs else np.zeros((0, 2, 3))
 
 
+def _at_frame(colliders, frame: int):
+    """The collider entries to draw at ``frame``: ``colliders`` itself (static ones), or what it gives for
+    the frame when it is a function of the frame (colliders that move with the boundary-condition program)."""
+    return colliders(frame) if callable(colliders) else colliders
+
+
 def _draw_panel(ax, motion: Motion, frame: int, limits, vertical, elev, azim, colour, title=True, values=None, cmap=None, colliders=()):
     """Draw one motion at one frame on a 3D axis; returns the panel's status.
 
@@ -296,7 +302,8 @@ def render_frames(
         ``"row"`` fits each row (frame) to the ground truth at that frame, for
         motions that travel far (the panels of a row still share their axes).
     elev, azim : float, view angles [degrees]; the vertical axis is y (gravity).
-    colliders : a scene's ``contact.colliders`` (dicts), drawn as grey wireframes in every panel.
+    colliders : a scene's ``contact.colliders`` (dicts), drawn as grey wireframes in every panel; or a
+        function of the frame giving them where they stand then (attached ones move).
     color_by_error : bool
         Colour each method's elements by the distance of their vertices to the
         ground truth at the same frame (viridis, one scale for the whole
@@ -349,7 +356,7 @@ def render_frames(
         for j, m in enumerate(motions):
             ax = fig.add_subplot(shape[0], shape[1], place(i, j), projection="3d")
             values = _error_values(per_vertex, i, j, top) if color_by_error else None
-            status[i, j] = _draw_panel(ax, m, fr, limits[i], m.vertical, elev, azim, colours[j], values=values, cmap=_ERROR_CMAP, colliders=colliders)
+            status[i, j] = _draw_panel(ax, m, fr, limits[i], m.vertical, elev, azim, colours[j], values=values, cmap=_ERROR_CMAP, colliders=_at_frame(colliders, fr))
     fig.suptitle(title or f"{sequence}: ground truth vs methods (red: Dirichlet vertices)", fontsize=10)
     fig.subplots_adjust(
         left=0.01, right=0.99, bottom=(footer + 0.05) / height, top=1 - header / height, wspace=0.02, hspace=0.2 if per_line is None else 0.3
@@ -448,7 +455,7 @@ def render_clip(
     def update(i, fr):
         for j, (ax, m, c) in enumerate(zip(axes, motions, colours)):
             values = _error_values(per_vertex, i, j, top) if color_by_error else None
-            _draw_panel(ax, m, fr, limits, m.vertical, elev, azim, c, title=False, values=values, cmap=_ERROR_CMAP, colliders=colliders)
+            _draw_panel(ax, m, fr, limits, m.vertical, elev, azim, c, title=False, values=values, cmap=_ERROR_CMAP, colliders=_at_frame(colliders, fr))
             ax.set_title(m.label, fontsize=8)
         head.set_text(f"{title or sequence}   frame {fr}   t = {fr * motions[0].dt:.2f} s")
 

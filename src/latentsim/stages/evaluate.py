@@ -17,6 +17,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 
 from pathlib import Path
@@ -46,7 +47,7 @@ from latentsim.report.tables import (
     table2,
     write_table,
 )
-from latentsim.scene import CONTACT_ATTR, contact_from_artefact
+from latentsim.scene import CONTACT_ATTR, contact_from_artefact, posed_collider_entries
 
 __all__ = ["evaluate_scene", "render_scene", "summarise", "write_scene_evaluation"]
 
@@ -104,7 +105,7 @@ def evaluate_scene(scene: str, trajectories, rollouts):
                     except ValueError as e:
                         raise ValueError(f"{path}: sequence {name!r}: {e}") from e
                     if contact is not None:
-                        metrics.update(penetration(contact, pred, diag, int(g.attrs["diverged_frame"])))
+                        metrics.update(penetration(contact, pred, diag, int(g.attrs["diverged_frame"]), gt["dirichlet_positions"][()]))
                     curves.setdefault(method, {}).setdefault(name, curve)  # the curves of the method's first seed
                     # same-run timing of full-space frames when the rollout stage measured it
                     full_ms = float(fr.attrs.get("full_ms", np.median(gt["frame_ms"][1:])))
@@ -116,14 +117,21 @@ def evaluate_scene(scene: str, trajectories, rollouts):
     return pd.DataFrame(rows), curves
 
 
-def penetration(contact, positions, diag: float, diverged_frame: int) -> dict:
+def _posed_at(entries, rest_dirichlet, dirichlet_positions, frame: int) -> list[dict]:
+    """The collider entries where a sequence's program (its ``dirichlet_positions`` (T, m, 3)) carries them at ``frame``."""
+    return posed_collider_entries(entries, rest_dirichlet, dirichlet_positions[frame])
+
+
+def penetration(contact, positions, diag: float, diverged_frame: int, dirichlet_positions=None) -> dict:
     """How far a rollout's vertices enter the scene's colliders, over the frames before divergence:
     ``max_penetration`` (the deepest vertex of any frame / the rest bbox diagonal; 0 when none enters)
-    and ``penetrating_frames`` (frames with any vertex inside)."""
+    and ``penetrating_frames`` (frames with any vertex inside).  ``dirichlet_positions`` (T, m, 3), the
+    sequence's prescribed positions, place the colliders attached to them (needed with one)."""
     ok = positions[: len(positions) if diverged_frame < 0 else diverged_frame]
     if not len(ok):
         return {"max_penetration": float("nan"), "penetrating_frames": 0}
-    d = contact.distances(torch.as_tensor(ok, dtype=torch.float64)).amin(-1).numpy()
+    targets = None if dirichlet_positions is None else np.asarray(dirichlet_positions)[: len(ok)]
+    d = contact.distances(torch.as_tensor(ok, dtype=torch.float64), targets).amin(-1).numpy()
     return {"max_penetration": float(np.maximum(-d, 0.0).max() / diag), "penetrating_frames": int((d < 0).sum())}
 
 
@@ -269,6 +277,8 @@ def render_scene(scene: str, trajectories, rollouts, frames_png, clip_gif, parav
         g = require(f["sequences"], sequence)
         T = g["positions"].shape[0]
         colliders = json.loads(str(f.attrs[CONTACT_ATTR]))["colliders"] if CONTACT_ATTR in f.attrs else []
+        if any(q.get("attached") for q in colliders):  # drawn where the sequence's program carries them at each frame
+            colliders = functools.partial(_posed_at, colliders, f["rest_positions"][()][f["dirichlet"][()]], g["dirichlet_positions"][()])
         # with colliders, the second picture is the ground truth's nearest approach to one
         second = int(np.argmin(g["min_contact_distance"][()])) if colliders and "min_contact_distance" in g else T // 3
     picks = sorted({0, second, (2 * T) // 3, T - 1})
