@@ -231,6 +231,11 @@ def test_the_simulation_stage_with_a_collider_and_the_independent_frame_check(tm
         d_hat = float(__import__("json").loads(f.attrs["contact"])["d_hat"])
     assert report["frames"] == 29 and report["worst"] <= 1.0
     assert 0 < report["nearest"] == pytest.approx(near.min()) and near.min() < d_hat
+    if not attached:  # the two held corners do not fix a pose for a collider attached to them: the stage says so
+        cfg["contact"]["colliders"][0]["attached"] = True
+        with pytest.raises(RuntimeError, match=r"scene 'contact': contact.colliders: .*three of them not on one line \(2 prescribed\)"):
+            simulate_scene("contact", mesh_h5, cfg, tmp_path / "other.h5")
+        assert not (tmp_path / "other.h5").exists()
 
 
 def test_a_solver_whose_elastic_terms_miss_some_vertices_still_assembles_every_vertexs_barrier():

@@ -171,6 +171,34 @@ def test_dry_run_of_the_bunny_drop_example_plans_a_free_body_thrown_straight_up_
     _assert_example_plans_its_scene(config, "bunny_drop", tmp_path)
 
 
+def test_dry_run_of_the_cape_example_plans_a_cloth_against_a_body_that_moves_with_it(tmp_path):
+    """config/examples/cape.yaml (a cloth held along its top edge, a capsule attached to the held vertices)
+    validates and plans every stage of its scene; the held set fixes a pose (not on one line), the body starts
+    clear of the cloth, and the test half walks at speeds between the training half's (its run:
+    docs/measurements.md)."""
+    from latentsim.mesh import cloth_grid
+    from latentsim.physics.contact import Capsule
+    from latentsim.scene import bc_parameters
+
+    config = ROOT / "config" / "examples" / "cape.yaml"
+    scene = yaml.safe_load(config.read_text())["scenes"]["cape"]
+    (body,) = scene["contact"]["colliders"]
+    assert body["attached"] is True
+    m = scene["mesh"]
+    x, _ = cloth_grid(m["nx"], m["ny"], m["width"], m["height"], plane=m["plane"])
+    held = np.asarray(x)[scene["dirichlet"]["indices"]]
+    assert np.linalg.svd(held - held.mean(0), compute_uv=False)[1] > 0.01  # not on one line
+    clearance = Capsule(body["a"], body["b"], body["radius"]).distance(torch.as_tensor(np.asarray(x, dtype=float)))
+    assert float(clearance.min()) == pytest.approx(0.01, abs=5e-4)
+    (seq,) = scene["sequences"]
+    p = bc_parameters(seq, seq["frames"])
+    assert not p[:, 3:].any() and not p[:, :2].any()  # it walks along the sheet's normal and never turns
+    train, test = p[: seq["train_frames"], 2], p[seq["train_frames"] :, 2]
+    assert train.min() < test.min() < 0 < test.max() < train.max()
+    assert not set(np.unique(test)) - {0.0} & set(np.unique(train))  # the test's speeds are none of the training's
+    _assert_example_plans_its_scene(config, "cape", tmp_path)
+
+
 def test_slurm_profile_dry_run(tmp_path):
     out = snakemake("-n", "all", "--workflow-profile", str(ROOT / "profiles" / "slurm"), "--configfile", str(TINY), "--directory", str(tmp_path)).stdout
     jobs = planned_jobs(out)

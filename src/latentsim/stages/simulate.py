@@ -38,7 +38,7 @@ log = logging.getLogger(__name__)
 
 
 class SimulationError(RuntimeError):
-    """A frame failed to converge; the message names scene, sequence and frame."""
+    """A frame failed to converge (the message names scene, sequence and frame), or the scene cannot be built."""
 
 
 def read_mesh_arrays(path) -> dict:
@@ -105,7 +105,10 @@ def simulate_scene(scene: str, mesh_h5, cfg: dict, out_h5, paraview_dir=None, pr
     model = arrays["model"]
     if model != cfg["model"]:
         raise SimulationError(f"scene '{scene}': {mesh_h5} holds a '{model}' mesh, the config says '{cfg['model']}'")
-    pot = build_potential(model, arrays, cfg["material"], cfg["dt"], cfg["gravity"], free_only=True, contact=cfg.get("contact"))
+    try:
+        pot = build_potential(model, arrays, cfg["material"], cfg["dt"], cfg["gravity"], free_only=True, contact=cfg.get("contact"))
+    except ValueError as e:  # e.g. a collider attached to a prescribed set that does not fix a pose
+        raise SimulationError(f"scene '{scene}': {e}") from None
     contact = None  # the contact block with its defaults resolved, as the trajectories file records it
     if pot.contact is not None:
         contact = {"colliders": list(cfg["contact"]["colliders"]), "d_hat": pot.contact.d_hat, "kappa": pot.contact.kappa}
