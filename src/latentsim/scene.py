@@ -277,7 +277,7 @@ def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity
     barrier = None
     if contact and contact.get("colliders"):
         c = contact_settings(contact, arrays["rest_positions"], elastic.masses.numpy(), g.numpy())
-        barrier = contact_barrier(c, elastic.n_vertices, arrays["rest_positions"], arrays.get("dirichlet", ()))
+        barrier = contact_barrier(c, elastic.n_vertices, arrays["rest_positions"], arrays.get("dirichlet", ()), dt)
     return IncrementalPotential(
         terms=elastic.terms,
         masses=elastic.masses,
@@ -289,6 +289,9 @@ def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity
     )
 
 
+#: IPC's velocity below which friction is static [m/s], where a scene's ``contact.friction_velocity`` is unset
+FRICTION_VELOCITY = 1e-3
+
 #: the analytic colliders a scene's ``contact.colliders`` may list, by ``type``
 COLLIDERS = {"half_space": (HalfSpace, ("point", "normal")), "sphere": (Sphere, ("centre", "radius")), "capsule": (Capsule, ("a", "b", "radius"))}
 
@@ -299,15 +302,18 @@ def collider(q: dict):
     return cls(*(q[k] for k in keys))
 
 
-def contact_barrier(contact: dict, n_vertices: int, rest_positions, dirichlet) -> ContactBarrier:
+def contact_barrier(contact: dict, n_vertices: int, rest_positions, dirichlet, dt: float) -> ContactBarrier:
     """The barrier of a resolved ``contact`` block (:func:`contact_settings`): its colliders, those with
     ``attached: true`` moving rigidly with the prescribed vertices ``dirichlet`` (indices into
-    ``rest_positions``)."""
+    ``rest_positions``), and its friction (static below a slip of ``friction_velocity`` times the time step
+    ``dt``)."""
     attached = [bool(q.get("attached", False)) for q in contact["colliders"]]
     rest_D = np.asarray(rest_positions, dtype=float)[np.asarray(dirichlet, dtype=np.int64)] if any(attached) else None
+    mu = float(contact.get("friction", 0.0))
+    slip = float(contact.get("friction_velocity", FRICTION_VELOCITY)) * float(dt) if mu > 0 else None
     try:
         return ContactBarrier(n_vertices, [collider(q) for q in contact["colliders"]], contact["d_hat"], contact["kappa"],
-                              attached=attached, rest_dirichlet=rest_D)  # fmt: skip
+                              attached=attached, rest_dirichlet=rest_D, friction=mu, slip=slip)  # fmt: skip
     except ValueError as e:
         raise ValueError(f"contact.colliders: {e}") from None
 
@@ -332,11 +338,15 @@ def posed_collider_entries(entries, rest_dirichlet, targets) -> list[dict]:
 def contact_settings(contact: dict, rest_positions, masses, gravity) -> dict:
     """A scene's ``contact`` block with its defaults resolved: ``d_hat`` (null: 1e-3 of the rest
     bounding-box diagonal, IPC's default) and ``kappa`` (null: 100 m_max |g| / d_hat, so that the
-    barrier holds a vertex pressed with 119 times the heaviest vertex's weight at d_hat / 2)."""
+    barrier holds a vertex pressed with 119 times the heaviest vertex's weight at d_hat / 2); with
+    ``friction``, its ``friction_velocity`` (unset: :data:`FRICTION_VELOCITY`)."""
     rest = np.asarray(rest_positions, dtype=float)
     d_hat = contact.get("d_hat") or 1e-3 * float(np.linalg.norm(rest.max(0) - rest.min(0)))
     kappa = contact.get("kappa") or 100.0 * float(np.max(masses)) * max(float(np.linalg.norm(gravity)), 1.0) / d_hat
-    return {"colliders": list(contact["colliders"]), "d_hat": float(d_hat), "kappa": float(kappa)}
+    out = {"colliders": list(contact["colliders"]), "d_hat": float(d_hat), "kappa": float(kappa)}
+    if contact.get("friction"):  # (a frictionless block resolves as it did before friction existed)
+        out.update(friction=float(contact["friction"]), friction_velocity=float(contact.get("friction_velocity") or FRICTION_VELOCITY))
+    return out
 
 
 MATERIAL_KEYS = ("youngs_modulus", "poisson_ratio", "density", "thickness", "radius", "bending_stiffness")
@@ -353,7 +363,7 @@ def contact_from_artefact(f) -> ContactBarrier | None:
     if CONTACT_ATTR not in f.attrs:
         return None
     c = json.loads(str(f.attrs[CONTACT_ATTR]))
-    return contact_barrier(c, len(f["rest_positions"]), f["rest_positions"][()], f["dirichlet"][()] if "dirichlet" in f else ())
+    return contact_barrier(c, len(f["rest_positions"]), f["rest_positions"][()], f["dirichlet"][()] if "dirichlet" in f else (), float(f.attrs["dt"]))
 
 
 def potential_from_artefact(f, w_bc: float = 1e5, free_only: bool = False) -> IncrementalPotential:

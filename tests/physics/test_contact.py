@@ -64,20 +64,27 @@ def test_distance_derivatives_match_autograd(name):
     assert torch.allclose(g, ga, atol=1e-12) and torch.allclose(H, Ha, atol=1e-10)
 
 
+def _closed_form_against_oracle_and_differences(term, x, rtol):
+    """The term's closed-form per-vertex gradient and exact Hessian at x against the autograd oracle (Hessian to
+    ``rtol``), and the gradient against central differences of the total energy; returns them."""
+    xe = term.gather(x)
+    g, H = term.local_gradient_hessian(xe, project=False)
+    go, Ho = autograd_gradient_hessian(term, xe, project=False)
+    assert torch.allclose(g, go.reshape(g.shape), rtol=1e-9, atol=1e-9) and torch.allclose(H, Ho.reshape(H.shape), rtol=rtol, atol=rtol)
+    v = torch.randn(x.shape, generator=torch.Generator().manual_seed(1), dtype=F64)
+    h = 1e-7
+    fd = (term.energy(x + h * v) - term.energy(x - h * v)) / (2 * h)
+    assert float((g * v).sum()) == pytest.approx(float(fd), rel=1e-6)
+    return g, H
+
+
 @pytest.mark.parametrize("name", COLLIDERS)
 def test_barrier_term_gradient_and_hessian_against_its_oracle_and_finite_differences(name):
     c = COLLIDERS[name]
     x = _points_near(c)
     term = ContactBarrier(len(x), [c], d_hat=0.05, kappa=2.0)
     xe = term.gather(x)
-    g, H = term.local_gradient_hessian(xe, project=False)
-    go, Ho = autograd_gradient_hessian(term, xe, project=False)
-    assert torch.allclose(g, go.reshape(g.shape), rtol=1e-9, atol=1e-9) and torch.allclose(H, Ho.reshape(H.shape), rtol=1e-8, atol=1e-8)
-    # the total energy's gradient against central differences
-    v = torch.randn(x.shape, generator=torch.Generator().manual_seed(1), dtype=F64)
-    h = 1e-7
-    fd = (term.energy(x + h * v) - term.energy(x - h * v)) / (2 * h)
-    assert float((g * v).sum()) == pytest.approx(float(fd), rel=1e-6)
+    g, H = _closed_form_against_oracle_and_differences(term, x, rtol=1e-8)
     # projected: PSD, and equal where already PSD
     gp, Hp = term.local_gradient_hessian(xe, project=True)
     assert torch.linalg.eigvalsh(Hp).min() > -1e-9 and torch.equal(gp, g)
@@ -154,14 +161,34 @@ def test_the_extended_barrier_is_finite_inside_c2_at_the_seam_and_exact_above_it
     assert float(wide.energy(x)) == pytest.approx(float(barrier(torch.tensor([0.05], dtype=F64), 10 * d_hat, 0.01 * kappa)))
 
 
+def _free_cloth_frames(arrays, material, dt, contact, frames, tolerance):
+    """Step a free shell against ``contact`` from rest for ``frames`` frames; every frame's gradient of the
+    potential (barrier and lagged friction included) by autograd of the PyTorch energies is within the
+    solver's tolerance and no vertex is inside a collider.  Yields (x, nearest approach, d_hat) per frame."""
+    from latentsim.scene import build_potential
+    from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings
+
+    pot = build_potential("shell", arrays, material, dt, [0, -9.81, 0], free_only=True, contact=contact)
+    check = build_potential("shell", arrays, material, dt, [0, -9.81, 0], contact=contact)
+    solver = ImplicitEuler(pot, NewtonSettings(tolerance=tolerance))
+    x2 = x1 = np.asarray(arrays["rest_positions"], dtype=np.float64).copy()
+    for _ in range(frames):
+        x, _ = solver.step(x1, x2, np.zeros((0, 3)))
+        xt = torch.as_tensor(x).requires_grad_(True)
+        (g,) = torch.autograd.grad(check(xt, torch.as_tensor(x1), torch.as_tensor(x2), penalty=False), xt)
+        assert float(g.norm()) <= 1.5 * tolerance * solver.f_ref
+        nearest = float(pot.contact.distances(torch.as_tensor(x)).min())
+        assert nearest > 0
+        yield x, nearest, pot.contact.d_hat
+        x2, x1 = x1, x
+
+
 @pytest.mark.parametrize("shape", ["half_space", "sphere"])
 def test_a_cloth_dropped_on_a_collider_never_enters_it_and_every_frame_solves_its_equations_of_motion(shape):
     """Full space: a free cloth falls onto a half-space (and comes to rest on it, within d_hat) or onto a
     sphere (and slides off it); in every frame no vertex is inside, and the gradient of the incremental
     potential with the barrier, by autograd of the PyTorch energies, is within the solver's tolerance."""
     from latentsim.mesh import cloth_grid
-    from latentsim.scene import build_potential
-    from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings
 
     X, tris = cloth_grid(4, 4, 0.3, 0.3, plane="xz")
     X = np.asarray(X, dtype=np.float64)
@@ -169,22 +196,12 @@ def test_a_cloth_dropped_on_a_collider_never_enters_it_and_every_frame_solves_it
     material = {"youngs_modulus": 1e5, "poisson_ratio": 0.3, "density": 200.0, "thickness": 0.001}
     colliders = {"half_space": {"type": "half_space", "point": [0, -0.05, 0], "normal": [0, 1, 0]},
                  "sphere": {"type": "sphere", "centre": [0.05, -0.12, 0.02], "radius": 0.1}}  # fmt: skip
-    pot = build_potential("shell", arrays, material, 1 / 60, [0, -9.81, 0], free_only=True, contact={"colliders": [colliders[shape]]})
-    solver = ImplicitEuler(pot, NewtonSettings(tolerance=1e-6))
-    check = build_potential("shell", arrays, material, 1 / 60, [0, -9.81, 0], contact={"colliders": [colliders[shape]]})
-    tol = 1e-6 * solver.f_ref
-    x2 = x1 = X.copy()
-    nearest = []
-    for _ in range(90):
-        x, _ = solver.step(x1, x2, np.zeros((0, 3)))
-        xt = torch.as_tensor(x).requires_grad_(True)
-        (g,) = torch.autograd.grad(check(xt, torch.as_tensor(x1), torch.as_tensor(x2), penalty=False), xt)
-        assert float(g.norm()) <= 1.5 * tol
-        nearest.append(float(pot.contact.distances(torch.as_tensor(x)).min()))
-        x2, x1 = x1, x
-    assert min(nearest) > 0 and min(nearest) < pot.contact.d_hat  # it touched, and never entered
+    frames = list(_free_cloth_frames(arrays, material, 1 / 60, {"colliders": [colliders[shape]]}, 90, 1e-6))
+    nearest, d_hat = [d for _, d, _ in frames], frames[0][2]
+    assert min(nearest) < d_hat  # it touched, and never entered
+    x1, x2 = frames[-1][0], frames[-2][0]
     if shape == "half_space":  # at rest on the plane, inside the barrier's reach
-        assert 0 < nearest[-1] < pot.contact.d_hat and np.abs(x1 - x2).max() * 60 < 1e-3
+        assert 0 < nearest[-1] < d_hat and np.abs(x1 - x2).max() * 60 < 1e-3
     else:  # slid off: falling below the sphere's centre
         assert x1[:, 1].max() < -0.12
 
@@ -479,7 +496,7 @@ def test_attached_collider_entries_are_placed_per_frame_and_penetration_is_measu
     assert posed_collider_entries(entries[2:], REST_D, targets) == entries[2:]
     # a ball carried 0.5 m along x over 11 frames by the prescribed vertices (indices 0-3 of 5 vertices)
     rest = np.vstack([REST_D, [[0.3, 0.15, 0.0]]])  # the fifth, 5 cm above the ball
-    contact = contact_barrier({"colliders": entries[:1], "d_hat": 0.01, "kappa": 1.0}, 5, rest, [0, 1, 2, 3])
+    contact = contact_barrier({"colliders": entries[:1], "d_hat": 0.01, "kappa": 1.0}, 5, rest, [0, 1, 2, 3], 1 / 30)
     shifts = np.linspace(0, 0.5, 11)[:, None, None] * [1.0, 0.0, 0.0]
     XD = REST_D[None] + shifts
     riding = rest[None] + shifts
@@ -488,3 +505,92 @@ def test_attached_collider_entries_are_placed_per_frame_and_penetration_is_measu
     assert penetration(contact, riding, 1.0, -1, XD) == {"max_penetration": 0.0, "penetrating_frames": 0}
     out = penetration(contact, staying, 1.0, -1, XD)
     assert out["max_penetration"] == pytest.approx(0.05) and out["penetrating_frames"] > 0
+
+
+# --- lagged friction ------------------------------------------------------------------------------
+
+
+def test_friction_potential_is_c1_at_the_slip_and_its_derivative_rises_from_zero_to_one():
+    from latentsim.physics.contact import friction_f0, friction_f1_over_s
+
+    eps = 1e-3
+    s = torch.tensor([0.0, 0.3e-3, eps * (1 - 1e-9), eps * (1 + 1e-9), 5e-3], dtype=F64, requires_grad=True)
+    f0 = friction_f0(s, eps)
+    (f1,) = torch.autograd.grad(f0.sum(), s)
+    assert f1[0] == 0 and f1[2] == pytest.approx(1.0) and f1[3] == pytest.approx(1.0) and f1[4] == 1.0
+    f0 = f0.detach()
+    assert float(f0[2]) == pytest.approx(float(f0[3]))  # continuous at eps, and equal to s above
+    assert float(f0[4]) == pytest.approx(5e-3)
+    assert torch.allclose(friction_f1_over_s(s.detach()[1:], eps) * s.detach()[1:], f1[1:], rtol=1e-9)
+
+
+@pytest.mark.parametrize("name", COLLIDERS)
+def test_friction_gradient_and_hessian_against_the_oracle_finite_differences_and_the_lagged_energy(name):
+    """A solver step's barrier with friction (anchored at x_prev, slips below and above the static slip):
+    closed-form per-vertex gradient and Hessian against autograd and central differences, PSD without
+    projection; its energy equals the potential's path, which lags the friction from x_prev itself."""
+    c = COLLIDERS[name]
+    x_prev = _points_near(c)
+    slide = torch.randn(x_prev.shape, generator=torch.Generator().manual_seed(4), dtype=F64)
+    n, _ = c.distance_derivatives(x_prev)
+    slide = slide - (slide * n).sum(-1, keepdim=True) * n  # along the surface, with a little off it
+    slide = slide / slide.norm(dim=-1, keepdim=True) + 0.1 * n
+    x = x_prev + slide * torch.linspace(1e-5, 1e-2, len(x_prev), dtype=F64)[:, None]  # slips below and above 1e-3
+    term = ContactBarrier(len(x), [c], d_hat=0.05, kappa=2.0, friction=0.4, slip=1e-3)
+    step = term.anchored(x_prev.numpy(), np.zeros((0, 3)), np.zeros((0, 3)))
+    assert float(step.energy(x)) > float(ContactBarrier(len(x), [c], d_hat=0.05, kappa=2.0).energy(x))  # friction adds
+    assert float(step.energy(x)) == pytest.approx(float(term.energy(x, x_prev=x_prev)), rel=1e-12)
+    xe = step.gather(x)
+    _closed_form_against_oracle_and_differences(step, x, rtol=1e-6)
+    # friction alone is PSD in closed form (the barrier's part needs the projection for curved colliders)
+    flat = ContactBarrier(len(x), [HalfSpace((0, -0.5, 0), (0, 1, 0))], d_hat=0.05, kappa=2.0, friction=0.4, slip=1e-3)
+    _, Hf = flat.anchored(x_prev.numpy(), np.zeros((0, 3)), np.zeros((0, 3))).local_gradient_hessian(xe, project=False)
+    assert torch.linalg.eigvalsh(Hf).min() > -1e-9
+
+
+def test_friction_with_an_attached_collider_counts_the_slip_relative_to_it():
+    """A vertex resting on an attached plane and carried with it has no slip (no friction energy), one left
+    behind as the plane moves has the plane's displacement as its slip."""
+    plane = HalfSpace((0.0, 0.0, 0.0), (0.0, 1.0, 0.0))
+    term = ContactBarrier(1, [plane], d_hat=0.01, kappa=1.0, attached=[True], rest_dirichlet=REST_D, friction=0.5, slip=1e-4)
+    x_prev = torch.tensor([[0.3, 0.004, 0.0]], dtype=F64)
+    shift = torch.tensor([0.02, 0.0, 0.0], dtype=F64)
+    D0, D1 = torch.as_tensor(REST_D), torch.as_tensor(REST_D) + shift
+    no_friction = ContactBarrier(1, [plane], d_hat=0.01, kappa=1.0, attached=[True], rest_dirichlet=REST_D)
+    carried, left = x_prev + shift, x_prev
+    base = float(no_friction.energy(carried, D1))
+    lam = -float(barrier_derivatives(torch.tensor([0.004], dtype=F64), 0.01, 1.0)[0])
+    assert float(term.energy(carried, D1, x_prev=x_prev, targets_prev=D0)) == pytest.approx(base + 0.5 * lam * 1e-4 / 3, rel=1e-9)
+    assert float(term.energy(left, D1, x_prev=x_prev, targets_prev=D0)) == pytest.approx(base + 0.5 * lam * 0.02, rel=1e-9)
+    step = term.anchored(x_prev.numpy(), REST_D, D1.numpy())
+    assert float(step.energy(left)) == pytest.approx(float(term.energy(left, D1, x_prev=x_prev, targets_prev=D0)), rel=1e-12)
+
+
+@pytest.mark.parametrize("mu", [0.0, 0.2, 0.8])
+def test_a_cloth_on_an_incline_slides_as_coulomb_friction_says_or_sticks(mu):
+    """Analytic benchmark: a free cloth lying on a plane inclined at tan(theta) = 0.5 accelerates down it at
+    g (sin theta - mu cos theta) when mu < tan(theta) (frictionless: g sin theta) and stays put when mu > tan
+    theta (creeping at most the static slip's speed); every frame outside the plane and at the tolerance by
+    autograd of the potential, whose friction lags from the previous frame."""
+    from latentsim.mesh import cloth_grid
+
+    theta = math.atan(0.5)
+    down = np.array([math.cos(theta), -math.sin(theta), 0.0])  # along the slope, downwards
+    normal = np.array([math.sin(theta), math.cos(theta), 0.0])
+    X, tris = cloth_grid(3, 3, 0.1, 0.1, plane="xz")
+    X = np.asarray(X, dtype=np.float64)
+    X = X[:, 0:1] * down + X[:, 2:3] * np.array([0.0, 0.0, 1.0]) + 2e-4 * normal  # on the plane, inside d_hat
+    arrays = {"rest_positions": X, "triangles": tris, "dirichlet": np.zeros(0, dtype=np.int64)}
+    material = {"youngs_modulus": 1e5, "poisson_ratio": 0.3, "density": 200.0, "thickness": 0.001}
+    contact = {"colliders": [{"type": "half_space", "point": [0, 0, 0], "normal": normal.tolist()}], "d_hat": 5e-4}
+    if mu:
+        contact["friction"] = mu
+    dt = 1 / 100
+    along = [float(x.mean(0) @ down) for x, _, _ in _free_cloth_frames(arrays, material, dt, contact, 60, 1e-8)]
+    s = np.asarray(along) - float(X.mean(0) @ down)
+    accel = (s[-1] - 2 * s[-21] + s[-41]) / (20 * dt) ** 2  # over the last 0.4 s (a constant acceleration's second difference)
+    want = 9.81 * (math.sin(theta) - mu * math.cos(theta))
+    if want > 0:
+        assert accel == pytest.approx(want, rel=0.03)
+    else:  # it sticks: at most the static slip's creep, 1e-3 m/s, in 0.6 s
+        assert abs(s[-1]) < 0.6 * 1e-3

@@ -81,6 +81,18 @@ def rigid_pose(rest: np.ndarray, targets) -> tuple[torch.Tensor, torch.Tensor]:
     return (V * D[..., None, :]) @ U.transpose(-1, -2), c
 
 
+def friction_f0(s: torch.Tensor, eps: float) -> torch.Tensor:
+    """IPC's smoothed friction potential of a tangential slip s >= 0 over a step (Li et al. 2020, Eq. 14):
+    s^2 / eps - s^3 / (3 eps^2) + eps / 3 below eps, s above (C1 at eps; its derivative f1 rises from 0 to 1
+    over the slip eps, the static-to-dynamic transition)."""
+    return torch.where(s < eps, s * s / eps - s**3 / (3 * eps * eps) + eps / 3, s)
+
+
+def friction_f1_over_s(s: torch.Tensor, eps: float) -> torch.Tensor:
+    """f0'(s) / s: 2 / eps - s / eps^2 below eps (finite at s = 0), 1 / s above."""
+    return torch.where(s < eps, 2 / eps - s / (eps * eps), 1 / torch.where(s < eps, torch.ones_like(s), s))
+
+
 class Collider:
     """An analytic shape: signed distance (positive outside), its gradient and Hessian, the time of
     impact along a straight step, and the shape carried by a rigid motion (:meth:`moved`)."""
@@ -248,6 +260,14 @@ class ContactBarrier(EnergyTerm):
         frame's targets.
     rest_dirichlet : (m, 3) the prescribed vertices' rest positions; needed (at least three of them, not on
         one line, so that the pose is determined) when a collider is attached.
+    friction : the coefficient mu of IPC's lagged friction (0: frictionless); slip : the tangential slip over a
+        step [m] below which friction is static (eps_v h in IPC's terms).
+
+    Friction (Li et al. 2020, sec. 5) is lagged over a step: each vertex's normal force lambda = -b'(d) and
+    tangent plane are those at the start of the step, and its energy mu lambda f0(|u|) of the slip u, the
+    step's displacement relative to the collider projected on that plane (:func:`friction_f0`).  Where the
+    step starts is an argument: ``x_prev`` (and ``targets_prev``, the prescribed positions then, for an
+    attached collider) to :meth:`energy`, or :meth:`anchored` for a solver's step.
 
     With an attached collider the barrier depends on the frame: :meth:`energy` and :meth:`distances` take
     the frame's ``targets``, and :meth:`posed` gives the static barrier of one frame (what a solver's
@@ -257,9 +277,13 @@ class ContactBarrier(EnergyTerm):
     name = "contact_barrier"
 
     def __init__(self, n_vertices: int, colliders, d_hat: float, kappa: float, extend_below: float | None = None,
-                 attached=None, rest_dirichlet=None):  # fmt: skip
+                 attached=None, rest_dirichlet=None, friction: float = 0.0, slip: float | None = None):  # fmt: skip
         if not (d_hat > 0 and kappa > 0):
             raise ValueError(f"contact barrier: d_hat {d_hat!r} and kappa {kappa!r} must be positive")
+        if not (friction >= 0 and (friction == 0 or (slip is not None and slip > 0))):
+            raise ValueError(f"contact barrier: friction {friction!r} must be >= 0, and with friction the slip {slip!r} positive")
+        self.friction, self.slip = float(friction), (None if slip is None else float(slip))
+        self._anchors = None  # a solver step's lagged friction state (anchored)
         if extend_below is not None and not 0 < extend_below < d_hat:
             raise ValueError(f"contact barrier: extend_below {extend_below!r} must lie in (0, d_hat = {d_hat})")
         self.colliders = list(colliders)
@@ -287,7 +311,8 @@ class ContactBarrier(EnergyTerm):
         kappa, continued below ``fraction`` of that distance by its quadratic Taylor expansion
         (:func:`barrier`'s ``extend_below``): finite inside the colliders, for learned losses."""
         d_hat = d_hat_factor * self.d_hat
-        return ContactBarrier(len(self.stencils), self.colliders, d_hat, kappa_factor * self.kappa, fraction * d_hat, self.attached, self.rest_dirichlet)
+        return ContactBarrier(len(self.stencils), self.colliders, d_hat, kappa_factor * self.kappa, fraction * d_hat, self.attached,
+                              self.rest_dirichlet, self.friction, self.slip)  # fmt: skip
 
     def posed(self, targets) -> "ContactBarrier":
         """The static barrier of one frame: every attached collider carried to its pose at ``targets`` (m, 3),
@@ -297,34 +322,88 @@ class ContactBarrier(EnergyTerm):
         R, c = rigid_pose(self.rest_dirichlet, np.asarray(targets, dtype=float))
         c0 = self.rest_dirichlet.mean(0)
         moved = [col.moved(R.numpy(), c0, c.numpy()) if a else col for col, a in zip(self.colliders, self.attached)]
-        return ContactBarrier(len(self.stencils), moved, self.d_hat, self.kappa, self.extend_below)
+        return ContactBarrier(len(self.stencils), moved, self.d_hat, self.kappa, self.extend_below, friction=self.friction, slip=self.slip)
+
+    def anchored(self, x_prev, targets_prev, targets) -> "ContactBarrier":
+        """The static barrier of a solver's step (:meth:`posed` at ``targets``) with its lagged friction: for
+        each collider and vertex the anchor (where the vertex stood at the step's start, carried with an
+        attached collider from its pose at ``targets_prev`` to its pose at ``targets``), the normal force
+        lambda = -b'(d) and the tangent projector there.  Frictionless, just :meth:`posed`."""
+        step = self.posed(targets)
+        if self.friction == 0:
+            return step
+        x_prev = torch.as_tensor(np.asarray(x_prev, dtype=float))
+        anchors = [x_prev] * len(self.colliders)
+        if self.moving:  # x_prev carried back to the rest frame at the step's start, then out to the pose at its end
+            back = self._to_rest(x_prev, targets_prev)
+            R, c = rigid_pose(self.rest_dirichlet, np.asarray(targets, dtype=float))
+            c0 = torch.as_tensor(self.rest_dirichlet.mean(0))
+            carried = (back - c0) @ R.transpose(-1, -2) + c
+            anchors = [carried if a else x_prev for a in self.attached]
+        step._anchors = [(a,) + self._lagged(col, a) for col, a in zip(step.colliders, anchors)]
+        return step
+
+    def _lagged(self, col, y_prev: torch.Tensor):
+        """lambda (...,) and the tangent projector (..., 3, 3) of collider ``col`` at the step's start y_prev."""
+        with torch.no_grad():
+            db, _ = barrier_derivatives(col.distance(y_prev), self.d_hat, self.kappa)
+            n, _ = col.distance_derivatives(y_prev)
+            P = torch.eye(3, dtype=y_prev.dtype, device=y_prev.device) - n[..., :, None] * n[..., None, :]
+        return -db, P
+
+    def _friction(self, col, y, y_prev=None, lagged=None) -> torch.Tensor:
+        """mu sum_i lambda_i f0(|P_i (y_i - y_prev_i)|) of one collider, y (..., n, 3) -> (...)."""
+        y_prev, lam, P = lagged if lagged is not None else (y_prev,) + self._lagged(col, y_prev)
+        u = (P @ (y - y_prev)[..., None])[..., 0]
+        s = torch.sqrt((u * u).sum(-1) + 1e-300)
+        return self.friction * (lam * torch.where(lam > 0, friction_f0(s, self.slip), torch.zeros_like(s))).sum(-1)
 
     def _signed_distances(self, x: torch.Tensor, targets) -> list[torch.Tensor]:
         """Each collider's signed distance of every vertex, x (..., n, 3) -> [(..., n)]; an attached
         collider's at its pose of ``targets`` (..., m, 3) (the same leading shape as x, or none), by
         carrying x back to the rest frame."""
-        if not self.moving:
-            return [c.distance(x) for c in self.colliders]
+        return [col.distance(y) for col, y in zip(self.colliders, self._frames(x, targets))]
+
+    def _to_rest(self, x: torch.Tensor, targets) -> torch.Tensor:
+        """x (..., n, 3) carried back to the attached colliders' rest frame from their pose at ``targets``."""
         if targets is None:
             raise ValueError("contact barrier: an attached collider's distance needs the frame's Dirichlet targets")
         targets = torch.as_tensor(targets, dtype=x.dtype, device=x.device)
         R, c = rigid_pose(self.rest_dirichlet, targets)
         c0 = torch.as_tensor(self.rest_dirichlet.mean(0), dtype=x.dtype, device=x.device)
-        x_rest = (x - c[..., None, :]) @ R + c0  # R^T (x - c) + c0, row-wise
-        return [col.distance(x_rest if a else x) for col, a in zip(self.colliders, self.attached)]
+        return (x - c[..., None, :]) @ R + c0  # R^T (x - c) + c0, row-wise
 
-    def energy(self, x: torch.Tensor, targets=None) -> torch.Tensor:
-        """Total barrier energy, x (..., n, 3) -> (...); ``targets`` (..., m, 3) the frame's prescribed
-        positions, needed with an attached collider."""
+    def _frames(self, x: torch.Tensor, targets) -> list[torch.Tensor]:
+        """x as each collider sees it: carried back to the rest frame for an attached one, as it is for a static one."""
         if not self.moving:
+            return [x] * len(self.colliders)
+        back = self._to_rest(x, targets)
+        return [back if a else x for a in self.attached]
+
+    def energy(self, x: torch.Tensor, targets=None, x_prev=None, targets_prev=None) -> torch.Tensor:
+        """Total barrier energy, x (..., n, 3) -> (...); ``targets`` (..., m, 3) the frame's prescribed
+        positions, needed with an attached collider.  With friction, also the lagged friction of the step from
+        ``x_prev`` (the prescribed positions then: ``targets_prev``), or of :meth:`anchored`'s step."""
+        if not self.moving and (self.friction == 0 or x_prev is None):
             return super().energy(x)
-        return sum(barrier(d, self.d_hat, self.kappa, self.extend_below).sum(-1) for d in self._signed_distances(x, targets))
+        frames = self._frames(x, targets)
+        e = sum(barrier(col.distance(y), self.d_hat, self.kappa, self.extend_below).sum(-1) for col, y in zip(self.colliders, frames))
+        if self.friction > 0 and x_prev is not None:
+            x_prev = torch.as_tensor(x_prev, dtype=x.dtype, device=x.device)
+            for col, y, y_prev in zip(self.colliders, frames, self._frames(x_prev, targets_prev)):
+                e = e + self._friction(col, y, y_prev)
+        return e
 
     def local_energy(self, xe: torch.Tensor) -> torch.Tensor:
         x = xe[..., 0, :]
         total = torch.zeros(x.shape[:-1], dtype=x.dtype, device=x.device)
         for c in self.colliders:
             total = total + barrier(c.distance(x), self.d_hat, self.kappa, self.extend_below)
+        if self._anchors is not None:  # a solver step's lagged friction, spread over the vertices
+            for c, (y_prev, lam, P) in zip(self.colliders, self._anchors):
+                u = (P @ (x - y_prev)[..., None])[..., 0]
+                s = torch.sqrt((u * u).sum(-1) + 1e-300)
+                total = total + self.friction * lam * friction_f0(s, self.slip)
         return total
 
     def distances(self, x: torch.Tensor, targets=None) -> torch.Tensor:
@@ -346,6 +425,16 @@ class ContactBarrier(EnergyTerm):
             g = g + db[:, None] * n
             if hessian:
                 H = H + d2b[:, None, None] * n[:, :, None] * n[:, None, :] + db[:, None, None] * hd
+        for c, (y_prev, lam, P) in zip(self.colliders, self._anchors or ()):
+            # mu lambda f0(|u|), u = P (x - y_prev): g = mu lambda f1(s)/s P u; H = mu lambda (f1/s P + (f1' - f1/s) / s^2 (Pu)(Pu)^T), PSD
+            u = (P @ (x - y_prev)[:, :, None])[:, :, 0]
+            s = torch.sqrt((u * u).sum(-1) + 1e-300)
+            k = self.friction * lam * friction_f1_over_s(s, self.slip)
+            g = g + k[:, None] * u
+            if hessian:
+                eps = self.slip
+                curv = torch.where(s < eps, -1.0 / (eps * eps * s), -1.0 / s**3)  # (f1' - f1/s) / s^2
+                H = H + k[:, None, None] * P + (self.friction * lam * curv)[:, None, None] * u[:, :, None] * u[:, None, :]
         if not hessian:
             return g, None
         if project:

@@ -114,7 +114,8 @@ class IncrementalPotential(ElasticPotential):
         elastic = self.elastic(x)
         e = e + gravity(x, self.masses, self.g) + (elastic if stiffness is None else stiffness * elastic)
         if self.contact is not None:
-            e = e + self.contact.energy(x, targets)  # an attached collider stands where the targets put it
+            # an attached collider stands where the targets put it; friction is lagged from x_prev
+            e = e + self.contact.energy(x, targets, x_prev=x_prev, targets_prev=x_prev[..., self.dirichlet, :])
         if penalty and targets is not None and self.dirichlet.numel():
             e = e + dirichlet_penalty(x, self.dirichlet, targets, self.w_bc)
         return e

@@ -177,7 +177,7 @@ class ImplicitEuler:
         )
         if self.contact is not None:
             self.assembly.with_contact(self.contact)
-        self.step_contact = self.contact  # the barrier where the colliders stand this step (pose_colliders)
+        self.step_contact = self.contact  # the barrier of this step (prepare_contact)
         self._last_iterations = 0  # the previous step's Newton iterations (NewtonSettings.fused_trial)
 
     # -- E_total and its derivatives ------------------------------------------
@@ -242,12 +242,15 @@ class ImplicitEuler:
         return dx
 
     # -- one time step --------------------------------------------------------
-    def pose_colliders(self, dirichlet_targets):
-        """Put every collider attached to the prescribed vertices where ``dirichlet_targets`` (m, 3) carry it
-        (``ContactBarrier.posed``): the energy, its derivatives and the line search of what follows see that
-        pose.  :meth:`step` calls it; a solver that steps otherwise (a reduced one) calls it per step."""
-        if self.contact is not None and self.contact.moving:
-            self.step_contact = self.contact.posed(dirichlet_targets)
+    def prepare_contact(self, x_prev, dirichlet_targets, previous_targets=None):
+        """Set the barrier of the step that starts at ``x_prev`` (n, 3) (``ContactBarrier.anchored``): every
+        collider attached to the prescribed vertices where ``dirichlet_targets`` (m, 3) carry it, and friction
+        lagged from ``x_prev`` (where the prescribed vertices were then: ``previous_targets``, by default
+        x_prev's own).  The energy, its derivatives and the line search of what follows see it.  :meth:`step`
+        calls it; a solver that steps otherwise (a reduced one) calls it per step."""
+        if self.contact is not None and (self.contact.moving or self.contact.friction > 0):
+            before = np.asarray(x_prev)[self.dirichlet] if previous_targets is None else previous_targets
+            self.step_contact = self.contact.anchored(x_prev, before, dirichlet_targets)
             self.assembly.contact = self.step_contact
 
     def initial_guess(self, x_prev, x_prev2, dirichlet_targets):
@@ -305,7 +308,7 @@ class ImplicitEuler:
         s = self.settings
         info = StepInfo()
         t0 = time.perf_counter()
-        self.pose_colliders(dirichlet_targets)
+        self.prepare_contact(x_prev, dirichlet_targets)
         x = self.initial_guess(x_prev, x_prev2, dirichlet_targets)
         e, grad = self._evaluate(x, x_prev, x_prev2)
         info.timings["guess"] += time.perf_counter() - t0

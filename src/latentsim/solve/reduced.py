@@ -239,7 +239,7 @@ class ReducedImplicitEuler:
         when the test is not met in ``max_iterations`` or a value is non-finite.
         """
         xD = np.asarray(xD, dtype=np.float64)
-        self.inner.pose_colliders(xD)  # an attached collider stands where this step's targets put it
+        self.inner.prepare_contact(x_prev, xD, np.asarray(x_prev)[self.D])  # attached colliders where this step's targets put them; friction lagged from x_prev
         q_prev, q_prev2 = np.asarray(q_prev, dtype=np.float64), np.asarray(q_prev2, dtype=np.float64)
         candidates = [q_init] if q_init is not None else [2.0 * q_prev - q_prev2, q_prev]
         best = None

@@ -112,6 +112,8 @@ def simulate_scene(scene: str, mesh_h5, cfg: dict, out_h5, paraview_dir=None, pr
     contact = None  # the contact block with its defaults resolved, as the trajectories file records it
     if pot.contact is not None:
         contact = {"colliders": list(cfg["contact"]["colliders"]), "d_hat": pot.contact.d_hat, "kappa": pot.contact.kappa}
+        if pot.contact.friction > 0:
+            contact.update(friction=pot.contact.friction, friction_velocity=pot.contact.slip / float(cfg["dt"]))
         log.info("scene %s: %d collider(s), d_hat %.3g m, kappa %.3g", scene, len(pot.contact.colliders), pot.contact.d_hat, pot.contact.kappa)
     solver = ImplicitEuler(pot, NewtonSettings(**cfg["newton"]))
     rest = np.asarray(arrays["rest_positions"], dtype=np.float64)
