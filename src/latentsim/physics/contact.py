@@ -14,7 +14,8 @@ line search uses to keep every iterate outside.  A collider is static, or *attac
 (Dirichlet) vertices: it then moves rigidly with the boundary-condition program, its pose at a frame the
 rigid motion that carries the prescribed vertices' rest positions onto their targets (:func:`rigid_pose`).
 A signed distance is invariant under rigid motion, so an attached collider's distance at a pose is its
-rest shape's distance of the point carried back to the rest frame.
+rest shape's distance of the point carried back to the rest frame.  Friction is IPC's lagged friction
+(Li et al. 2020, sec. 5), optional.
 
 :class:`ContactBarrier` is an energy term of the contract of :mod:`latentsim.physics.base` (one vertex
 per stencil), with its per-vertex gradient and PSD-projected Hessian in closed form; the autograd
@@ -351,12 +352,10 @@ class ContactBarrier(EnergyTerm):
             P = torch.eye(3, dtype=y_prev.dtype, device=y_prev.device) - n[..., :, None] * n[..., None, :]
         return -db, P
 
-    def _friction(self, col, y, y_prev=None, lagged=None) -> torch.Tensor:
-        """mu sum_i lambda_i f0(|P_i (y_i - y_prev_i)|) of one collider, y (..., n, 3) -> (...)."""
-        y_prev, lam, P = lagged if lagged is not None else (y_prev,) + self._lagged(col, y_prev)
+    def _friction(self, y, y_prev, lam, P) -> torch.Tensor:
+        """Per vertex mu lambda f0(|P (y - y_prev)|), the lagged friction of one collider, y (..., n, 3) -> (..., n)."""
         u = (P @ (y - y_prev)[..., None])[..., 0]
-        s = torch.sqrt((u * u).sum(-1) + 1e-300)
-        return self.friction * (lam * torch.where(lam > 0, friction_f0(s, self.slip), torch.zeros_like(s))).sum(-1)
+        return self.friction * lam * friction_f0(torch.sqrt((u * u).sum(-1) + 1e-300), self.slip)
 
     def _signed_distances(self, x: torch.Tensor, targets) -> list[torch.Tensor]:
         """Each collider's signed distance of every vertex, x (..., n, 3) -> [(..., n)]; an attached
@@ -391,7 +390,7 @@ class ContactBarrier(EnergyTerm):
         if self.friction > 0 and x_prev is not None:
             x_prev = torch.as_tensor(x_prev, dtype=x.dtype, device=x.device)
             for col, y, y_prev in zip(self.colliders, frames, self._frames(x_prev, targets_prev)):
-                e = e + self._friction(col, y, y_prev)
+                e = e + self._friction(y, y_prev, *self._lagged(col, y_prev)).sum(-1)
         return e
 
     def local_energy(self, xe: torch.Tensor) -> torch.Tensor:
@@ -400,10 +399,8 @@ class ContactBarrier(EnergyTerm):
         for c in self.colliders:
             total = total + barrier(c.distance(x), self.d_hat, self.kappa, self.extend_below)
         if self._anchors is not None:  # a solver step's lagged friction, spread over the vertices
-            for c, (y_prev, lam, P) in zip(self.colliders, self._anchors):
-                u = (P @ (x - y_prev)[..., None])[..., 0]
-                s = torch.sqrt((u * u).sum(-1) + 1e-300)
-                total = total + self.friction * lam * friction_f0(s, self.slip)
+            for y_prev, lam, P in self._anchors:
+                total = total + self._friction(x, y_prev, lam, P)
         return total
 
     def distances(self, x: torch.Tensor, targets=None) -> torch.Tensor:
@@ -425,7 +422,7 @@ class ContactBarrier(EnergyTerm):
             g = g + db[:, None] * n
             if hessian:
                 H = H + d2b[:, None, None] * n[:, :, None] * n[:, None, :] + db[:, None, None] * hd
-        for c, (y_prev, lam, P) in zip(self.colliders, self._anchors or ()):
+        for y_prev, lam, P in self._anchors or ():
             # mu lambda f0(|u|), u = P (x - y_prev): g = mu lambda f1(s)/s P u; H = mu lambda (f1/s P + (f1' - f1/s) / s^2 (Pu)(Pu)^T), PSD
             u = (P @ (x - y_prev)[:, :, None])[:, :, 0]
             s = torch.sqrt((u * u).sum(-1) + 1e-300)
@@ -456,11 +453,7 @@ class ContactBarrier(EnergyTerm):
         x0, x1 = np.asarray(x0, dtype=float).reshape(-1, 3), np.asarray(x1, dtype=float).reshape(-1, 3)
         if not self.moving:
             return self.first_impact(x0, x1 - x0)
-        c0 = self.rest_dirichlet.mean(0)
-        back = []
-        for x, targets in ((x0, targets0), (x1, targets1)):
-            R, c = rigid_pose(self.rest_dirichlet, np.asarray(targets, dtype=float))
-            back.append((x - c.numpy()) @ R.numpy() + c0)
+        back = [self._to_rest(torch.as_tensor(x), np.asarray(targets, dtype=float)).numpy() for x, targets in ((x0, targets0), (x1, targets1))]
         t = np.inf
         for col, a in zip(self.colliders, self.attached):
             start, end = back if a else (x0, x1)
