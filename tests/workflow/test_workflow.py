@@ -199,6 +199,21 @@ def test_dry_run_of_the_cape_example_plans_a_cloth_against_a_body_that_moves_wit
     _assert_example_plans_its_scene(config, "cape", tmp_path)
 
 
+def test_dry_run_of_the_bunny_slide_example_plans_a_free_body_thrown_across_a_ground_with_friction(tmp_path):
+    """config/examples/bunny_slide.yaml (the bunny thrown sideways onto a ground with friction) validates and plans
+    every stage of its scene; the ground has friction, the throws have no spin, and the test throw's sideways speed
+    lies between the training throws' (its run: docs/measurements.md)."""
+    config = ROOT / "config" / "examples" / "bunny_slide.yaml"
+    scene = yaml.safe_load(config.read_text())["scenes"]["bunny_slide"]
+    assert scene["dirichlet"] == {"type": "free"} and scene["contact"]["friction"] > 0
+    sideways = {q["split"]: [] for q in scene["sequences"]}
+    for q in scene["sequences"]:
+        assert "initial_angular_velocity" not in q
+        sideways[q["split"]].append(q.get("initial_velocity", [0.0, 0.0, 0.0])[0])
+    assert min(sideways["train"]) < min(sideways["test"]) <= max(sideways["test"]) < max(sideways["train"])
+    _assert_example_plans_its_scene(config, "bunny_slide", tmp_path)
+
+
 def test_slurm_profile_dry_run(tmp_path):
     out = snakemake("-n", "all", "--workflow-profile", str(ROOT / "profiles" / "slurm"), "--configfile", str(TINY), "--directory", str(tmp_path)).stdout
     jobs = planned_jobs(out)
