@@ -163,7 +163,9 @@ def test_neural_modes_keep_the_sheets_symmetry(sheet_setup, trained):
         y = model.correction(z).numpy()
     size = np.linalg.norm(y, axis=1)
     assert size.min() > 1e-3  # a real correction everywhere off the origin
-    assert (np.linalg.norm(act(y) - y, axis=1) / size).max() < 1e-3
+    # symmetric to what the training resolves: 1.5e-3 of the correction at worst on one machine (Intel, MKL), under 1e-3 on
+    # another (AMD); a correction that did not follow the energy's symmetry would be off by its own size
+    assert (np.linalg.norm(act(y) - y, axis=1) / size).max() < 1e-2
 
 
 def test_origin_penalty_alone_keeps_the_origin_approximately(sheet_setup):
