@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import os
 
+import numpy as np
 import pytest
 import torch
 
@@ -805,3 +806,49 @@ def test_settings_come_from_the_schema():
         fit_autoencoder(U, {"lr_decay": 0.5})
     with pytest.raises(ConfigError, match="fit_integrator.*'checkpoint_every'"):
         fit_integrator(model, RelativeCoordinates(4, [0]), None, [], {"checkpoint_every": 1})
+
+
+# ---------------------------------------------------------------------------
+# the origin input: where the body is in the world
+# ---------------------------------------------------------------------------
+def test_boundary_inputs_append_the_mean_prescribed_position():
+    from latentsim.latent.integrator import boundary_inputs
+
+    bc = np.arange(6.0).reshape(3, 2)
+    xD = np.random.default_rng(0).normal(size=(3, 4, 3))
+    assert boundary_inputs(bc, xD, False) is bc
+    p = boundary_inputs(bc, xD, True)
+    assert p.shape == (3, 5) and np.array_equal(p[:, :2], bc) and np.allclose(p[:, 2:], xD.mean(1))
+    pt = boundary_inputs(torch.as_tensor(bc, dtype=torch.float32), torch.as_tensor(xD), True)
+    assert pt.dtype == torch.float32 and torch.allclose(pt, torch.as_tensor(p, dtype=torch.float32))
+
+
+def test_an_integrator_trained_with_the_origin_takes_it_in_training_the_file_and_the_rollout(chain_setup, tmp_path):
+    """``origin_input``: the training triplets' p_t end with the frame's mean prescribed position, the
+    model file keeps the setting, and a rollout of the loaded integrator feeds it the origin of each
+    frame (its latents are those of stepping it by hand with them, and not those without: the program
+    moves the root, so the origin changes); a conditioned training refuses it."""
+    from latentsim.latent.conditioning import Conditioning
+    from latentsim.latent.integrator import boundary_inputs
+
+    ch, seqs, coords, ae = chain_setup
+    integ, hist = fit_integrator(ae, coords, ch.pot, seqs, {**INTEG_CFG, "epochs": 2, "origin_input": True}, seed=0)
+    assert integ.bc_dim == 4 and integ.hparams["origin"] is True
+    assert "origin" not in fit_integrator(ae, coords, ch.pot, seqs, {**INTEG_CFG, "epochs": 1}, seed=0)[0].hparams
+    save_module(tmp_path / "integrator.pt", integ)
+    loaded = load_integrator(tmp_path / "integrator.pt")
+    assert loaded.origin and loaded.bc_dim == 4
+    s = seqs[2]
+    z = encode_positions(ae, coords, s["positions"], s["dirichlet_positions"])
+    res = rollout(loaded, ae, coords, z[0], z[1], s["bc"], s["dirichlet_positions"])
+    p = torch.as_tensor(boundary_inputs(s["bc"], s["dirichlet_positions"], True), dtype=torch.float32)
+    zs = [z[0], z[1]]
+    with torch.no_grad():
+        for t in range(2, 6):
+            zs.append(loaded(zs[-1][None], zs[-2][None], p[t : t + 1], p[t - 1 : t], p[t - 2 : t - 1])[0])
+        blind = loaded(zs[1][None], zs[0][None], torch.cat([p[2:3, :1], torch.zeros(1, 3)], -1), torch.cat([p[1:2, :1], torch.zeros(1, 3)], -1), p[0:1])[0]
+    assert torch.allclose(res["latents"][:6], torch.stack(zs), atol=1e-5)
+    assert not torch.allclose(res["latents"][2], blind, atol=1e-5)
+    with pytest.raises(ValueError, match="origin_input is not for a conditioned integrator"):
+        fit_integrator(ae, coords, ch.pot, seqs, {**INTEG_CFG, "origin_input": True},
+                       conditioning=Conditioning((ch.pot.dt, ch.pot.dt), (1.0, 1.0), ch.pot.dt, 1.0))  # fmt: skip

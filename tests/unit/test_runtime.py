@@ -561,6 +561,35 @@ def test_loaded_model_encodes_and_steps_as_the_pipeline_rolls_out(mode, tmp_path
         rt.load(tmp_path).step(bc[2].numpy())
 
 
+def test_a_model_trained_with_the_origin_appends_it_from_the_dirichlet_positions(tmp_path):
+    """An integrator trained with ``integrator.origin_input`` takes the frame's mean Dirichlet position after p:
+    the loaded model appends it from the xD it is given (the user passes the K parameters alone) and steps as
+    the pipeline's rollout does."""
+    ae, _, coords = _trained_modules("mean", seed=5)
+    g = torch.Generator().manual_seed(6)
+    integ = LatentIntegrator(R, K + 3, [20, 24], origin=True)
+    Z, P = torch.randn(96, 3, R, generator=g), torch.randn(96, 3, K + 3, generator=g) + 1.0
+    integ.fit_normalization(Z[:, 0], Z[:, 1], Z[:, 2], P[:, 0], P[:, 1], P[:, 2])
+    with torch.no_grad():
+        integ.mlp[0].weight[:, -3:] *= 50.0  # the origin matters to the step
+    integ.eval()
+    T = 8
+    x, xD, bc = _frames(coords, T, seed=14)
+    z01 = encode_positions(ae, coords, x[:2], xD[:2])
+    ref = rollout(integ, ae, coords, z01[0], z01[1], bc, xD)
+    rt.export_runtime(ae, integ, coords, tmp_path / "runtime.npz")
+    model = rt.load(tmp_path)
+    assert model.origin and model.k == K
+    model.encode(x[0].numpy(), x[1].numpy(), xD[:2].numpy(), bc[:2].numpy())
+    X = np.stack([model.step(bc[t].numpy(), xD[t].numpy()) for t in range(2, T)])
+    scale = float(ref["positions"].abs().max())
+    assert np.abs(X - ref["positions"][2:].numpy()).max() < 1e-4 * scale
+    # the same frames with the origin left at zero: another motion, so the model does use what it appends
+    blind = rollout(lambda z1, z2, p, p1, p2: integ(z1, z2, *(torch.cat([q[:, :K], 0 * q[:, K:]], -1) for q in (p, p1, p2))),
+                    ae, coords, z01[0], z01[1], torch.cat([bc, torch.zeros(T, 3)], -1), xD)  # fmt: skip
+    assert np.abs(X - blind["positions"][2:].numpy()).max() > 1e-2 * scale
+
+
 def test_a_runtime_file_without_encoder_steps_but_says_how_to_encode(tmp_path):
     """A format version 1 file (before the encoder was exported) still loads and steps from stored latents;
     encode() names the file and says to rerun the rollout job."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from typing import Sequence
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -31,12 +32,17 @@ class LatentIntegrator(nn.Module):
     bc_dim : k, length of one boundary-condition vector p_t (may be 0).
     widths : hidden widths.
     residual : see above.
+    origin : whether each p_t ends with the mean prescribed position at frame t, the origin of the
+        relative coordinates (:func:`boundary_inputs`; ``bc_dim`` counts it).
     """
 
-    def __init__(self, latent_dim: int, bc_dim: int, widths: Sequence[int], residual: bool = True):
+    def __init__(self, latent_dim: int, bc_dim: int, widths: Sequence[int], residual: bool = True, origin: bool = False):
         super().__init__()
         widths = [int(w) for w in widths]
         self.hparams = {"latent_dim": int(latent_dim), "bc_dim": int(bc_dim), "widths": widths, "residual": bool(residual)}
+        if origin:  # recorded only when set: the files of integrators without it are as before
+            self.hparams["origin"] = True
+        self.origin = bool(origin)
         self.latent_dim, self.bc_dim, self.residual = int(latent_dim), int(bc_dim), bool(residual)
         in_dim = 2 * latent_dim + 3 * bc_dim
         layers: list[nn.Module] = []
@@ -75,3 +81,21 @@ class LatentIntegrator(nn.Module):
         y = self.out_mean + self.out_std * self.mlp((q - self.in_mean) / self.in_std)
         return z_prev + y if self.residual else y
 
+
+
+def boundary_inputs(bc, dirichlet_positions, origin: bool):
+    """The p_t an integrator takes at each frame: the boundary-condition parameters ``bc`` (T, k) and,
+    with ``origin``, the mean of the frame's prescribed positions ``dirichlet_positions`` (T, m, 3)
+    appended (T, k + 3), in the type of ``bc`` (a NumPy array or a tensor).
+
+    The latent coordinates are relative to that mean (:class:`~latentsim.latent.coordinates.RelativeCoordinates`,
+    ``mean``), and the parameters of a program are its velocities: without it an integrator does not
+    know where the cloth or solid is in the world, and so where a static collider is relative to it
+    (``integrator.origin_input``; not in the paper)."""
+    if not origin:
+        return bc
+    if torch.is_tensor(bc):
+        mean = torch.as_tensor(dirichlet_positions).to(bc).mean(-2)
+        return torch.cat([bc.reshape(len(bc), -1), mean], -1)
+    bc = np.asarray(bc)
+    return np.concatenate([bc.reshape(len(bc), -1), np.asarray(dirichlet_positions, dtype=bc.dtype).mean(-2)], -1)

@@ -13,6 +13,7 @@ from torch import nn
 from latentsim.latent.autoencoder import Autoencoder, decode_latents
 from latentsim.latent.base import potential_on
 from latentsim.latent.coordinates import RelativeCoordinates
+from latentsim.latent.integrator import boundary_inputs
 
 
 @torch.no_grad()
@@ -31,8 +32,9 @@ def rollout(
     """Autoregressive latent rollout from the first two frames' latents.
 
     Frame t >= 2 is ``integrator(z_{t-1}, z_{t-2}, p_t, p_{t-1}, p_{t-2})``;
-    only the boundary-condition history ``bc`` is fed in.  All latents are
-    then decoded with the prescribed Dirichlet positions of their frame.
+    only the boundary-condition history is fed in (p_t: ``bc``, and the frame's mean prescribed
+    position for an integrator trained with it, :func:`~latentsim.latent.integrator.boundary_inputs`).
+    All latents are then decoded with the prescribed Dirichlet positions of their frame.
 
     Divergence: the first frame whose latent is NaN/inf, whose decoded
     positions are non-finite, or (when ``max_extent`` is given) whose decoded
@@ -61,6 +63,7 @@ def rollout(
     T = int(bc.shape[0])
     if dirichlet_positions.shape[0] != T:
         raise ValueError("bc and dirichlet_positions must have the same number of frames")
+    bc = boundary_inputs(bc.reshape(T, -1), dirichlet_positions, getattr(integrator, "origin", False))
     mods = [m for m in (integrator, ae) if isinstance(m, nn.Module)]
     was = [m.training for m in mods]
     for m in mods:

@@ -116,7 +116,7 @@ def load_integrator(path, device="cpu") -> LatentIntegrator:
     """Load an integrator written by :func:`save_module` (eval mode)."""
     blob = load_blob(path, "LatentIntegrator")
     h = blob["hparams"]
-    model = LatentIntegrator(h["latent_dim"], h["bc_dim"], h["widths"], h["residual"])
+    model = LatentIntegrator(h["latent_dim"], h["bc_dim"], h["widths"], h["residual"], origin=bool(h.get("origin", False)))
     model.load_state_dict(blob["state_dict"])
     return model.to(resolve_device(device)).eval()
 

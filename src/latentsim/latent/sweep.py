@@ -36,6 +36,7 @@ from latentsim.io import open_artefact
 from latentsim.latent.autoencoder import encode_positions, fit_autoencoder
 from latentsim.latent.coordinates import coordinates_for
 from latentsim.latent.data import load_sequences
+from latentsim.latent.integrator import boundary_inputs
 from latentsim.latent.rollout import rollout as latent_rollout
 from latentsim.latent.serialization import autoencoder_coordinates, load_autoencoder, load_extra, load_integrator
 from latentsim.latent.stability import stress_test
@@ -175,7 +176,8 @@ def measure_point(point: dict, rollout: dict, stress: bool = True) -> pd.DataFra
         T, div = len(x), int(res["diverged_frame"])
         ok = slice(0, T if div < 0 else div)
         mean_e, max_e = vertex_errors(res["positions"].numpy()[ok], s["positions"][ok], diag)
-        timing = time_steppers(steppers, z[1], z[0], s["bc"][-1], s["dirichlet_positions"][-1], int(rollout["timing_repeats"]))
+        p_last = boundary_inputs(s["bc"], s["dirichlet_positions"], integ.origin)[-1]
+        timing = time_steppers(steppers, z[1], z[0], p_last, s["dirichlet_positions"][-1], int(rollout["timing_repeats"]))
         rows.append(dict(
             latent_dim=point["latent_dim"], autoencoder_widths=widths_label(point["autoencoder_widths"]),
             integrator_widths=widths_label(point["integrator_widths"]), decoder_parameters=parameter_count(ae.dec_branch) + parameter_count(ae.pca_out),

@@ -30,7 +30,7 @@ from latentsim.latent.base import LossHealth, TrainingDiverged, minibatches, pot
 from latentsim.latent.conditioning import CONDITION_DIM, AtCondition, Conditioning, with_condition
 from latentsim.latent.coordinates import RelativeCoordinates
 from latentsim.latent.data import build_triplets, triplet_rows
-from latentsim.latent.integrator import LatentIntegrator
+from latentsim.latent.integrator import LatentIntegrator, boundary_inputs
 from latentsim.latent.loss import integrator_loss
 from latentsim.latent.serialization import atomic_save, load_checked
 from latentsim.physics.kernels import with_compiled_elastic
@@ -156,6 +156,8 @@ def fit_integrator(
             f"supervised_weight 0; got mode {cfg['mode']!r}, supervised_weight {cfg['supervised_weight']}): ground truth exists only "
             "at the conditions of the training sequences"
         )
+    if conditioning is not None and cfg["origin_input"]:
+        raise ValueError(f"{label or 'integrator'}: origin_input is not for a conditioned integrator (its own rollouts step the program at other time steps)")
     own_every = int(cfg["own_rollouts_every"])
     if own_every > 0 and cfg["mode"] != "self_supervised":
         raise ValueError(f"{label or 'integrator'}: own_rollouts_every needs a self-supervised training")
@@ -238,7 +240,15 @@ def _training_setup(ae: Autoencoder, coords: RelativeCoordinates, potential, seq
         pot = dataclasses.replace(pot, contact=barrier)
     if compiled and device.type == "cpu":
         pot = with_compiled_elastic(pot)
+    if cfg["origin_input"]:  # p_t ends with the frame's mean prescribed position
+        sequences = [{**s, "bc": boundary_inputs(_bc_of(s), s["dirichlet_positions"], True)} for s in sequences]
     return ae_f, pot, build_triplets(ae_f, coords, sequences)
+
+
+def _bc_of(sequence: dict) -> np.ndarray:
+    """A sequence's boundary-condition parameters (T, k); (T, 0) where it has none."""
+    bc = sequence.get("bc")
+    return np.zeros((len(sequence["positions"]), 0)) if bc is None else np.asarray(bc).reshape(len(sequence["positions"]), -1)
 
 
 @torch.no_grad()
@@ -322,7 +332,7 @@ def _new_integrator(data: dict, cfg: dict, seed: int, device: torch.device, cond
     fork = [device.index or 0] if device.type == "cuda" else []
     with torch.random.fork_rng(devices=fork):
         torch.manual_seed(seed)
-        integ = LatentIntegrator(r, k, cfg["widths"], residual=bool(cfg["residual"]))
+        integ = LatentIntegrator(r, k, cfg["widths"], residual=bool(cfg["residual"]), origin=bool(cfg["origin_input"]))
     stats = {key: data[key].cpu() for key in ("z", "z_prev", "z_prev2", "p", "p_prev", "p_prev2")}
     if conditioned:
         c = conditioning.normalise(*conditioning.sample(stats["z"].shape[0], torch.Generator().manual_seed(seed)))

@@ -65,6 +65,8 @@ class TrainedModel:
     Attributes
     ----------
     r, k, n, m : latent dimension, boundary-condition parameters per frame, vertices, Dirichlet vertices.
+    origin : whether the integrator was trained with ``integrator.origin_input``: it takes the frame's mean
+        Dirichlet position after p, which the model appends from xD (``k`` does not count it).
     dirichlet : (m,) the Dirichlet vertices, in the order of the Dirichlet positions xD.
     stepper : the stepper; ``stepper.header`` the runtime file's header.
 
@@ -75,14 +77,17 @@ class TrainedModel:
 
     def __init__(self, stepper: Stepper):
         self.stepper = stepper
-        self.r, self.k, self.n = stepper.r, stepper.k, stepper.n
+        # an integrator trained with the origin input takes the mean Dirichlet position after p: appended here
+        hparams = getattr(stepper, "header", {}).get("integrator_hparams", {})
+        self.origin = bool(hparams.get("origin", False))
+        self.r, self.k, self.n = stepper.r, stepper.k - 3 * self.origin, stepper.n
         self.dirichlet = np.asarray(stepper.dirichlet, dtype=np.int64)
         self.m = len(self.dirichlet)
         dt = stepper.dtype
         self._z = np.full((2, self.r), np.nan, dtype=dt)  # z_{t-1}, z_{t-2}
-        self._p = np.full((2, self.k), np.nan, dtype=dt)  # p_{t-1}, p_{t-2}
+        self._p = np.full((2, stepper.k), np.nan, dtype=dt)  # p_{t-1}, p_{t-2} as the integrator takes them
         self._znew = np.empty(self.r, dtype=dt)
-        self._pnew = np.empty(self.k, dtype=dt)
+        self._pnew = np.empty(stepper.k, dtype=dt)
         self._xD = np.full((self.m, 3), np.nan)  # x*_D of the last frame
         self.frame = -1  # the last frame's index (1 after encode/start)
 
@@ -99,6 +104,9 @@ class TrainedModel:
             raise ValueError(f"{name}: boundary parameters p need shape {want}, got {p.shape}")
         if xD.shape[-2:] != (self.m, 3):
             raise ValueError(f"{name}: Dirichlet positions xD need shape ({self.m}, 3), got {xD.shape}")
+        if self.origin:  # the integrator's p ends with the mean Dirichlet position (latent.boundary_inputs)
+            mean = np.broadcast_to(xD.mean(-2), p.shape[:-1] + (3,)).astype(p.dtype)
+            p = np.concatenate([p, mean], -1)
         return p, xD
 
     def start(self, z0, z1, p, xD) -> None:

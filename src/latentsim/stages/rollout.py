@@ -18,6 +18,7 @@ from latentsim.io import atomic_h5, open_artefact, write_dataset
 from latentsim.latent.autoencoder import encode_positions
 from latentsim.latent.coordinates import coordinates_for
 from latentsim.latent.data import load_sequences
+from latentsim.latent.integrator import boundary_inputs
 from latentsim.latent.rollout import rollout
 from latentsim.latent.serialization import load_autoencoder, load_extra, load_integrator
 from latentsim.latent.stability import stress_test
@@ -107,7 +108,8 @@ def _roll_out(h, name: str, s: dict, integ, ae, scene: dict, steppers: dict, met
     res = rollout(integ, ae, coords, z01[0], z01[1], torch.as_tensor(s["bc"]), xD,
                   potential=scene["potential"], max_extent=cfg["max_extent"], rest_positions=torch.as_tensor(scene["arrays"]["rest_positions"]))  # fmt: skip
     wall = time.perf_counter() - t0
-    timing = time_steppers(steppers, z01[1], z01[0], s["bc"][-1], s["dirichlet_positions"][-1], cfg["timing_repeats"])
+    p_last = boundary_inputs(s["bc"], s["dirichlet_positions"], integ.origin)[-1]
+    timing = time_steppers(steppers, z01[1], z01[0], p_last, s["dirichlet_positions"][-1], cfg["timing_repeats"])
     if "numpy" in steppers:
         timing.update(time_jvps(ae, steppers["numpy"], coords, z01[1], cfg["timing_repeats"]))
     h.attrs["split"] = "test"
