@@ -191,6 +191,17 @@ def compare(reference: dict, current: dict, rtol: float | None = None, only=None
     return problems
 
 
+# a simulation's record of how Newton got to each frame, not the frame: the residual it stopped at and the
+# iterations it took differ with the processor's rounding (one iteration more or less, a residual below the
+# tolerance), where the positions agree to it
+SOLVER_RECORDS = frozenset({"gradient_norm", "newton_iterations"})
+
+
+def is_solver_record(path: str, name: str) -> bool:
+    """An array of a full-space artefact that records the solver's path (:data:`SOLVER_RECORDS`)."""
+    return is_physics(path) and name.rsplit("/", 1)[-1] in SOLVER_RECORDS
+
+
 def is_physics(path: str) -> bool:
     """A full-space artefact (mesh or simulation, a conditioned scene's ``conditioned/<scene>/sim/``
     included): equal to the Newton tolerance on any processor."""

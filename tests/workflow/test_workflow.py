@@ -919,13 +919,16 @@ def downstream_of_linear_modes(path: str, name: str = "") -> bool:
 def test_full_space_artefacts_match_the_reference_on_any_machine(tiny_run):
     """Meshes and simulations converge to the Newton tolerance whatever the processor: every array's
     sum and absolute sum agree with the reference to 1e-7 of their scale (two processors' rounding can
-    end Newton an iteration apart, well inside the tolerance; a changed formula moves them by far more)."""
-    from latentsim.fingerprint import compare, fingerprint_tree, is_physics
+    end Newton an iteration apart, well inside the tolerance; a changed formula moves them by far more).
+    The solver's own record of each frame (its final residual and iteration count) is left out: it is
+    how Newton got there, which rounding changes (a residual 5e-7 apart, relative, on an Intel machine)."""
+    from latentsim.fingerprint import compare, fingerprint_tree, is_physics, is_solver_record
 
     work, _ = tiny_run
     reference = json.loads(REFERENCE.read_text())["files"]
     assert sum(map(is_physics, reference)) >= 2 * len(SCENES_TINY)  # a mesh and a simulation per scene
-    problems = compare(reference, fingerprint_tree(work / "results"), rtol=1e-7, only=is_physics)
+    assert any(is_solver_record(p, n) for p in reference for n in reference[p])  # what is left out exists
+    problems = compare(reference, fingerprint_tree(work / "results"), rtol=1e-7, only=is_physics, skip_name=is_solver_record)
     assert not problems, "\n".join(problems[:20])
 
 
