@@ -849,6 +849,9 @@ def test_an_integrator_trained_with_the_origin_takes_it_in_training_the_file_and
         blind = loaded(zs[1][None], zs[0][None], torch.cat([p[2:3, :1], torch.zeros(1, 3)], -1), torch.cat([p[1:2, :1], torch.zeros(1, 3)], -1), p[0:1])[0]
     assert torch.allclose(res["latents"][:6], torch.stack(zs), atol=1e-5)
     assert not torch.allclose(res["latents"][2], blind, atol=1e-5)
+    free = [{**q, "dirichlet_positions": q["dirichlet_positions"][:, :0]} for q in seqs]
+    with pytest.raises(ValueError, match="origin_input needs prescribed vertices"):
+        fit_integrator(ae, coords, ch.pot, free, {**INTEG_CFG, "origin_input": True})
     with pytest.raises(ValueError, match="origin_input is not for a conditioned integrator"):
         fit_integrator(ae, coords, ch.pot, seqs, {**INTEG_CFG, "origin_input": True},
                        conditioning=Conditioning((ch.pot.dt, ch.pot.dt), (1.0, 1.0), ch.pot.dt, 1.0))  # fmt: skip

@@ -82,7 +82,9 @@ def fit_integrator(
         decay of the learning rate to it; None: constant), batch_size, mode ('self_supervised' |
         'supervised'), noise_scale, supervised_weight, balancing, balancing_eps, use_penalty,
         residual, barrier_d_hat, barrier_kappa, barrier_extend_below (the loss's contact barrier,
-        relative to the potential's), own_rollouts_every, own_rollouts_start (see below), and the
+        relative to the potential's), own_rollouts_every, own_rollouts_start (see below), origin_input
+        (each p_t ends with the frame's mean prescribed position, :func:`~latentsim.latent.integrator.boundary_inputs`;
+        needs prescribed vertices, not with ``conditioning``), and the
         health rule's divergence_factor, max_loss, latent_range_factor); those
         absent take the schema's defaults (:func:`latentsim.config.with_defaults`).
     seed : seeds weight init, minibatch order and the training noise.
@@ -158,6 +160,8 @@ def fit_integrator(
         )
     if conditioning is not None and cfg["origin_input"]:
         raise ValueError(f"{label or 'integrator'}: origin_input is not for a conditioned integrator (its own rollouts step the program at other time steps)")
+    if cfg["origin_input"] and any(np.shape(s["dirichlet_positions"])[-2] == 0 for s in sequences):
+        raise ValueError(f"{label or 'integrator'}: origin_input needs prescribed vertices (a free body's latent is already where it is in the world)")
     own_every = int(cfg["own_rollouts_every"])
     if own_every > 0 and cfg["mode"] != "self_supervised":
         raise ValueError(f"{label or 'integrator'}: own_rollouts_every needs a self-supervised training")
