@@ -82,7 +82,6 @@ class LatentIntegrator(nn.Module):
         return z_prev + y if self.residual else y
 
 
-
 def boundary_inputs(bc, dirichlet_positions, origin: bool):
     """The p_t an integrator takes at each frame: the boundary-condition parameters ``bc`` (T, k) and,
     with ``origin``, the mean of the frame's prescribed positions ``dirichlet_positions`` (T, m, 3)
