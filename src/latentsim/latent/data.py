@@ -16,6 +16,7 @@ import torch
 from latentsim.io import open_artefact, require
 from latentsim.latent.autoencoder import Autoencoder, encode_positions
 from latentsim.latent.coordinates import RelativeCoordinates
+from latentsim.latent.integrator import boundary_inputs
 
 BATCH_KEYS = ("z", "z_prev", "z_prev2", "p", "p_prev", "p_prev2", "xD", "xD_prev", "xD_prev2")
 
@@ -61,11 +62,12 @@ def triplet_rows(sequences: Sequence[dict]) -> list[int]:
     return [len(s["positions"]) - 2 for s in sequences if len(s["positions"]) >= 3]
 
 
-def build_triplets(ae: Autoencoder, coords: RelativeCoordinates, sequences: Sequence[dict]) -> dict:
+def build_triplets(ae: Autoencoder, coords: RelativeCoordinates, sequences: Sequence[dict], origin: bool = False) -> dict:
     """Ground-truth training triplets of all sequences.
 
     Each sequence dict holds ``positions`` (T, n, 3), ``dirichlet_positions``
-    (T, m, 3) and optionally ``bc`` (T, k) (absent -> k = 0).  Latents are the
+    (T, m, 3) and optionally ``bc`` (T, k) (absent -> k = 0); with ``origin`` each p_t gains the
+    frame's mean prescribed position (:func:`~latentsim.latent.integrator.boundary_inputs`).  Latents are the
     frozen autoencoder's encodings.  Returns a dict with the keys of
     :data:`BATCH_KEYS`, N = sum_s (T_s - 2) rows each (latents/BCs float32,
     Dirichlet positions float64, on the autoencoder's device).
@@ -77,8 +79,8 @@ def build_triplets(ae: Autoencoder, coords: RelativeCoordinates, sequences: Sequ
         xD = torch.as_tensor(s["dirichlet_positions"]).to(torch.float64)
         T = x.shape[0]
         bc = s.get("bc")
-        bc = torch.zeros(T, 0) if bc is None else torch.as_tensor(bc).reshape(T, -1)
-        bc = bc.to(dev, torch.float32)
+        bc = np.zeros((T, 0)) if bc is None else np.asarray(bc).reshape(T, -1)
+        bc = torch.as_tensor(boundary_inputs(bc, s["dirichlet_positions"], origin)).to(dev, torch.float32)
         if T < 3:
             continue
         z = encode_positions(ae, coords, x, xD)

@@ -94,7 +94,7 @@ def boundary_inputs(bc, dirichlet_positions, origin: bool):
     if not origin:
         return bc
     if torch.is_tensor(bc):
-        mean = torch.as_tensor(dirichlet_positions).to(bc).mean(-2)
+        mean = torch.as_tensor(dirichlet_positions).mean(-2).to(bc)
         return torch.cat([bc.reshape(len(bc), -1), mean], -1)
     bc = np.asarray(bc)
     return np.concatenate([bc.reshape(len(bc), -1), np.asarray(dirichlet_positions, dtype=bc.dtype).mean(-2)], -1)

@@ -30,7 +30,7 @@ from latentsim.latent.base import LossHealth, TrainingDiverged, minibatches, pot
 from latentsim.latent.conditioning import CONDITION_DIM, AtCondition, Conditioning, with_condition
 from latentsim.latent.coordinates import RelativeCoordinates
 from latentsim.latent.data import build_triplets, triplet_rows
-from latentsim.latent.integrator import LatentIntegrator, boundary_inputs
+from latentsim.latent.integrator import LatentIntegrator
 from latentsim.latent.loss import integrator_loss
 from latentsim.latent.serialization import atomic_save, load_checked
 from latentsim.physics.kernels import with_compiled_elastic
@@ -244,15 +244,7 @@ def _training_setup(ae: Autoencoder, coords: RelativeCoordinates, potential, seq
         pot = dataclasses.replace(pot, contact=barrier)
     if compiled and device.type == "cpu":
         pot = with_compiled_elastic(pot)
-    if cfg["origin_input"]:  # p_t ends with the frame's mean prescribed position
-        sequences = [{**s, "bc": boundary_inputs(_bc_of(s), s["dirichlet_positions"], True)} for s in sequences]
-    return ae_f, pot, build_triplets(ae_f, coords, sequences)
-
-
-def _bc_of(sequence: dict) -> np.ndarray:
-    """A sequence's boundary-condition parameters (T, k); (T, 0) where it has none."""
-    bc = sequence.get("bc")
-    return np.zeros((len(sequence["positions"]), 0)) if bc is None else np.asarray(bc).reshape(len(sequence["positions"]), -1)
+    return ae_f, pot, build_triplets(ae_f, coords, sequences, origin=bool(cfg["origin_input"]))
 
 
 @torch.no_grad()
