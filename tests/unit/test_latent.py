@@ -9,6 +9,7 @@ gives a known answer for the self-supervised integrator.
 
 from __future__ import annotations
 
+import copy
 import math
 import os
 
@@ -811,6 +812,113 @@ def test_settings_come_from_the_schema():
 # ---------------------------------------------------------------------------
 # the origin input: where the body is in the world
 # ---------------------------------------------------------------------------
+def _rotation(axis, angle) -> torch.Tensor:
+    """The rotation by ``angle`` about ``axis`` (Rodrigues), float64."""
+    k = torch.as_tensor(axis, dtype=F64)
+    k = k / k.norm()
+    K = torch.tensor([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]], dtype=F64)
+    return torch.eye(3, dtype=F64) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
+
+
+@pytest.mark.parametrize("mode", ["roots", "mean", "hard_mean"])
+def test_relative_coordinates_in_a_rigid_frame_are_blind_to_a_rigid_motion_of_the_boundary(mode):
+    """``rigid_rest``: a rigid motion of the whole scene (positions and prescribed vertices turned and moved
+    together) leaves the encoded vector as it was; decoding inverts encoding; at rest the frame is the
+    identity (the encoded vector is the plain coordinates'); a turn of the boundary alone (the body left
+    where it was) is in the encoded vector, as the frame should see it."""
+    g = torch.Generator().manual_seed(7)
+    n = 9
+    dirichlet, root_of = [0, 3, 6], [0, 0, 0, 3, 3, 3, 6, 6, 6]
+    rest = torch.randn(n, 3, generator=g, dtype=F64)
+    plain = RelativeCoordinates(n, dirichlet, mode, root_of=root_of if mode == "roots" else None)
+    c = RelativeCoordinates(n, dirichlet, mode, root_of=root_of if mode == "roots" else None, rigid_rest=rest[dirichlet])
+    assert c.rigid and not plain.rigid and c.dim == plain.dim
+    x = rest + 0.1 * torch.randn(4, n, 3, generator=g, dtype=F64)
+    xD = rest[dirichlet].expand(4, 3, 3).clone()
+    if c.hard_dirichlet:
+        x[:, dirichlet] = xD
+    assert torch.allclose(c.encode(x, xD), plain.encode(x, xD), atol=1e-14)  # the frame at rest: the identity
+    Q, t = _rotation([1.0, 2.0, -0.5], 1.1), torch.tensor([0.3, -1.0, 2.0], dtype=F64)
+    moved, movedD = x @ Q.T + t, xD @ Q.T + t
+    u = c.encode(moved, movedD)
+    assert torch.allclose(u, c.encode(x, xD), atol=1e-13)
+    assert not torch.allclose(plain.encode(moved, movedD), plain.encode(x, xD), atol=1e-2)
+    assert torch.allclose(c.decode(u, movedD), moved, atol=1e-13, rtol=0)
+    R, origin = c.pose(movedD)
+    assert torch.allclose(R, Q.expand(4, 3, 3), atol=1e-13) and torch.allclose(origin[:, 0], movedD.mean(1), atol=1e-14)
+    turned = (xD - xD.mean(1, keepdim=True)) @ Q.T + xD.mean(1, keepdim=True)  # the boundary turned, the body not
+    assert not torch.allclose(c.encode(x, turned), c.encode(x, xD), atol=1e-2)
+
+
+def test_an_autoencoder_in_a_rigid_frame_holds_a_turning_body_in_one_latent():
+    """A body whose prescribed vertices carry it through turns about changing axes while one shape mode of it
+    swells and shrinks: in the rigid frame every frame is the rest shape plus that mode, and an autoencoder of
+    latent 1 reconstructs every frame to float32 rounding; in the plain coordinates the turns are in the data
+    and latent 1 misses by a sizeable part of the body."""
+    g = torch.Generator().manual_seed(4)
+    n, D, T = 10, [0, 1, 2], 60
+    rest = torch.randn(n, 3, generator=g, dtype=F64)
+    shape_mode = 0.1 * torch.randn(n, 3, generator=g, dtype=F64)
+    shape_mode[D] = 0.0
+    t = torch.arange(T, dtype=F64)
+    Q = torch.stack([_rotation([math.cos(0.1 * k), 1.0, math.sin(0.2 * k)], 0.05 * k) for k in range(T)])
+    x = (rest + torch.sin(0.3 * t)[:, None, None] * shape_mode) @ Q.transpose(-1, -2) + 0.01 * t[:, None, None]
+    xD = x[:, D]
+    size = float(torch.linalg.vector_norm(rest - rest.mean(0), dim=-1).max())
+    errors = {}
+    for rigid in (True, False):
+        c = RelativeCoordinates(n, D, "mean", rigid_rest=rest[D] if rigid else None)
+        ae, _ = fit_autoencoder(c.encode(x, xD).float(), {"latent_dim": 1, "widths": [8], "epochs": 5, "batch_size": 20}, seed=0)
+        with torch.no_grad():
+            rec = decode_latents(ae, c, encode_positions(ae, c, x, xD), xD)
+        errors[rigid] = float(torch.linalg.vector_norm(rec - x, dim=-1).max()) / size
+    assert errors[True] < 1e-4 and errors[False] > 0.05, errors
+
+
+def test_a_rigid_frame_needs_three_prescribed_vertices_off_one_line(tmp_path):
+    """Two prescribed vertices, or any number on one line, span no frame: refused, naming the scene's file."""
+    import h5py
+
+    from latentsim.latent.coordinates import coordinates_for
+
+    line = torch.tensor([[0.0, 0, 0], [1, 1, 0], [2, 2, 0], [3, 3, 0]], dtype=F64)
+    for rest in (line[:2], line):
+        with pytest.raises(ValueError, match=r"three prescribed vertices not on one line \(\d prescribed\)"):
+            RelativeCoordinates(4, list(range(len(rest))), "mean", rigid_rest=rest)
+    path = tmp_path / "trajectories.h5"
+    with h5py.File(path, "w") as f:
+        f["rest_positions"], f["dirichlet"] = line.numpy(), np.arange(4)
+        f.attrs["model"] = "cloth"
+    with h5py.File(path) as f, pytest.raises(ValueError, match=rf"{path}: rigid frame: needs"):
+        coordinates_for(f, None, rigid_frame=True)
+
+
+def test_boundary_inputs_in_a_rigid_frame_carry_the_program_into_it():
+    """In a rigid frame p_t's 3-vectors are those the frame sees (R^T v), then the nine entries of R^T, row
+    by row; NumPy and torch alike; the origin, when asked for, comes last."""
+    from latentsim.latent.integrator import boundary_inputs
+
+    g = torch.Generator().manual_seed(3)
+    rest = torch.randn(4, 3, generator=g, dtype=F64)
+    c = RelativeCoordinates(4, [0, 1, 2, 3], "mean", rigid_rest=rest)
+    Qs = torch.stack([_rotation([0.2, 1.0, 0.3], a) for a in (0.0, 0.7, -1.9)])
+    xD = rest @ Qs.transpose(-1, -2) + torch.tensor([0.5, 0.0, -1.0], dtype=F64)
+    bc = torch.randn(3, 6, generator=g, dtype=F64).numpy()
+    p = boundary_inputs(bc, xD.numpy(), False, c)
+    assert p.shape == (3, 15)
+    Qt = Qs.transpose(-1, -2).numpy()
+    assert np.allclose(p[:, :3], np.einsum("tij,tj->ti", Qt, bc[:, :3]), atol=1e-13)
+    assert np.allclose(p[:, 3:6], np.einsum("tij,tj->ti", Qt, bc[:, 3:]), atol=1e-13)
+    assert np.allclose(p[:, 6:].reshape(3, 3, 3), Qt, atol=1e-13)
+    assert np.allclose(p[0], np.concatenate([bc[0], np.eye(3).reshape(9)]), atol=1e-13)  # at rest: as given, then I
+    pt = boundary_inputs(torch.as_tensor(bc, dtype=torch.float32), xD, True, c)
+    assert pt.dtype == torch.float32 and pt.shape == (3, 18)
+    assert torch.allclose(pt[:, :15], torch.as_tensor(p, dtype=torch.float32), atol=1e-6)
+    assert torch.allclose(pt[:, 15:], xD.mean(1).float(), atol=1e-6)
+    with pytest.raises(ValueError, match="not 3-vectors"):
+        boundary_inputs(bc[:, :4], xD.numpy(), False, c)
+
+
 def test_boundary_inputs_append_the_mean_prescribed_position():
     from latentsim.latent.integrator import boundary_inputs
 
@@ -855,3 +963,7 @@ def test_an_integrator_trained_with_the_origin_takes_it_in_training_the_file_and
     with pytest.raises(ValueError, match="origin_input is not for a conditioned integrator"):
         fit_integrator(ae, coords, ch.pot, seqs, {**INTEG_CFG, "origin_input": True},
                        conditioning=Conditioning((ch.pot.dt, ch.pot.dt), (1.0, 1.0), ch.pot.dt, 1.0))  # fmt: skip
+    turning = copy.copy(coords)
+    turning.rigid = True  # an autoencoder with rigid_frame: refused the same way
+    with pytest.raises(ValueError, match="rigid_frame is not for a conditioned integrator"):
+        fit_integrator(ae, turning, ch.pot, seqs, INTEG_CFG, conditioning=Conditioning((ch.pot.dt, ch.pot.dt), (1.0, 1.0), ch.pot.dt, 1.0))

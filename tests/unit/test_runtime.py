@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 import importlib.util
 import json
+import math
 import re
 import tracemalloc
 from pathlib import Path
@@ -588,6 +589,50 @@ def test_a_model_trained_with_the_origin_appends_it_from_the_dirichlet_positions
     blind = rollout(lambda z1, z2, p, p1, p2: integ(z1, z2, *(torch.cat([q[:, :K], 0 * q[:, K:]], -1) for q in (p, p1, p2))),
                     ae, coords, z01[0], z01[1], torch.cat([bc, torch.zeros(T, 3)], -1), xD)  # fmt: skip
     assert np.abs(X - blind["positions"][2:].numpy()).max() > 1e-2 * scale
+
+
+@pytest.mark.parametrize("mode", ["mean", "hard_mean"])
+def test_a_model_in_a_rigid_frame_steps_as_the_rollout_with_every_runtime(mode, tmp_path):
+    """``autoencoder.rigid_frame``: the runtime file records the frame; the loaded model (NumPy, and compiled where
+    numba imports) carries p and the positions into the frame and out again at the xD it is given, encodes and
+    steps as the pipeline does; each stepper the rollout stage times decodes the rollout's frames; and the same
+    latents decoded without the frame are another motion (the boundary turns)."""
+    from latentsim.latent.timing import rigid_frame_steppers
+
+    ae, _, plain = _trained_modules(mode, seed=5)
+    g = torch.Generator().manual_seed(8)
+    rest = 0.3 + torch.randn(plain.n, 3, generator=g, dtype=torch.float64)
+    coords = RelativeCoordinates(plain.n, [0, 1, 2], mode, rigid_rest=rest[[0, 1, 2]])
+    integ = LatentIntegrator(R, K + 9, [20, 24])
+    Z, P = torch.randn(96, 3, R, generator=g), torch.randn(96, 3, K + 9, generator=g)
+    integ.fit_normalization(Z[:, 0], Z[:, 1], Z[:, 2], P[:, 0], P[:, 1], P[:, 2])
+    integ.eval()
+    T = 8
+    turn = torch.stack([torch.linalg.matrix_exp(0.3 * t * torch.tensor([[0.0, -1, 0.5], [1, 0, -0.2], [-0.5, 0.2, 0]], dtype=torch.float64)) for t in range(T)])
+    x = (rest + 0.05 * torch.randn(T, plain.n, 3, generator=g, dtype=torch.float64)) @ turn.transpose(-1, -2) + 0.1
+    xD = x[:, [0, 1, 2]].clone()
+    bc = torch.randn(T, K, generator=g)
+    z01 = encode_positions(ae, coords, x[:2], xD[:2])
+    ref = rollout(integ, ae, coords, z01[0], z01[1], bc, xD)
+    scale = float(ref["positions"].abs().max())
+    rt.export_runtime(ae, integ, coords, tmp_path / "runtime.npz")
+    models = [rt.load(tmp_path)] + ([rt.TrainedModel(rc.load_runtime(tmp_path / "runtime.npz"))] if rc.available() else [])
+    for model in models:
+        assert model.rigid and model.k == K
+        z = model.encode(x[0].numpy(), x[1].numpy(), xD[:2].numpy(), bc[:2].numpy())
+        assert np.abs(z - z01.numpy()).max() < 1e-4 * float(z01.abs().max())
+        X = np.stack([model.step(bc[t].numpy(), xD[t].numpy()) for t in range(2, T)])
+        assert np.abs(X - ref["positions"][2:].numpy()).max() < 1e-4 * scale
+    folded = rt.fold_networks(ae, integ, coords)
+    steppers = rigid_frame_steppers({"numpy": rt.NumpyStepper(folded), "exported": rt.ExportedStepper(folded), "eager": EagerStepper(ae, integ, coords)}, coords)
+    assert isinstance(steppers["numpy"], rt.RigidFrameStepper) and not isinstance(steppers["eager"], rt.RigidFrameStepper)
+    for name, st in steppers.items():
+        z4, p4 = ref["latents"][4].numpy(), np.zeros(K + 9, dtype=np.float32)
+        x5 = np.asarray(st.decode(*st.inputs(z4, z4, p4, p4, p4, xD[4].numpy())[::5]))
+        assert np.abs(x5 - ref["positions"][4].numpy()).max() < 1e-4 * scale, name
+    with torch.no_grad():
+        unturned = decode_latents(ae, plain, ref["latents"], xD)
+    assert np.abs(unturned.numpy() - ref["positions"].numpy()).max() > 1e-2 * scale
 
 
 def test_a_runtime_file_without_encoder_steps_but_says_how_to_encode(tmp_path):

@@ -2,13 +2,16 @@
 
 Positions are written relative to the Dirichlet boundary conditions: root-relative for rods,
 relative to the mean prescribed position for cloth and solids (or, ``hard_mean``, the free
-vertices only, for bodies that are mostly prescribed).  :func:`coordinates_for` picks a scene's
-coordinates from its trajectories file.
+vertices only, for bodies that are mostly prescribed); optionally (``rigid_frame``) turned with the
+prescribed vertices, so that a rigid motion of the boundary moves nothing in the encoded vector.
+:func:`coordinates_for` picks a scene's coordinates from its trajectories file.
 """
 
 from __future__ import annotations
 
 import torch
+
+from latentsim.runtime.frame import frame_pose, orthonormal_frame
 
 
 class RelativeCoordinates:
@@ -36,6 +39,15 @@ class RelativeCoordinates:
     the Dirichlet vertices (which the simulator imposes exactly), so
     ``decode(encode(x, xD), xD) == x`` whenever ``x[dirichlet] == xD``.
 
+    Rigid frame (``rigid_rest``, not in the paper): positions are first carried into the frame that
+    turns with the prescribed vertices, ``x -> R^T (x - c)`` with c the mean prescribed position and
+    R = F(x*_D) F(x*_D,rest)^T, F the orthonormal frame of three prescribed vertices (:meth:`pose`,
+    :mod:`latentsim.runtime.frame`);
+    any of the modes above then applies to the carried positions, and decoding carries back.  A rigid
+    motion of the prescribed vertices (a head that turns) then changes nothing the autoencoder sees:
+    the latent holds the deformation alone, and the integrator is told the turn
+    (:func:`~latentsim.latent.integrator.boundary_inputs`).
+
     Parameters
     ----------
     n_vertices : number of vertices n.
@@ -43,14 +55,18 @@ class RelativeCoordinates:
     mode : ``"roots"`` or ``"mean"``.
     root_of : (n,) index of each vertex's root vertex (``"roots"`` mode only);
         every root must be a Dirichlet vertex.
+    rigid_rest : (m, 3) the prescribed vertices' rest positions, for the rigid frame (None: none); at
+        least three of them not on one line.
 
     Attributes
     ----------
     dim : length d of the encoded vector.
     encoded_vertices : (n_enc,) vertex indices present in the encoded vector.
+    rigid : whether positions are encoded in the rigid frame; then ``frame_vertices`` (three
+        positions in the Dirichlet list) and ``rest_frame`` F(x*_D,rest) (3, 3).
     """
 
-    def __init__(self, n_vertices: int, dirichlet, mode: str = "mean", root_of=None):
+    def __init__(self, n_vertices: int, dirichlet, mode: str = "mean", root_of=None, rigid_rest=None):
         self.n = int(n_vertices)
         self.dirichlet = torch.as_tensor(dirichlet, dtype=torch.long).reshape(-1).cpu()
         if mode not in ("roots", "mean", "hard_mean"):
@@ -92,6 +108,19 @@ class RelativeCoordinates:
             self.encoded_vertices = self.free
             self.hard_dirichlet = False
         self.dim = 3 * int(self.encoded_vertices.numel())
+        self.rigid = rigid_rest is not None
+        self.frame_vertices, self.rest_frame = None, None
+        if self.rigid:
+            rest = torch.as_tensor(rigid_rest, dtype=torch.float64).reshape(-1, 3)
+            if rest.shape[0] != m:
+                raise ValueError(f"rigid frame: {rest.shape[0]} rest positions for {m} prescribed vertices")
+            self.frame_vertices = frame_vertices(rest)
+            self.rest_frame = orthonormal_frame(rest[list(self.frame_vertices)])
+
+    def pose(self, xD: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The rigid frame at prescribed positions xD (..., m, 3): R (..., 3, 3) and c (..., 1, 3), the
+        frame taking a vector u of the encoded space to R u + c in the world (rigid coordinates only)."""
+        return frame_pose(xD, self.frame_vertices, self.rest_frame.to(xD))
 
     def _origin(self, xD: torch.Tensor) -> torch.Tensor:
         """(..., m, 3) -> (..., n_enc, 3) origin of each encoded vertex."""
@@ -103,6 +132,9 @@ class RelativeCoordinates:
 
     def encode(self, x: torch.Tensor, xD: torch.Tensor) -> torch.Tensor:
         """Positions x (..., n, 3), prescribed xD (..., m, 3) -> u (..., d)."""
+        if self.rigid:  # carried into the frame: R^T (y - c), row-wise
+            R, c = self.pose(xD)
+            x, xD = (x - c) @ R, (xD - c) @ R
         xe = x[..., self.encoded_vertices.to(x.device), :]
         u = xe - self._origin(xD)
         return u.reshape(u.shape[:-2] + (self.dim,))
@@ -113,6 +145,13 @@ class RelativeCoordinates:
         Broadcasts over leading axes; the dtype is that of ``u`` (promoted
         with ``xD``).
         """
+        if self.rigid:  # decoded in the frame, carried back: R y + c
+            xD = xD.to(torch.promote_types(u.dtype, xD.dtype))
+            R, c = self.pose(xD)
+            return self._decode(u, (xD - c) @ R) @ R.transpose(-1, -2) + c
+        return self._decode(u, xD)
+
+    def _decode(self, u: torch.Tensor, xD: torch.Tensor) -> torch.Tensor:
         lead = torch.broadcast_shapes(u.shape[:-1], xD.shape[:-2])
         dtype = torch.promote_types(u.dtype, xD.dtype)
         xe = u.reshape(u.shape[:-1] + (-1, 3)).to(dtype) + self._origin(xD.to(dtype))
@@ -124,17 +163,45 @@ class RelativeCoordinates:
         return x
 
 
-def coordinates_for(f, mode: str | None = None) -> RelativeCoordinates:
+def frame_vertices(rest: torch.Tensor) -> tuple[int, int, int]:
+    """Three of the points ``rest`` (m, 3) that span a frame: the first, the farthest from it, and the
+    farthest from the line through those two.  Raises ValueError where no three span one (fewer than
+    three points, or all on one line)."""
+    rest = torch.as_tensor(rest, dtype=torch.float64)
+    if rest.shape[0] >= 3:
+        rel = rest - rest[0]
+        b = int(torch.linalg.vector_norm(rel, dim=-1).argmax())
+        e = rel[b] / torch.linalg.vector_norm(rel[b]).clamp_min(1e-300)
+        off = torch.linalg.vector_norm(rel - (rel @ e)[:, None] * e, dim=-1)
+        c = int(off.argmax())
+        if off[c] > 1e-6 * float(torch.linalg.vector_norm(rel[b])):
+            return 0, b, c
+    raise ValueError(f"rigid frame: needs at least three prescribed vertices not on one line ({rest.shape[0]} prescribed)")
+
+
+def coordinates_for(f, mode: str | None = None, rigid_frame: bool = False) -> RelativeCoordinates:
     """The relative coordinates of a scene's trajectories ``f`` (an open ``trajectories.h5``).
 
     ``mode`` None (the config's autoencoder ``coordinates`` unset): root-relative for rods,
-    Dirichlet-mean-relative otherwise; or any mode of :class:`RelativeCoordinates`.
+    Dirichlet-mean-relative otherwise; or any mode of :class:`RelativeCoordinates`.  ``rigid_frame``:
+    in the frame that turns with the prescribed vertices (their rest positions from ``f``).
     """
     n = f["rest_positions"].shape[0]
     if mode is None:
         mode = "roots" if str(f.attrs["model"]) == "rods" else "mean"
-    if mode == "roots":
-        if "root_of" not in f:
-            raise ValueError(f"{f.filename}: 'roots' coordinates need the rods' root_of array")
-        return RelativeCoordinates(n, f["dirichlet"][()], mode="roots", root_of=f["root_of"][()])
-    return RelativeCoordinates(n, f["dirichlet"][()], mode=mode)
+    D = f["dirichlet"][()]
+    rest = f["rest_positions"][()][D] if rigid_frame else None
+    try:
+        if mode == "roots":
+            if "root_of" not in f:
+                raise ValueError("'roots' coordinates need the rods' root_of array")
+            return RelativeCoordinates(n, D, mode="roots", root_of=f["root_of"][()], rigid_rest=rest)
+        return RelativeCoordinates(n, D, mode=mode, rigid_rest=rest)
+    except ValueError as e:
+        raise ValueError(f"{f.filename}: {e}") from None
+
+
+def coordinates_record(coords: RelativeCoordinates) -> dict:
+    """What an autoencoder's file records of its coordinates (:func:`coordinates_for` rebuilds them):
+    ``coordinates``, the mode, and ``rigid_frame`` only when set (other files are as before)."""
+    return {"coordinates": coords.mode, **({"rigid_frame": True} if coords.rigid else {})}

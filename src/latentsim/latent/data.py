@@ -80,7 +80,7 @@ def build_triplets(ae: Autoencoder, coords: RelativeCoordinates, sequences: Sequ
         T = x.shape[0]
         bc = s.get("bc")
         bc = np.zeros((T, 0)) if bc is None else np.asarray(bc).reshape(T, -1)
-        bc = torch.as_tensor(boundary_inputs(bc, s["dirichlet_positions"], origin)).to(dev, torch.float32)
+        bc = torch.as_tensor(boundary_inputs(bc, s["dirichlet_positions"], origin, coords)).to(dev, torch.float32)
         if T < 3:
             continue
         z = encode_positions(ae, coords, x, xD)

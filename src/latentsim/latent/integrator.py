@@ -13,6 +13,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from latentsim.runtime.frame import frame_inputs
+
 
 class LatentIntegrator(nn.Module):
     """z_t = I(z_{t-1}, z_{t-2}, p_t, p_{t-1}, p_{t-2}) (paper Eq. 3).
@@ -82,19 +84,29 @@ class LatentIntegrator(nn.Module):
         return z_prev + y if self.residual else y
 
 
-def boundary_inputs(bc, dirichlet_positions, origin: bool):
-    """The p_t an integrator takes at each frame: the boundary-condition parameters ``bc`` (T, k) and,
-    with ``origin``, the mean of the frame's prescribed positions ``dirichlet_positions`` (T, m, 3)
-    appended (T, k + 3), in the type of ``bc`` (a NumPy array or a tensor).
+def boundary_inputs(bc, dirichlet_positions, origin: bool, coords=None):
+    """The p_t an integrator takes at each frame, in the type of ``bc`` (a NumPy array or a tensor): the
+    boundary-condition parameters ``bc`` (T, k); in coordinates with a rigid frame (``coords.rigid``,
+    :class:`~latentsim.latent.coordinates.RelativeCoordinates`) each of their 3-vectors (a program's
+    velocity and angular velocity) carried into the frame, R^T v, followed by the nine entries of R^T
+    (row by row: the world's axes, and so gravity, as the frame sees them); and, with ``origin``, the
+    mean of the frame's prescribed positions ``dirichlet_positions`` (T, m, 3) appended last.
 
-    The latent coordinates are relative to that mean (:class:`~latentsim.latent.coordinates.RelativeCoordinates`,
-    ``mean``), and the parameters of a program are its velocities: without it an integrator does not
-    know where the cloth or solid is in the world, and so where a static collider is relative to it
-    (``integrator.origin_input``; not in the paper)."""
-    if not origin:
+    The latent coordinates are relative to that mean (``mean``), and the parameters of a program are its
+    velocities: without it an integrator does not know where the cloth or solid is in the world, and so
+    where a static collider is relative to it (``integrator.origin_input``; not in the paper).  In a rigid
+    frame the latent holds no turn of the boundary, and the frame's orientation and the program's
+    velocities in it are what tell the integrator how inertia and gravity act (``autoencoder.rigid_frame``;
+    not in the paper)."""
+    rigid = coords is not None and coords.rigid
+    if not (origin or rigid):
         return bc
-    if torch.is_tensor(bc):
-        mean = torch.as_tensor(dirichlet_positions).mean(-2).to(bc)
-        return torch.cat([bc.reshape(len(bc), -1), mean], -1)
-    bc = np.asarray(bc)
-    return np.concatenate([bc.reshape(len(bc), -1), np.asarray(dirichlet_positions, dtype=bc.dtype).mean(-2)], -1)
+    is_tensor = torch.is_tensor(bc)
+    p = (bc if is_tensor else torch.as_tensor(np.asarray(bc))).reshape(len(bc), -1)
+    xD = torch.as_tensor(dirichlet_positions)
+    if rigid:
+        R, _ = coords.pose(xD.to(torch.float64))
+        p = frame_inputs(p.to(R), R).to(p)
+    if origin:
+        p = torch.cat([p, xD.mean(-2).to(p)], -1)
+    return p if is_tensor else p.numpy()

@@ -63,7 +63,7 @@ def rollout(
     T = int(bc.shape[0])
     if dirichlet_positions.shape[0] != T:
         raise ValueError("bc and dirichlet_positions must have the same number of frames")
-    bc = boundary_inputs(bc.reshape(T, -1), dirichlet_positions, getattr(integrator, "origin", False))
+    bc = boundary_inputs(bc.reshape(T, -1), dirichlet_positions, getattr(integrator, "origin", False), coords)
     mods = [m for m in (integrator, ae) if isinstance(m, nn.Module)]
     was = [m.training for m in mods]
     for m in mods:

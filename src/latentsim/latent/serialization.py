@@ -130,4 +130,5 @@ def load_extra(path) -> dict:
 def autoencoder_coordinates(f, ae_path) -> RelativeCoordinates:
     """The coordinates the autoencoder saved at ``ae_path`` was trained in (its file records
     them), for the scene of the open trajectories file ``f``."""
-    return coordinates_for(f, load_extra(ae_path).get("coordinates"))
+    extra = load_extra(ae_path)
+    return coordinates_for(f, extra.get("coordinates"), bool(extra.get("rigid_frame", False)))

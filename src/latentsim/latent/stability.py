@@ -130,7 +130,7 @@ def survive_latent(integrator, ae, coords, z0, z1, condition: Condition, dirichl
     (a :class:`~latentsim.physics.contact.ContactBarrier`, the scene's colliders) also
     ``max_penetration``, the deepest entry into a collider of any surviving frame / rest_diag.
     """
-    bc = torch.as_tensor(boundary_inputs(np.asarray(condition.bc), condition.dirichlet_positions, getattr(integrator, "origin", False)), dtype=torch.float32)
+    bc = torch.as_tensor(boundary_inputs(np.asarray(condition.bc), condition.dirichlet_positions, getattr(integrator, "origin", False), coords), dtype=torch.float32)
     T = len(bc)
     z0 = torch.as_tensor(z0, dtype=torch.float32).clone()
     z1 = torch.as_tensor(z1, dtype=torch.float32).clone()

@@ -40,7 +40,7 @@ from latentsim.latent.integrator import boundary_inputs
 from latentsim.latent.rollout import rollout as latent_rollout
 from latentsim.latent.serialization import autoencoder_coordinates, load_autoencoder, load_extra, load_integrator
 from latentsim.latent.stability import stress_test
-from latentsim.latent.timing import time_steppers
+from latentsim.latent.timing import rigid_frame_steppers, time_steppers
 from latentsim.latent.training import fit_integrator
 from latentsim.report.metrics import bbox_diagonal, vertex_errors
 from latentsim.report.tables import write_table
@@ -144,7 +144,7 @@ def train_point(trajectories, autoencoder: dict, integrator: dict, seed: int, de
     ae_cfg = with_defaults("autoencoder", autoencoder, "train_point")
     int_cfg = with_defaults("integrator", integrator, "train_point")
     with open_artefact(trajectories) as f:
-        coords = coordinates_for(f, ae_cfg["coordinates"])
+        coords = coordinates_for(f, ae_cfg["coordinates"], ae_cfg["rigid_frame"])
         scene = _scene_data(f)
         potential = potential_from_artefact(f)
     train = scene["train"]
@@ -166,7 +166,7 @@ def measure_point(point: dict, rollout: dict, stress: bool = True) -> pd.DataFra
     ae, integ, coords, train, tests, rest = (point[k] for k in ("ae", "integrator", "coords", "train", "tests", "rest"))
     diag = bbox_diagonal(rest)
     # as the rollout stage: the fastest deployable runtime is timed
-    steppers = runtime_compiled.deployable_steppers(runtime.fold_networks(ae, integ, coords))
+    steppers = rigid_frame_steppers(runtime_compiled.deployable_steppers(runtime.fold_networks(ae, integ, coords)), coords)
     rows = []
     for name, s in tests.items():
         x, xD = torch.as_tensor(s["positions"]), torch.as_tensor(s["dirichlet_positions"])
@@ -176,7 +176,7 @@ def measure_point(point: dict, rollout: dict, stress: bool = True) -> pd.DataFra
         T, div = len(x), int(res["diverged_frame"])
         ok = slice(0, T if div < 0 else div)
         mean_e, max_e = vertex_errors(res["positions"].numpy()[ok], s["positions"][ok], diag)
-        p_last = boundary_inputs(s["bc"], s["dirichlet_positions"], integ.origin)[-1]
+        p_last = boundary_inputs(s["bc"], s["dirichlet_positions"], integ.origin, coords)[-1]
         timing = time_steppers(steppers, z[1], z[0], p_last, s["dirichlet_positions"][-1], int(rollout["timing_repeats"]))
         rows.append(dict(
             latent_dim=point["latent_dim"], autoencoder_widths=widths_label(point["autoencoder_widths"]),

@@ -33,6 +33,16 @@ class EagerStepper(runtime.TorchStepper):
         return decode_latents(self.ae, self.coords, z[None], xD[None])[0]
 
 
+def rigid_frame_steppers(steppers: dict, coords) -> dict:
+    """``steppers`` as they step a model whose coordinates have a rigid frame (``coords.rigid``): each folded
+    runtime inside a :class:`~latentsim.runtime.RigidFrameStepper`, so that its timing includes carrying the
+    positions out of the frame (the eager one decodes through ``coords`` already); as they are otherwise."""
+    if not coords.rigid:
+        return steppers
+    rest = coords.rest_frame.numpy()
+    return {k: st if isinstance(st, EagerStepper) else runtime.RigidFrameStepper(st, coords.frame_vertices, rest) for k, st in steppers.items()}
+
+
 def time_steppers(steppers: dict, z1, z0, p, xD, repeats: int) -> dict:
     """Median ms of one latent step with each stepper (``{name}_step_ms`` etc.).
 

@@ -160,6 +160,8 @@ def fit_integrator(
         )
     if conditioning is not None and cfg["origin_input"]:
         raise ValueError(f"{label or 'integrator'}: origin_input is not for a conditioned integrator (its own rollouts step the program at other time steps)")
+    if conditioning is not None and coords.rigid:
+        raise ValueError(f"{label or 'integrator'}: an autoencoder with rigid_frame is not for a conditioned integrator (its timing and own rollouts step the program in the world's frame)")
     if cfg["origin_input"] and any(np.shape(s["dirichlet_positions"])[-2] == 0 for s in sequences):
         raise ValueError(f"{label or 'integrator'}: origin_input needs prescribed vertices (a free body's latent is already where it is in the world)")
     own_every = int(cfg["own_rollouts_every"])

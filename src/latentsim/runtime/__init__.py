@@ -31,6 +31,10 @@ Every runtime is a :class:`Stepper` (:mod:`latentsim.runtime.stepper`) over the 
   ``torch.export`` programs, PyTorch's deployment path (the step only: a rollout starts from latents
   that the NumPy encoder gives).  The runtime knows no training module: the eager baseline that
   steps them, :class:`latentsim.latent.timing.EagerStepper`, lives with them.
+- :class:`RigidFrameStepper` (:mod:`~latentsim.runtime.frame`): any of them, for a model whose
+  autoencoder encodes positions in the frame that turns with the prescribed vertices
+  (``autoencoder.rigid_frame``): it decodes in the frame and carries the positions out
+  (:class:`TrainedModel` puts it on by itself, from the file's header).
 
 Files (:mod:`~latentsim.runtime.files`): ``runtime.npz`` (NumPy, no pickle; format version 2 holds the
 encoder, version 1 files step but cannot encode) and a ``torch.export`` program of the step
@@ -39,6 +43,7 @@ encoder, version 1 files step but cannot encode) and a ``torch.export`` program 
 
 from latentsim.runtime.encoder import Encoder
 from latentsim.runtime.files import export_runtime, load_runtime, read_runtime
+from latentsim.runtime.frame import RigidFrameStepper
 from latentsim.runtime.fold import FORMAT, VERSION, fold_decoder, fold_encoder, fold_networks
 from latentsim.runtime.model import TrainedModel, load
 from latentsim.runtime.numpy_stepper import NumpyStepper
@@ -54,6 +59,7 @@ __all__ = [
     "ExportedStepper",
     "FoldedStep",
     "NumpyStepper",
+    "RigidFrameStepper",
     "Stepper",
     "TorchStepper",
     "TrainedModel",

@@ -112,6 +112,9 @@ def fold_decoder(ae, coords) -> dict:
         "mode": coords.mode,
         "autoencoder_hparams": dict(ae.hparams),
     }
+    if getattr(coords, "rigid", False):  # recorded only when set: other runtimes' files are as before
+        out["header"]["rigid_frame"] = {"vertices": [int(v) for v in coords.frame_vertices],
+                                        "rest_frame": [float(v) for v in coords.rest_frame.reshape(-1)]}  # fmt: skip
     return out
 
 

@@ -25,6 +25,7 @@ import os
 import numpy as np
 
 from latentsim.runtime.files import read_runtime
+from latentsim.runtime.frame import RigidFrameStepper, frame_inputs, frame_pose
 from latentsim.runtime.numpy_stepper import NumpyStepper
 from latentsim.runtime.stepper import Stepper
 
@@ -67,6 +68,9 @@ class TrainedModel:
     r, k, n, m : latent dimension, boundary-condition parameters per frame, vertices, Dirichlet vertices.
     origin : whether the integrator was trained with ``integrator.origin_input``: it takes the frame's mean
         Dirichlet position after p, which the model appends from xD (``k`` does not count it).
+    rigid : whether the autoencoder encodes positions in the frame that turns with the prescribed vertices
+        (``autoencoder.rigid_frame``): the model carries p and the positions into the frame at each frame's
+        xD and back (:mod:`latentsim.runtime.frame`; ``k`` counts p as the user gives it).
     dirichlet : (m,) the Dirichlet vertices, in the order of the Dirichlet positions xD.
     stepper : the stepper; ``stepper.header`` the runtime file's header.
 
@@ -76,11 +80,16 @@ class TrainedModel:
     """
 
     def __init__(self, stepper: Stepper):
+        header = getattr(stepper, "header", {})
+        # a model encoded in a rigid frame decodes in it (runtime.frame): its stepper carries positions in and out
+        self.rigid = "rigid_frame" in header
+        if self.rigid and not isinstance(stepper, RigidFrameStepper):
+            stepper = RigidFrameStepper(stepper, header["rigid_frame"]["vertices"], header["rigid_frame"]["rest_frame"])
         self.stepper = stepper
         # an integrator trained with the origin input takes the mean Dirichlet position after p: appended here
-        hparams = getattr(stepper, "header", {}).get("integrator_hparams", {})
+        hparams = header.get("integrator_hparams", {})
         self.origin = bool(hparams.get("origin", False))
-        self.r, self.k, self.n = stepper.r, stepper.k - 3 * self.origin, stepper.n
+        self.r, self.k, self.n = stepper.r, stepper.k - 3 * self.origin - 9 * self.rigid, stepper.n
         self.dirichlet = np.asarray(stepper.dirichlet, dtype=np.int64)
         self.m = len(self.dirichlet)
         dt = stepper.dtype
@@ -104,6 +113,9 @@ class TrainedModel:
             raise ValueError(f"{name}: boundary parameters p need shape {want}, got {p.shape}")
         if xD.shape[-2:] != (self.m, 3):
             raise ValueError(f"{name}: Dirichlet positions xD need shape ({self.m}, 3), got {xD.shape}")
+        if self.rigid:  # p's 3-vectors in the frame, then the frame's R^T (latent.boundary_inputs)
+            R, _ = frame_pose(np.broadcast_to(xD, p.shape[:-1] + xD.shape[-2:]), self.stepper.vertices, self.stepper.rest_frame)
+            p = frame_inputs(p.astype(np.float64), R).astype(p.dtype)
         if self.origin:  # the integrator's p ends with the mean Dirichlet position (latent.boundary_inputs)
             mean = np.broadcast_to(xD.mean(-2), p.shape[:-1] + (3,)).astype(p.dtype)
             p = np.concatenate([p, mean], -1)

@@ -15,7 +15,7 @@ import torch
 from latentsim.config import with_defaults
 from latentsim.io import atomic_h5, open_artefact, write_dataset
 from latentsim.latent.autoencoder import LatentRankError, decode_latents, encode_positions, fit_autoencoder
-from latentsim.latent.coordinates import coordinates_for
+from latentsim.latent.coordinates import coordinates_for, coordinates_record
 from latentsim.latent.data import load_split
 from latentsim.latent.serialization import save_module
 from latentsim.report.metrics import bbox_diagonal
@@ -48,7 +48,7 @@ def train_autoencoder(trajectories, settings: dict, seed: int, device: str, out_
     cfg = with_defaults("autoencoder", settings, "train_autoencoder")
     paths = [trajectories] if isinstance(trajectories, (str, os.PathLike)) else list(trajectories)
     with open_artefact(paths[0]) as f:
-        coords = coordinates_for(f, cfg["coordinates"])
+        coords = coordinates_for(f, cfg["coordinates"], cfg["rigid_frame"])
         diag = bbox_diagonal(f["rest_positions"][()])
         scene = f.attrs.get("scene", "?")
     train, every = load_split(paths, "train"), load_split(paths)
@@ -64,7 +64,7 @@ def train_autoencoder(trajectories, settings: dict, seed: int, device: str, out_
         "autoencoder: %d frames of %d dims -> %d latents, %.1f s, mse %.3e (PCA start) -> %.3e (kept: %s)",
         U.shape[0], U.shape[1], cfg["latent_dim"], seconds, history["mse_initial"], history["mse_final"], history["kept"],
     )  # fmt: skip
-    save_module(out_model, ae, extra={"coordinates": coords.mode, "train_seconds": seconds})
+    save_module(out_model, ae, extra={**coordinates_record(coords), "train_seconds": seconds})
     with atomic_h5(out_latents, config=settings, seed=seed) as g:
         g.attrs["train_seconds"] = seconds
         g.attrs["kept"] = history["kept"]

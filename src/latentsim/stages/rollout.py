@@ -16,13 +16,12 @@ from latentsim import runtime
 from latentsim.config import with_defaults
 from latentsim.io import atomic_h5, open_artefact, write_dataset
 from latentsim.latent.autoencoder import encode_positions
-from latentsim.latent.coordinates import coordinates_for
 from latentsim.latent.data import load_sequences
 from latentsim.latent.integrator import boundary_inputs
 from latentsim.latent.rollout import rollout
-from latentsim.latent.serialization import load_autoencoder, load_extra, load_integrator
+from latentsim.latent.serialization import autoencoder_coordinates, load_autoencoder, load_extra, load_integrator
 from latentsim.latent.stability import stress_test
-from latentsim.latent.timing import EagerStepper, time_full_space, time_jvps, time_steppers
+from latentsim.latent.timing import EagerStepper, rigid_frame_steppers, time_full_space, time_jvps, time_steppers
 from latentsim.runtime import compiled as runtime_compiled
 from latentsim.scene import contact_from_artefact, potential_from_artefact
 
@@ -49,7 +48,7 @@ def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out, m
     cfg = with_defaults("rollout", settings, "rollout_scene")
     ae, integ = load_autoencoder(ae_path), load_integrator(integrator_path)
     extra, ae_extra = load_extra(integrator_path), load_extra(ae_path)
-    scene = _read_scene(trajectories, ae_extra.get("coordinates"), cfg)
+    scene = _read_scene(trajectories, ae_path, cfg)
     steppers = _steppers(ae, integ, scene["coords"], runtime_paths)
     with atomic_h5(out, config=settings, seed=seed) as g:
         for k, v in {**scene["attrs"], **scene["full"]}.items():
@@ -67,15 +66,16 @@ def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out, m
             _stress(g.create_group("stability", track_order=True), integ, ae, scene, cfg)
 
 
-def _read_scene(trajectories, coordinates: str | None, cfg: dict) -> dict:
-    """What the rollout needs of a scene's ``trajectories.h5``: ``coords``, the ``tests``
+def _read_scene(trajectories, ae_path, cfg: dict) -> dict:
+    """What the rollout needs of a scene's ``trajectories.h5``: ``coords`` (those the autoencoder at
+    ``ae_path`` records), the ``tests``
     sequences, ``train_frames`` (the longest training sequence), the ``potential`` and its
     ``contact`` barrier (None without colliders), the scene's
     ``arrays`` and ``attrs`` (copied to the output) and ``full``, the full-space timing."""
     with open_artefact(trajectories) as f:
         tests = load_sequences(f, "test")
         return {
-            "coords": coordinates_for(f, coordinates),
+            "coords": autoencoder_coordinates(f, ae_path),
             "tests": tests,
             "train_frames": max(len(s["positions"]) for s in load_sequences(f, "train").values()),
             "potential": potential_from_artefact(f),
@@ -96,7 +96,7 @@ def _steppers(ae, integ, coords, runtime_paths) -> dict:
         runtime.export_runtime(ae, integ, coords, pt)
         steppers.update(runtime_compiled.deployable_steppers(runtime.read_runtime(npz)))  # numpy, compiled: from the file
         steppers["torch_export"] = runtime.ExportedStepper(runtime.read_runtime(npz))  # the torch.export programs of the step
-    return steppers
+    return rigid_frame_steppers(steppers, coords)
 
 
 def _roll_out(h, name: str, s: dict, integ, ae, scene: dict, steppers: dict, method: str, cfg: dict) -> None:
@@ -108,7 +108,7 @@ def _roll_out(h, name: str, s: dict, integ, ae, scene: dict, steppers: dict, met
     res = rollout(integ, ae, coords, z01[0], z01[1], torch.as_tensor(s["bc"]), xD,
                   potential=scene["potential"], max_extent=cfg["max_extent"], rest_positions=torch.as_tensor(scene["arrays"]["rest_positions"]))  # fmt: skip
     wall = time.perf_counter() - t0
-    p_last = boundary_inputs(s["bc"], s["dirichlet_positions"], integ.origin)[-1]
+    p_last = boundary_inputs(s["bc"], s["dirichlet_positions"], integ.origin, coords)[-1]
     timing = time_steppers(steppers, z01[1], z01[0], p_last, s["dirichlet_positions"][-1], cfg["timing_repeats"])
     if "numpy" in steppers:
         timing.update(time_jvps(ae, steppers["numpy"], coords, z01[1], cfg["timing_repeats"]))
