@@ -67,8 +67,17 @@ def test_full_rank_linear_subspace_reproduces_full_newton(beam):
     assert np.isfinite(out["step_ms"][2:]).all() and (out["iterations"][2:] >= 1).all()
 
 
-def _decoder_subspace(V, D, r=4, seed=0):
-    coords = RelativeCoordinates(len(V), D, "mean")
+def _turned_clamp(V, D, xD):
+    """The clamp's positions xD (m, 3) turned 0.6 rad about an oblique axis through their centroid."""
+    w = 0.6 * np.array([0.3, 1.0, -0.4]) / np.linalg.norm([0.3, 1.0, -0.4])
+    K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    Q = torch.linalg.matrix_exp(torch.as_tensor(K)).numpy()
+    c = xD.mean(0)
+    return (xD - c) @ Q.T + c
+
+
+def _decoder_subspace(V, D, r=4, seed=0, rigid=False):
+    coords = RelativeCoordinates(len(V), D, "mean", rigid_rest=V[D] if rigid else None)
     g = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
     rest = coords.encode(torch.as_tensor(V), torch.as_tensor(V[D]))
@@ -90,13 +99,19 @@ def _energy_along(pot, sub, q, x1, x2, xD):
         return float(pot(x, torch.from_numpy(x1), torch.from_numpy(x2), targets=torch.from_numpy(xD), penalty=True))
 
 
+@pytest.mark.parametrize("rigid", [False, True])
 @pytest.mark.parametrize("kind", ["linear", "decoder"])
-def test_reduced_gradient_matches_finite_differences(beam, kind):
+def test_reduced_gradient_matches_finite_differences(beam, kind, rigid):
+    """The reduced gradient J^T g against central differences of the energy along q; with a rigid frame
+    (autoencoder.rigid_frame) at a turned clamp, where J carries the frame's rotation."""
     V, D, pot, xD = beam
+    if rigid:
+        xD = xD.copy()
+        xD[2] = _turned_clamp(V, D, xD[2])
     if kind == "decoder":
-        sub, coords, _ = _decoder_subspace(V, D)
+        sub, coords, _ = _decoder_subspace(V, D, rigid=rigid)
     else:
-        coords = RelativeCoordinates(len(V), D, "mean")
+        coords = RelativeCoordinates(len(V), D, "mean", rigid_rest=V[D] if rigid else None)
         rng = np.random.default_rng(1)
         u0 = coords.encode(torch.as_tensor(V), torch.as_tensor(V[D])).numpy()
         sub = LinearSubspace(coords, u0, np.linalg.qr(rng.standard_normal((coords.dim, 5)))[0])
@@ -106,6 +121,10 @@ def test_reduced_gradient_matches_finite_differences(beam, kind):
     q = 0.05 * rng.standard_normal(sub.dim)
     x1 = V + 0.01 * rng.standard_normal(V.shape)
     x2 = V + 0.01 * rng.standard_normal(V.shape)
+    if kind == "decoder":  # the map is the coordinates' decode of the decoder's output, the frame included
+        with torch.no_grad():
+            ref = coords.decode(sub.ae.decode(torch.from_numpy(q)[None])[0], torch.from_numpy(xD[2])).numpy()
+        assert np.allclose(sub.map(q, xD[2]), ref, rtol=0, atol=1e-12)
     e, gq, _ = solver.reduced_gradient(q, x1, x2, xD[2])
     assert e == pytest.approx(_energy_along(pot, sub, q, x1, x2, xD[2]), rel=1e-12)
     h = 1e-6
@@ -114,20 +133,23 @@ def test_reduced_gradient_matches_finite_differences(beam, kind):
     assert np.allclose(gq, fd, rtol=1e-5, atol=1e-7 * np.abs(gq).max())
 
 
-def test_decoder_curvature_matches_autograd(beam):
-    """sum_i g_i d^2 x_i / dq^2 of the decoder subspace against torch.func.hessian."""
+@pytest.mark.parametrize("rigid", [False, True])
+def test_decoder_curvature_matches_autograd(beam, rigid):
+    """sum_i g_i d^2 x_i / dq^2 of the decoder subspace against torch.func.hessian (with a rigid frame at a
+    turned clamp too)."""
     V, D, _, xD = beam
-    sub, coords, _ = _decoder_subspace(V, D, seed=4)
+    sub, coords, _ = _decoder_subspace(V, D, seed=4, rigid=rigid)
+    target = _turned_clamp(V, D, xD[2]) if rigid else xD[2]
     rng = np.random.default_rng(5)
     q, g = 0.3 * rng.standard_normal(sub.dim), rng.standard_normal(3 * len(V))
-    gt, xDt = torch.from_numpy(g), torch.from_numpy(xD[2])
+    gt, xDt = torch.from_numpy(g), torch.from_numpy(target)
 
     def weighted(z):
         return (gt * coords.decode(sub.ae.decode(z[None])[0], xDt).reshape(-1)).sum()
 
     ref = torch.func.hessian(weighted)(torch.from_numpy(q)).detach().numpy()
-    C = sub.curvature(q, xD[2], g)
-    assert np.abs(ref).max() > 1e-3
+    C = sub.curvature(q, target, g)
+    assert np.abs(ref).max() > 5e-4
     assert np.allclose(C, ref, rtol=0, atol=1e-10 * np.abs(ref).max())
 
 

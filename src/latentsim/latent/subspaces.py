@@ -21,6 +21,7 @@ import torch
 
 from latentsim.latent import encode_positions, pca_basis
 from latentsim.runtime import NumpyStepper, fold_decoder
+from latentsim.runtime.frame import frame_pose
 
 __all__ = ["DecoderSubspace", "LinearSubspace"]
 
@@ -29,6 +30,20 @@ def _relative_decode(coords, u: np.ndarray, xD: np.ndarray) -> np.ndarray:
     """Positions (n, 3) from an encoded vector u (d,) by the coordinates' own decode."""
     with torch.no_grad():
         return coords.decode(torch.from_numpy(np.asarray(u, dtype=np.float64)), torch.from_numpy(np.asarray(xD, dtype=np.float64))).numpy()
+
+
+def _frame(coords, xD):
+    """(R (3, 3), c (1, 3)) of coordinates with a rigid frame at prescribed positions xD (m, 3); None without one."""
+    if not getattr(coords, "rigid", False):
+        return None
+    return frame_pose(np.asarray(xD, dtype=np.float64), coords.frame_vertices, coords.rest_frame.numpy())
+
+
+def _turned(J: np.ndarray, R) -> np.ndarray:
+    """Rows (3n, ...) of per-vertex 3-vectors in the frame carried out of it (R applied to each vertex's rows)."""
+    if R is None:
+        return J
+    return np.einsum("ij,nj...->ni...", R, J.reshape((-1, 3) + J.shape[1:])).reshape(J.shape)
 
 
 def _encoded_rows(coords) -> np.ndarray:
@@ -80,7 +95,8 @@ class LinearSubspace:
         return _relative_decode(self.coords, self.u0 + self.basis @ np.asarray(q, dtype=np.float64), xD)
 
     def jacobian(self, q, xD):
-        return self.map(q, xD), self._J
+        pose = _frame(self.coords, xD)
+        return self.map(q, xD), self._J if pose is None else _turned(self._J, pose[0])
 
     def project(self, x, xD) -> np.ndarray:
         """Least-squares reduced coordinates of positions x (n, 3)."""
@@ -105,17 +121,30 @@ class DecoderSubspace:
         self.hard_dirichlet = bool(coords.hard_dirichlet)
         self.dirichlet = coords.dirichlet.numpy()
 
+    def _local(self, xD):
+        """xD carried into the coordinates' rigid frame, and (R, c); xD itself and None without one."""
+        pose = _frame(self.coords, xD)
+        return (xD, None) if pose is None else ((np.asarray(xD, dtype=np.float64) - pose[1]) @ pose[0], pose)
+
     def map(self, q, xD) -> np.ndarray:
-        return self.net.decode_from_u(self.net.decode_network(np.asarray(q, dtype=np.float64)), xD)
+        xl, pose = self._local(xD)
+        x = self.net.decode_from_u(self.net.decode_network(np.asarray(q, dtype=np.float64)), xl)
+        return x if pose is None else x @ pose[0].T + pose[1]
 
     def jacobian(self, q, xD):
-        return self.net.decode_jacobian(np.asarray(q, dtype=np.float64), xD)
+        xl, pose = self._local(xD)
+        x, J = self.net.decode_jacobian(np.asarray(q, dtype=np.float64), xl)
+        return (x, J) if pose is None else (x @ pose[0].T + pose[1], _turned(J, pose[0]))
 
     def curvature(self, q, xD, grad) -> np.ndarray:
         """sum_i g_i d^2 x_i / dq dq (r, r) for a full-space gradient g (3n,): the term
         Gauss-Newton drops.  The relative-coordinates decode is affine in the encoded
         vector, so only the decoder's second derivatives enter."""
-        return self.net.decode_curvature(np.asarray(q, dtype=np.float64), np.asarray(grad)[self._rows])
+        pose = _frame(self.coords, xD)
+        grad = np.asarray(grad, dtype=np.float64)
+        if pose is not None:  # the gradient as the frame sees it, R^T g per vertex
+            grad = (grad.reshape(-1, 3) @ pose[0]).reshape(-1)
+        return self.net.decode_curvature(np.asarray(q, dtype=np.float64), grad[self._rows])
 
     def project(self, x, xD) -> np.ndarray:
         """The encoder's latent of positions x (n, 3)."""
