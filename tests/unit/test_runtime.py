@@ -591,6 +591,23 @@ def test_a_model_trained_with_the_origin_appends_it_from_the_dirichlet_positions
     assert np.abs(X - blind["positions"][2:].numpy()).max() > 1e-2 * scale
 
 
+def test_the_frame_of_three_points_is_a_rotation_that_turns_with_them():
+    """runtime.frame.orthonormal_frame: a proper rotation (F^T F = I, det 1) whose first axis points from the first
+    point to the second; turning and moving the points turns it alike, F(Q p + t) = Q F(p); one frame in NumPy
+    (the runtime's scalar path), a batch in NumPy and in torch agree."""
+    from latentsim.runtime.frame import orthonormal_frame
+
+    rng = np.random.default_rng(3)
+    p = rng.normal(size=(6, 3, 3))
+    F = orthonormal_frame(p)
+    assert np.allclose(F.swapaxes(-1, -2) @ F, np.eye(3), atol=1e-14) and np.allclose(np.linalg.det(F), 1.0, atol=1e-14)
+    assert np.allclose(F[..., 0], (p[:, 1] - p[:, 0]) / np.linalg.norm(p[:, 1] - p[:, 0], axis=-1, keepdims=True), atol=1e-14)
+    Q = torch.linalg.matrix_exp(torch.tensor([[0.0, -0.4, 1.1], [0.4, 0.0, -0.3], [-1.1, 0.3, 0.0]], dtype=torch.float64)).numpy()
+    assert np.allclose(orthonormal_frame(p @ Q.T + [1.0, -2.0, 0.5]), Q @ F, atol=1e-13)
+    one = np.stack([orthonormal_frame(q) for q in p])
+    assert np.allclose(one, F, atol=1e-15) and np.allclose(orthonormal_frame(torch.as_tensor(p)).numpy(), F, atol=1e-15)
+
+
 @pytest.mark.parametrize("mode", ["mean", "hard_mean"])
 def test_a_model_in_a_rigid_frame_steps_as_the_rollout_with_every_runtime(mode, tmp_path):
     """``autoencoder.rigid_frame``: the runtime file records the frame; the loaded model (NumPy, and compiled where
