@@ -167,6 +167,9 @@ def _check_conditioning(config: dict) -> None:
             if settings.get("mode", "self_supervised") != "self_supervised" or float(settings.get("supervised_weight", 0.0)) > 0:
                 raise ConfigError(f"config key '{key}.integrator' (or '.conditioned'): a conditioned integrator and its references train on "
                                   "the incremental potential alone (mode self_supervised, supervised_weight 0)")  # fmt: skip
+        if conditioned_autoencoder_settings(config, name).get("rigid_frame"):
+            raise ConfigError(f"config key 'scenes.{name}.autoencoder.rigid_frame': not for a conditioned scene "
+                              "(its timing and own rollouts step the program in the world's frame)")  # fmt: skip
         (h0, h1), (e0, e1) = c["time_step"], c["youngs_modulus"]
         train = {condition_name(q["time_step"], q["youngs_modulus"]) for q in c.get("train") or []}
         for i, q in enumerate(c.get("train") or []):

@@ -156,6 +156,10 @@ def test_the_config_names_the_conditions_and_refuses_what_cannot_be_held_out():
     kb["scenes"]["s"]["material"].update(model="stvk_nm", bending_stiffness=1e-3)
     with pytest.raises(ConfigError, match="bending_stiffness"):
         validate_config(kb)
+    turning = _scene(**box, test=[{"time_step": 1 / 30, "youngs_modulus": 3e5}])
+    turning["scenes"]["s"]["autoencoder"] = {"rigid_frame": True}
+    with pytest.raises(ConfigError, match=r"'scenes\.s\.autoencoder\.rigid_frame': not for a conditioned scene"):
+        validate_config(turning)
 
 
 def test_frame_rate_rows_compare_the_shared_times():
