@@ -95,10 +95,15 @@ class RigidFrameStepper:
             raise AttributeError(name)
         return getattr(self.inner, name)
 
-    def local(self, x, xD):
-        """Positions x (..., n, 3) (or None) and prescribed xD (..., m, 3) carried into the frame; and R, c."""
+    def pose(self, xD):
+        """R, c of the frame at prescribed positions xD (..., m, 3) (:func:`frame_pose`)."""
+        return frame_pose(np.asarray(xD, dtype=np.float64), self.vertices, self.rest_frame)
+
+    def local(self, x, xD, pose=None):
+        """Positions x (..., n, 3) (or None) and prescribed xD (..., m, 3) carried into the frame; and R, c
+        (``pose``: R, c already found at this xD, as :class:`~latentsim.runtime.TrainedModel` finds them for p)."""
         xD = np.asarray(xD, dtype=np.float64)
-        R, c = frame_pose(xD, self.vertices, self.rest_frame)
+        R, c = self.pose(xD) if pose is None else pose
         return (None if x is None else (np.asarray(x, dtype=np.float64) - c) @ R), (xD - c) @ R, R, c
 
     def inputs(self, z_prev, z_prev2, p, p_prev, p_prev2, xD):
@@ -107,8 +112,8 @@ class RigidFrameStepper:
     def integrate(self, z_prev, z_prev2, p, p_prev, p_prev2, out=None):
         return self.inner.integrate(z_prev, z_prev2, p, p_prev, p_prev2, out=out)
 
-    def decode(self, z, xD, out=None):
-        _, xl, R, c = self.local(None, xD)
+    def decode(self, z, xD, out=None, pose=None):
+        _, xl, R, c = self.local(None, xD, pose)
         if not isinstance(xD, np.ndarray):  # a stepper of tensors takes its own type
             xl = xD.new_tensor(xl)
         x = np.asarray(self.inner.decode(z, xl))
@@ -116,9 +121,9 @@ class RigidFrameStepper:
         out += c
         return out
 
-    def step(self, z_prev, z_prev2, p, p_prev, p_prev2, xD, z_out=None, x_out=None):
+    def step(self, z_prev, z_prev2, p, p_prev, p_prev2, xD, z_out=None, x_out=None, pose=None):
         z = self.integrate(z_prev, z_prev2, p, p_prev, p_prev2, out=z_out)
-        return z, self.decode(z, xD, out=x_out)
+        return z, self.decode(z, xD, out=x_out, pose=pose)
 
     def encode(self, x, xD):
         """Latents of positions x (..., n, 3) with prescribed xD (..., m, 3), encoded in the frame."""

@@ -25,7 +25,7 @@ import os
 import numpy as np
 
 from latentsim.runtime.files import read_runtime
-from latentsim.runtime.frame import RigidFrameStepper, frame_inputs, frame_pose
+from latentsim.runtime.frame import RigidFrameStepper, frame_inputs
 from latentsim.runtime.numpy_stepper import NumpyStepper
 from latentsim.runtime.stepper import Stepper
 
@@ -106,6 +106,8 @@ class TrainedModel:
         return self._z[0].copy()
 
     def _frame_args(self, p, xD, name: str):
+        """p as the integrator takes it and xD (float64), checked; with a rigid frame also its pose at xD
+        (``self._pose``, which the step's decode reuses)."""
         p = np.asarray(p, dtype=self.stepper.dtype)
         xD = np.ascontiguousarray(xD, dtype=np.float64)
         want = (2, self.k) if name == "start" else (self.k,)  # start: frames 0 and 1
@@ -114,8 +116,8 @@ class TrainedModel:
         if xD.shape[-2:] != (self.m, 3):
             raise ValueError(f"{name}: Dirichlet positions xD need shape ({self.m}, 3), got {xD.shape}")
         if self.rigid:  # p's 3-vectors in the frame, then the frame's R^T (latent.boundary_inputs)
-            R, _ = frame_pose(np.broadcast_to(xD, p.shape[:-1] + xD.shape[-2:]), self.stepper.vertices, self.stepper.rest_frame)
-            p = frame_inputs(p.astype(np.float64), R).astype(p.dtype)
+            self._pose = self.stepper.pose(np.broadcast_to(xD, p.shape[:-1] + xD.shape[-2:]))
+            p = frame_inputs(p.astype(np.float64), self._pose[0]).astype(p.dtype)
         if self.origin:  # the integrator's p ends with the mean Dirichlet position (latent.boundary_inputs)
             mean = np.broadcast_to(xD.mean(-2), p.shape[:-1] + (3,)).astype(p.dtype)
             p = np.concatenate([p, mean], -1)
@@ -161,7 +163,8 @@ class TrainedModel:
         p, xD = self._frame_args(p, self._xD if xD is None else xD, "step")
         np.copyto(self._pnew, p)
         st = self.stepper
-        z, x = st.step(self._z[0], self._z[1], self._pnew, self._p[0], self._p[1], xD, z_out=self._znew)
+        pose = {"pose": self._pose} if self.rigid else {}  # the frame that p was carried into
+        z, x = st.step(self._z[0], self._z[1], self._pnew, self._p[0], self._p[1], xD, z_out=self._znew, **pose)
         self._z[1] = self._z[0]
         self._z[0] = z
         self._p[1] = self._p[0]
