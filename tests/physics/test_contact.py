@@ -482,7 +482,7 @@ def test_attached_collider_entries_are_placed_per_frame_and_penetration_is_measu
     (a point moved, a normal turned), a static entry as it is; a rollout that keeps its place relative
     to a moving ball never enters it, one that stays where the ball arrives does."""
     from latentsim.scene import contact_barrier, posed_collider_entries
-    from latentsim.stages.evaluate import penetration
+    from latentsim.report.metrics import penetration
 
     R, t = _rigid(5)
     c0 = REST_D.mean(0)

@@ -372,6 +372,23 @@ def test_tiny_contact_stays_out_of_its_ball_in_the_full_space_and_every_method_i
     assert glance.loc[("tiny_contact", "full_space"), "max_penetration"] == 0
     assert glance.loc[("tiny_contact", "newton_1it"), "max_penetration"] == 0
     assert glance.loc["tiny_cloth", "max_penetration"].isna().all()
+    # the autoencoder's reconstruction of the ground truth, measured the same way: its floor under every latent method
+    from latentsim.latent.autoencoder import decode_latents, encode_positions
+    from latentsim.latent.serialization import autoencoder_coordinates, load_autoencoder
+    from latentsim.report.metrics import bbox_diagonal
+
+    rec = pd.read_csv(work / "results/evaluation/tiny_contact/reconstruction.csv").set_index(["seed", "sequence"])
+    ae_path = work / "results/autoencoder/tiny_contact/seed0/autoencoder.pt"
+    with h5py.File(work / "results/sim/tiny_contact/trajectories.h5") as f:
+        coords, xD = autoencoder_coordinates(f, ae_path), torch.as_tensor(f["sequences/line/dirichlet_positions"][()])
+        diag = bbox_diagonal(f["rest_positions"][()])
+    ae = load_autoencoder(ae_path)
+    with torch.no_grad():
+        xr = decode_latents(ae, coords, encode_positions(ae, coords, torch.as_tensor(positions), xD), xD).double()
+    d = barrier.distances(xr, xD).amin(-1).numpy()
+    assert rec.loc[(0, "line"), "max_penetration"] == pytest.approx(max(-d.min(), 0.0) / diag, rel=1e-4, abs=1e-9)
+    assert rec.loc[(0, "line"), "penetrating_frames"] == (d < 0).sum()
+    assert "max_penetration" not in pd.read_csv(work / "results/evaluation/tiny_cloth/reconstruction.csv").columns
 
 
 def test_a_sweep_point_that_is_the_scenes_model_measures_it_instead_of_training_it_again(tiny_run):

@@ -27,14 +27,17 @@ thus never has the best error and is never on a Pareto front
 (:func:`pareto_front` leaves non-finite points out).
 
 :func:`pareto_front` marks the non-dominated methods of a speed-accuracy
-comparison.  Plain NumPy: no plotting library is imported here.
+comparison.  :func:`penetration` measures how deep a motion enters a scene's colliders (a rollout's, or
+an autoencoder's reconstruction of the ground truth).  NumPy, and torch for the colliders' distances:
+no plotting library is imported here.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import torch
 
-__all__ = ["DIVERGED_ERROR", "bbox_diagonal", "kinetic_energy", "pareto_front", "rollout_metrics", "vertex_errors"]
+__all__ = ["DIVERGED_ERROR", "bbox_diagonal", "kinetic_energy", "pareto_front", "penetration", "rollout_metrics", "vertex_errors"]
 
 # the error of a failed frame (at and after a rollout's first diverged frame); a rollout with one
 # failed frame has this mean and max error, so it ranks behind every rollout that survived
@@ -170,3 +173,16 @@ def pareto_front(times, errors) -> np.ndarray:
     mask = np.zeros(t.shape, dtype=bool)
     mask[np.flatnonzero(ok)] = ~dominated
     return mask
+
+
+def penetration(contact, positions, diag: float, diverged_frame: int, dirichlet_positions=None) -> dict:
+    """How far a motion's vertices (a rollout's, or a reconstruction's) enter the scene's colliders, over the frames before divergence (-1: none):
+    ``max_penetration`` (the deepest vertex of any frame / the rest bbox diagonal; 0 when none enters)
+    and ``penetrating_frames`` (frames with any vertex inside).  ``dirichlet_positions`` (T, m, 3), the
+    sequence's prescribed positions, place the colliders attached to them (needed with one)."""
+    ok = positions[: len(positions) if diverged_frame < 0 else diverged_frame]
+    if not len(ok):
+        return {"max_penetration": float("nan"), "penetrating_frames": 0}
+    targets = None if dirichlet_positions is None else np.asarray(dirichlet_positions)[: len(ok)]
+    d = contact.distances(torch.as_tensor(ok, dtype=torch.float64), targets).amin(-1).numpy()
+    return {"max_penetration": float(np.maximum(-d, 0.0).max() / diag), "penetrating_frames": int((d < 0).sum())}

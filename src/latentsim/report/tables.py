@@ -131,14 +131,17 @@ def speed_accuracy_points(df: pd.DataFrame) -> pd.DataFrame:
 
 def reconstruction_table(scene: str, latents) -> pd.DataFrame:
     """Autoencoder reconstruction error per seed and sequence (mean and max vertex error / bbox diagonal) from
-    one ``latents.h5`` or a list of them (one per seed; column ``seed`` from the file's attribute)."""
+    one ``latents.h5`` or a list of them (one per seed; column ``seed`` from the file's attribute); for a scene
+    with colliders also how deep the reconstruction enters them (``max_penetration`` / bbox diagonal,
+    ``penetrating_frames``)."""
     rows = []
     for path in [latents] if isinstance(latents, (str, bytes)) or hasattr(latents, "__fspath__") else latents:
         with open_artefact(path) as f:
             seed = int(f.attrs.get("seed", -1))
             for name, g in require(f, "sequences").items():
                 rows.append(dict(scene=scene, seed=seed, sequence=name, split=str(g.attrs["split"]),
-                                 mean_error=float(g.attrs["mean_error"]), max_error=float(g.attrs["max_error"])))  # fmt: skip
+                                 mean_error=float(g.attrs["mean_error"]), max_error=float(g.attrs["max_error"]),
+                                 **{k: g.attrs[k].item() for k in ("max_penetration", "penetrating_frames") if k in g.attrs}))  # fmt: skip
     return pd.DataFrame(rows)
 
 
