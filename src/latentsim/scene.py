@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from latentsim.physics import neohookean, rods, shells, stvk_nm, tets
-from latentsim.physics.contact import Capsule, ContactBarrier, HalfSpace, Sphere, rigid_pose
+from latentsim.physics.contact import Capsule, ContactBarrier, HalfSpace, Sphere, posed_colliders
 from latentsim.physics.incremental_potential import ElasticPotential, IncrementalPotential
 
 BC_DIM = 6
@@ -321,18 +321,12 @@ def contact_barrier(contact: dict, n_vertices: int, rest_positions, dirichlet, d
 def posed_collider_entries(entries, rest_dirichlet, targets) -> list[dict]:
     """A scene's ``contact.colliders`` entries where they stand when the prescribed vertices (rest positions
     ``rest_dirichlet`` (m, 3)) are at ``targets`` (m, 3): every attached one carried by their rigid motion
-    (:func:`~latentsim.physics.contact.rigid_pose`), the static ones as they are."""
-    if not any(q.get("attached") for q in entries):
+    (:func:`~latentsim.physics.contact.posed_colliders`), the static ones as they are."""
+    attached = [bool(q.get("attached")) for q in entries]
+    if not any(attached):
         return list(entries)
-    R, c = rigid_pose(rest_dirichlet, np.asarray(targets, dtype=float))
-    c0 = np.asarray(rest_dirichlet, dtype=float).mean(0)
-    out = []
-    for q in entries:
-        if q.get("attached"):
-            moved = collider(q).moved(R.numpy(), c0, c.numpy())
-            q = {**q, **{k: list(getattr(moved, k)) for k in moved.points + moved.directions}}
-        out.append(q)
-    return out
+    moved = posed_colliders([collider(q) for q in entries], attached, rest_dirichlet, targets)
+    return [{**q, **{k: list(getattr(m, k)) for k in m.points + m.directions}} if a else q for q, m, a in zip(entries, moved, attached)]
 
 
 def contact_settings(contact: dict, rest_positions, masses, gravity) -> dict:

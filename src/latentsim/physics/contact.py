@@ -82,6 +82,18 @@ def rigid_pose(rest: np.ndarray, targets) -> tuple[torch.Tensor, torch.Tensor]:
     return (V * D[..., None, :]) @ U.transpose(-1, -2), c
 
 
+def posed_colliders(colliders, attached, rest_dirichlet, targets) -> list:
+    """The colliders where they stand when the prescribed vertices (rest positions ``rest_dirichlet``
+    (m, 3)) are at ``targets`` (m, 3): each ``attached`` one carried by their rigid motion
+    (:func:`rigid_pose`), the static ones as they are."""
+    if not any(attached):
+        return list(colliders)
+    rest = np.asarray(rest_dirichlet, dtype=float)
+    R, c = rigid_pose(rest, np.asarray(targets, dtype=float))
+    R, c0, c = R.numpy(), rest.mean(0), c.numpy()
+    return [col.moved(R, c0, c) if a else col for col, a in zip(colliders, attached)]
+
+
 def friction_f0(s: torch.Tensor, eps: float) -> torch.Tensor:
     """IPC's smoothed friction potential of a tangential slip s >= 0 over a step (Li et al. 2020, Eq. 14):
     s^2 / eps - s^3 / (3 eps^2) + eps / 3 below eps, s above (C1 at eps; its derivative f1 rises from 0 to 1
@@ -320,9 +332,7 @@ class ContactBarrier(EnergyTerm):
         the prescribed vertices' positions; this barrier itself when none is attached."""
         if not self.moving:
             return self
-        R, c = rigid_pose(self.rest_dirichlet, np.asarray(targets, dtype=float))
-        c0 = self.rest_dirichlet.mean(0)
-        moved = [col.moved(R.numpy(), c0, c.numpy()) if a else col for col, a in zip(self.colliders, self.attached)]
+        moved = posed_colliders(self.colliders, self.attached, self.rest_dirichlet, targets)
         return ContactBarrier(len(self.stencils), moved, self.d_hat, self.kappa, self.extend_below, friction=self.friction, slip=self.slip)
 
     def anchored(self, x_prev, targets_prev, targets) -> "ContactBarrier":
