@@ -641,12 +641,18 @@ def test_a_model_in_a_rigid_frame_steps_as_the_rollout_with_every_runtime(mode, 
         X = np.stack([model.step(bc[t].numpy(), xD[t].numpy()) for t in range(2, T)])
         assert np.abs(X - ref["positions"][2:].numpy()).max() < 1e-4 * scale
     folded = rt.fold_networks(ae, integ, coords)
-    steppers = rigid_frame_steppers({"numpy": rt.NumpyStepper(folded), "exported": rt.ExportedStepper(folded), "eager": EagerStepper(ae, integ, coords)}, coords)
+    compiled = {"compiled": rc.CompiledStepper(folded)} if rc.available() else {}  # carries out in its own kernel
+    steppers = rigid_frame_steppers({"numpy": rt.NumpyStepper(folded), "exported": rt.ExportedStepper(folded), "eager": EagerStepper(ae, integ, coords),
+                                     **compiled}, coords)  # fmt: skip
     assert isinstance(steppers["numpy"], rt.RigidFrameStepper) and not isinstance(steppers["eager"], rt.RigidFrameStepper)
     for name, st in steppers.items():
         z4, p4 = ref["latents"][4].numpy(), np.zeros(K + 9, dtype=np.float32)
         x5 = np.asarray(st.decode(*st.inputs(z4, z4, p4, p4, p4, xD[4].numpy())[::5]))
         assert np.abs(x5 - ref["positions"][4].numpy()).max() < 1e-4 * scale, name
+        if name != "eager":  # into a caller's buffer, as the timings step
+            buf = np.empty((plain.n, 3))
+            z4c, xD4 = st.inputs(z4, z4, p4, p4, p4, xD[4].numpy())[::5]
+            assert st.decode(z4c, xD4, out=buf) is buf and np.abs(buf - ref["positions"][4].numpy()).max() < 1e-4 * scale, name
     with torch.no_grad():
         unturned = decode_latents(ae, plain, ref["latents"], xD)
     assert np.abs(unturned.numpy() - ref["positions"].numpy()).max() > 1e-2 * scale

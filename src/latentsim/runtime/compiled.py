@@ -245,6 +245,19 @@ def _kernel(F, I, S, z1, z2, p0, p1, p2, xD, x, zout, what):
 
 
 @njit(**_JIT)
+def _carry_out(x, R, c):
+    """x (n, 3) float64 <- x R^T + c in place (R (3, 3), c (1, 3)): positions decoded in a rigid frame carried out
+    into the world (:class:`~latentsim.runtime.RigidFrameStepper`), one pass instead of a matmul and an add."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2], R[2, 0], R[2, 1], R[2, 2]
+    c0, c1, c2 = c[0, 0], c[0, 1], c[0, 2]
+    for i in range(x.shape[0]):
+        a, b, d = x[i, 0], x[i, 1], x[i, 2]
+        x[i, 0] = r00 * a + r01 * b + r02 * d + c0
+        x[i, 1] = r10 * a + r11 * b + r12 * d + c1
+        x[i, 2] = r20 * a + r21 * b + r22 * d + c2
+
+
+@njit(**_JIT)
 def _output_pass(A, h, y):
     """y[:] = A[nin] + sum_i h[i] A[i] over every output of the layer A (nin + 1, D): one vectorised pass of an
     output layer over every DoF, its arithmetic and memory traffic and nothing else (no integrator, no
@@ -413,6 +426,13 @@ class CompiledStepper:
         x = self._x if out is None else out
         k0 = self._zero_k
         _kernel(self._F, self._I, self._S, z, z, k0, k0, k0, xD, x, self._z, 2)
+        return x
+
+    def carry_out(self, x, R, c) -> np.ndarray:
+        """Positions x (n, 3) (C-contiguous float64, as :meth:`decode` writes them) carried by the rigid motion
+        x R^T + c in place (R (3, 3), c (1, 3)); x."""
+        self._check_x(x, "x")
+        _carry_out(x, np.ascontiguousarray(R, dtype=np.float64), np.ascontiguousarray(c, dtype=np.float64).reshape(1, 3))
         return x
 
     def step(self, z_prev, z_prev2, p, p_prev, p_prev2, xD, z_out=None, x_out=None):

@@ -56,6 +56,9 @@ def orthonormal_frame(p):
 def frame_pose(xD, vertices, rest_frame):
     """R (..., 3, 3) and c (..., 1, 3) of the frame at prescribed positions xD (..., m, 3): ``vertices``
     the three positions in the Dirichlet list that span it, ``rest_frame`` (3, 3) their frame at rest."""
+    if isinstance(xD, np.ndarray) and xD.ndim == 2:  # one frame (a runtime's step): a dot for the mean, 1 us against 5
+        R = orthonormal_frame(xD.take(vertices, axis=0)) @ rest_frame.T
+        return R, np.dot(np.full(len(xD), 1.0 / len(xD)), xD)[None, :]
     R = orthonormal_frame(xD[..., list(vertices), :]) @ rest_frame.swapaxes(-1, -2)
     return R, xD.mean(-2)[..., None, :]
 
@@ -116,6 +119,11 @@ class RigidFrameStepper:
         _, xl, R, c = self.local(None, xD, pose)
         if not isinstance(xD, np.ndarray):  # a stepper of tensors takes its own type
             xl = xD.new_tensor(xl)
+        carry = getattr(self.inner, "carry_out", None)
+        if carry is not None:  # a compiled stepper decodes into out and carries it out in one pass
+            if out is None:
+                out = np.empty((self.n, 3))
+            return carry(self.inner.decode(z, xl, out=out), R, c)
         x = np.asarray(self.inner.decode(z, xl))
         out = np.matmul(x, R.swapaxes(-1, -2), out=out)
         out += c
