@@ -98,9 +98,20 @@ def _median_us(fn, repeats: int) -> float:
     return 1e3 * current.time_jvp(fn, repeats=repeats, warmup=100)
 
 
+def _framed(module, stepper):
+    """``stepper`` inside its revision's ``RigidFrameStepper`` (``module``'s package) where its file was encoded in a
+    rigid frame (``autoencoder.rigid_frame``: header ``rigid_frame``), as a loaded model steps it; else itself."""
+    frame = stepper.header.get("rigid_frame")
+    if frame is None:
+        return stepper
+    package = sys.modules[module.__name__.rsplit(".compiled", 1)[0]]
+    return package.RigidFrameStepper(stepper, frame["vertices"], frame["rest_frame"])
+
+
 def compare(npz, old, new=current, rounds: int = 5, repeats: int = 1000, seed: int = 0) -> dict:
-    """Time one step of the runtime file ``npz`` with modules ``old`` and ``new``, alternating."""
-    a, b = old.load_runtime(npz), new.load_runtime(npz)
+    """Time one step of the runtime file ``npz`` with modules ``old`` and ``new``, alternating (a file of a rigid
+    frame: each inside its revision's ``RigidFrameStepper``, finding the frame and carrying the positions out)."""
+    a, b = _framed(old, old.load_runtime(npz)), _framed(new, new.load_runtime(npz))
     rng = np.random.default_rng(seed)
     z = (0.1 * rng.standard_normal(b.r)).astype(np.float32)
     p = rng.standard_normal(b.k).astype(np.float32)
@@ -112,7 +123,8 @@ def compare(npz, old, new=current, rounds: int = 5, repeats: int = 1000, seed: i
         ta.append(_median_us(lambda: a.step(z, z, p, p, p, xD), repeats))
         tb.append(_median_us(lambda: b.step(z, z, p, p, p, xD), repeats))
     old_us, new_us = float(np.median(ta)), float(np.median(tb))
-    return {"mode": b.mode, "layout": getattr(b, "layout", "-"), "old_us": old_us, "new_us": new_us,
+    mode = b.mode + (" (rigid frame)" if "rigid_frame" in b.header else "")
+    return {"mode": mode, "layout": getattr(b, "layout", "-"), "old_us": old_us, "new_us": new_us,
             "speedup": old_us / new_us, "max_dx": float(np.abs(xa - xb).max())}  # fmt: skip
 
 

@@ -96,6 +96,14 @@ def test_runtime_ab_times_a_revisions_runtime_beside_the_working_trees(tmp_path)
         assert row["old_us"] > 0 and row["new_us"] > 0 and row["max_dx"] < 1e-5
         df = ab.main(["--against", "HEAD", "--runtime", "compiled", "--npz", str(tmp_path / "runtime.npz"), "--rounds", "1", "--repeats", "3"])
         assert df["scene"].tolist() == ["runtime"] and df.loc[0, "max_dx"] < 1e-5
+    # a model encoded in a rigid frame steps inside each revision's RigidFrameStepper, as a loaded model does
+    rest = torch.randn(30, 3, dtype=torch.float64)
+    framed = RelativeCoordinates(30, [0, 1, 2], "mean", rigid_rest=rest[[0, 1, 2]])
+    ae_f = Autoencoder(framed.dim, 3, [8, 8], pca_dim=6).eval()
+    runtime.export_runtime(ae_f, LatentIntegrator(3, 6 + 9, [8]).eval(), framed, tmp_path / "framed.npz")
+    for kind in ["numpy"] + (["compiled"] if runtime_compiled.available() else []):
+        row = ab.compare(tmp_path / "framed.npz", ab.load_revision("HEAD", kind=kind), ab.current_module(kind), rounds=1, repeats=3)
+        assert row["mode"] == "mean (rigid frame)" and row["old_us"] > 0 and row["max_dx"] < 1e-5, kind
 
 
 def test_nearest_neighbour_order_visits_every_sample_once_along_a_chain_of_neighbours():
