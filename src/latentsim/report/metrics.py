@@ -176,8 +176,8 @@ def pareto_front(times, errors) -> np.ndarray:
 
 
 def penetration(contact, positions, diag: float, diverged_frame: int, dirichlet_positions=None) -> dict:
-    """How far a motion's vertices (a rollout's, or a reconstruction's) enter the scene's colliders, over the frames before divergence (-1: none):
-    ``max_penetration`` (the deepest vertex of any frame / the rest bbox diagonal; 0 when none enters)
+    """How far a motion's vertices (a rollout's, or a reconstruction's) enter the scene's colliders, over the
+    frames before ``diverged_frame`` (-1: all): ``max_penetration`` (the deepest vertex of any frame / the rest bbox diagonal; 0 when none enters)
     and ``penetrating_frames`` (frames with any vertex inside).  ``dirichlet_positions`` (T, m, 3), the
     sequence's prescribed positions, place the colliders attached to them (needed with one)."""
     ok = positions[: len(positions) if diverged_frame < 0 else diverged_frame]

@@ -130,10 +130,8 @@ def speed_accuracy_points(df: pd.DataFrame) -> pd.DataFrame:
 
 
 def reconstruction_table(scene: str, latents) -> pd.DataFrame:
-    """Autoencoder reconstruction error per seed and sequence (mean and max vertex error / bbox diagonal) from
-    one ``latents.h5`` or a list of them (one per seed; column ``seed`` from the file's attribute); for a scene
-    with colliders also how deep the reconstruction enters them (``max_penetration`` / bbox diagonal,
-    ``penetrating_frames``)."""
+    """Autoencoder reconstruction error per seed and sequence (mean and max vertex error / bbox diagonal; with colliders
+    ``max_penetration``, ``penetrating_frames``) from one ``latents.h5`` or a list of them (one per seed)."""
     rows = []
     for path in [latents] if isinstance(latents, (str, bytes)) or hasattr(latents, "__fspath__") else latents:
         with open_artefact(path) as f:

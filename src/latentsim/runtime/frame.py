@@ -92,6 +92,7 @@ class RigidFrameStepper:
         self.vertices = [int(v) for v in vertices]
         self.rest_frame = np.asarray(rest_frame, dtype=np.float64).reshape(3, 3)
         self.r, self.k, self.n, self.dtype = inner.r, inner.k, inner.n, inner.dtype
+        self._carry = getattr(inner, "carry_out", None)  # a compiled stepper carries the positions out in its kernel
 
     def __getattr__(self, name):  # the rest (header, dirichlet, ...) as the inner stepper's
         if name == "inner":
@@ -119,11 +120,10 @@ class RigidFrameStepper:
         _, xl, R, c = self.local(None, xD, pose)
         if not isinstance(xD, np.ndarray):  # a stepper of tensors takes its own type
             xl = xD.new_tensor(xl)
-        carry = getattr(self.inner, "carry_out", None)
-        if carry is not None:  # a compiled stepper decodes into out and carries it out in one pass
+        if self._carry is not None:  # decoded into out, carried out in one pass
             if out is None:
                 out = np.empty((self.n, 3))
-            return carry(self.inner.decode(z, xl, out=out), R, c)
+            return self._carry(self.inner.decode(z, xl, out=out), R, c)
         x = np.asarray(self.inner.decode(z, xl))
         out = np.matmul(x, R.swapaxes(-1, -2), out=out)
         out += c
