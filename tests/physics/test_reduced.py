@@ -7,7 +7,9 @@ A tiny StVK tet beam clamped at one end, under gravity, with its clamp moving:
   IncrementalPotential (with its Dirichlet penalty) along the subspace, for a
   linear and for an autoencoder-decoder (nonlinear) subspace;
 - Newton and L-BFGS decrease the energy at every iteration and agree;
-- a rollout reports per-step times and the frame where a solve fails.
+- a rollout reports per-step times and the frame where a solve fails;
+- with a collider, every iterate stays outside it, as in the full space: a full-rank
+  subspace reproduces the full space's frames against a ball the clamp drives the beam onto.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from latentsim.stages.baselines import modes_subspace
 from latentsim.scene import build_potential
 from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings
 from latentsim.solve.modes import lowest_modes, stiffness_matrix
-from latentsim.solve.reduced import ReducedImplicitEuler, ReducedSettings, reduced_rollout
+from latentsim.solve.reduced import ReducedFailed, ReducedImplicitEuler, ReducedSettings, reduced_rollout
 from latentsim.latent.subspaces import DecoderSubspace, LinearSubspace
 
 DT = 1.0 / 30.0
@@ -216,3 +218,61 @@ def test_modes_subspace_is_the_same_on_every_call(beam):
     # fix_sign's convention: the first entry within 1e-8 of a column's largest magnitude is positive
     first = np.argmax(np.abs(V1) >= (1 - 1e-8) * np.abs(V1).max(0), axis=0)
     assert (V1[first, np.arange(4)] > 0).all()
+
+
+def _beam_over_a_ball(beam):
+    """The beam with a ball of radius 2 cm 3 cm below its tip's lower corner, its clamp driven down at 1 m/s
+    from frame 2: a step moves the tip by more than the ball's diameter, so a step that only tests where it
+    lands can jump through the ball.  Returns the potential, the ball's centre and the clamp's positions."""
+    V, D, _, _ = beam
+    arrays = {"rest_positions": V, "tets": beam_tets(3, 1, 1, 0.3, 0.1, 0.1, tets_per_cell=5)[1], "dirichlet": D}
+    tip = int(np.argmin(np.linalg.norm(V - [0.3, -0.05, -0.05], axis=1)))
+    centre = V[tip] - [0.0, 0.05, 0.0]
+    contact = {"colliders": [{"type": "sphere", "centre": centre.tolist(), "radius": 0.02}]}
+    mat = {"youngs_modulus": 2e4, "poisson_ratio": 0.3, "density": 1000.0}
+    pot = build_potential("tets", arrays, mat, DT, [0.0, -9.81, 0.0], w_bc=1e4, contact=contact)
+    shift = np.zeros((16, 3))
+    shift[2:, 1] = -1.0 * DT * np.arange(1, 15)
+    return pot, centre, V[D][None] + shift[:, None, :]
+
+
+@pytest.mark.parametrize("start_at_impact", [True, False])
+def test_with_a_collider_every_reduced_iterate_stays_outside_and_a_full_rank_subspace_is_the_full_space(beam, start_at_impact, monkeypatch):
+    """The reduced line search starts from the collider's first time of impact along the step (exact for a
+    linear map) and rejects any trial whose straight path from the iterate crosses a collider; its initial
+    guesses are those whose path from x_{t-1} stays outside.  A full-rank subspace then takes the full space's
+    steps, frame by frame, as the tip meets the ball and slides off it; testing only where a step lands, it
+    jumped into the ball (5.9 mm at frame 4) and off the full space's path.  The trial's test alone (the
+    search started from the full step, as where a decoder's chord is not its path) keeps it outside too."""
+    if not start_at_impact:
+        monkeypatch.setattr("latentsim.solve.reduced._ReducedProblem.max_step", lambda self, q, dq: 1.0)
+    V, D, _, _ = beam
+    pot, centre, xD = _beam_over_a_ball(beam)
+    full = ImplicitEuler(pot, NewtonSettings(tolerance=1e-9))
+    xs = [V.copy(), V.copy()]
+    for t in range(2, len(xD)):
+        xs.append(full.step(xs[-1], xs[-2], xD[t])[0])
+    coords = _hard_coords(V, D)
+    u0 = coords.encode(torch.as_tensor(V), torch.as_tensor(V[D])).numpy()
+    sub = LinearSubspace(coords, u0, np.eye(coords.dim))
+    q0 = sub.project(V, xD[0])
+    out = reduced_rollout(sub, pot, q0, q0, xD, ReducedSettings(tolerance=1e-9))
+    assert out["diverged_frame"] == -1
+    X, xs = out["positions"], np.stack(xs)
+    gap = np.linalg.norm(X - centre, axis=-1).min(-1) - 0.02
+    assert (gap > 0).all() and gap.min() < 2e-3  # it met the ball, and never entered it
+    assert np.linalg.norm(xs - centre, axis=-1).min() - 0.02 < 2e-3
+    assert np.abs(X - xs).max() < 1e-7
+
+
+def test_a_reduced_step_never_starts_inside_a_collider(beam):
+    """Every initial guess is inside the ball (the beam already is): the step fails and says why, rather than
+    starting from a guess of infinite energy, where no trial is resolvably worse, and returning a state inside."""
+    V, D, _, _ = beam
+    pot, centre, xD = _beam_over_a_ball(beam)
+    inside = V - [0.0, 0.04, 0.0]  # the tip's corner 1 cm into the ball
+    coords = _hard_coords(V, D)
+    sub = LinearSubspace(coords, coords.encode(torch.as_tensor(V), torch.as_tensor(V[D])).numpy(), np.eye(coords.dim))
+    q = sub.project(inside, inside[D])
+    with pytest.raises(ReducedFailed, match="every initial guess has a non-finite energy"):
+        ReducedImplicitEuler(sub, pot).step(q, q, inside, inside, inside[D])

@@ -25,6 +25,13 @@ spanning all free DoFs this is exactly the full solver's test.  L-BFGS
 (two-loop recursion preconditioned by the reduced mass matrix J^T M J / h^2)
 is the Hessian-free alternative.
 
+With colliders (the potential's contact barrier) every iterate stays outside them, as in the full
+space: an initial guess counts only where the straight path to it from x_{t-1} stays outside (and
+x_{t-1}'s own projection is tried where neither other guess's does); the line search starts from the colliders' first time of
+impact along the step's chord phi(q) -> phi(q + dq) (exact for a linear map) and rejects a trial whose
+chord from the iterate crosses one.  Testing only where a step lands lets a step jump through a thin
+collider, and a guess of infinite energy (inside) leaves every later decrease unresolvable.
+
 The full-space gradient and Hessian come from :class:`latentsim.solve.implicit_euler.ImplicitEuler`
 (the compiled assembly of :mod:`latentsim.solve.assembly`); physics is not re-implemented here.
 Both minimisers run the one Newton loop and line search of :mod:`latentsim.solve.newton`.
@@ -223,6 +230,23 @@ class ReducedImplicitEuler:
         (g,) = torch.autograd.grad(e, xt)
         return float(e.detach()), g.numpy().reshape(-1)
 
+    def _best_guess(self, candidates, x_prev, x_prev2, xD, energies):
+        """(q, x, E) of the lowest-energy of ``candidates`` (q's) whose energy is finite and, with colliders,
+        whose straight path from x_{t-1} keeps every vertex outside them (as the attached ones move); None if
+        none is.  Appends each one's energy (inf where its path crosses a collider) to ``energies``."""
+        contact, best = self.inner.contact, None
+        for c in candidates:
+            c = np.asarray(c, dtype=np.float64)
+            x = self.subspace.map(c, xD)
+            if contact is not None and not contact.first_impact_between(x_prev, x_prev[self.D], x, xD) > 1.0:
+                energies.append(np.inf)
+                continue
+            e = self.energy(x, x_prev, x_prev2, xD)
+            energies.append(e)
+            if np.isfinite(e) and (best is None or e < best[2]):
+                best = (c, x, e)
+        return best
+
     def step(self, q_prev, q_prev2, x_prev, x_prev2, xD, q_init=None):
         """Advance one step.
 
@@ -242,13 +266,16 @@ class ReducedImplicitEuler:
         self.inner.prepare_contact(x_prev, xD, np.asarray(x_prev)[self.D])  # attached colliders where this step's targets put them; friction lagged from x_prev
         q_prev, q_prev2 = np.asarray(q_prev, dtype=np.float64), np.asarray(q_prev2, dtype=np.float64)
         candidates = [q_init] if q_init is not None else [2.0 * q_prev - q_prev2, q_prev]
-        best = None
-        for c in candidates:
-            c = np.asarray(c, dtype=np.float64)
-            x = self.subspace.map(c, xD)
-            e = self.energy(x, x_prev, x_prev2, xD)
-            if best is None or e < best[2]:
-                best = (c, x, e)
+        contact, x_prev, energies = self.inner.contact, np.asarray(x_prev, dtype=np.float64), []
+        best = self._best_guess(candidates, x_prev, x_prev2, xD, energies)
+        if best is None and contact is not None and q_init is None:
+            # neither guess's path stays outside: x_{t-1} left where it is, as near as the subspace comes (as the
+            # full space's guesses; a body its prescribed vertices carry towards a collider it rests on)
+            best = self._best_guess([self.subspace.project(x_prev, xD)], x_prev, x_prev2, xD, energies)
+        if best is None:  # from a guess of infinite energy no step length is ever resolvably worse: never start there
+            raise ReducedFailed("every initial guess has a non-finite energy ("
+                                + ("inf also where its path from x_{t-1} crosses a collider: " if contact is not None else "")
+                                + ", ".join(f"{e:.3e}" for e in energies) + ")", ReducedStepInfo())
         q, x, e = best
         info = ReducedStepInfo(energies=[e])
         self._tm = info.timings
@@ -274,7 +301,19 @@ class _ReducedProblem:
 
     def trial(self, q, alpha, searching):
         x = self.solver.subspace.map(q, self.xD)
+        contact = self.solver.inner.step_contact
+        if contact is not None and not contact.first_impact(self.x, x - self.x) > 1.0:
+            return np.inf, x  # the straight path from the iterate passes through a collider: rejected, as inside one
         return self.solver.energy(x, self.x_prev, self.x_prev2, self.xD), x
+
+    def max_step(self, q, dq) -> float:
+        """The contact barrier's ``max_step`` along the chord from phi(q) to phi(q + dq): the step fraction
+        that keeps every vertex outside the colliders, exact for a linear map (for a decoder the trial
+        tests each chord it takes); 1 without colliders."""
+        contact = self.solver.inner.step_contact
+        if contact is None:
+            return 1.0
+        return contact.max_step(self.x, self.solver.subspace.map(q + dq, self.xD) - self.x)
 
     def accept(self, trial, e_old, seconds):
         self.info.energies.append(trial.energy)
