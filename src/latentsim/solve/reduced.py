@@ -28,8 +28,8 @@ is the Hessian-free alternative.
 With colliders (the potential's contact barrier) every iterate stays outside them, as in the full
 space: an initial guess counts only where the straight path to it from x_{t-1} stays outside (and
 x_{t-1}'s own projection is tried where neither other guess's does); the line search starts from the colliders' first time of
-impact along the step's chord phi(q) -> phi(q + dq) (exact for a linear map) and rejects a trial whose
-chord from the iterate crosses one.  Testing only where a step lands lets a step jump through a thin
+impact along the step's tangent J dq (exact for a linear map) and rejects a trial whose chord from the
+iterate crosses one.  Testing only where a step lands lets a step jump through a thin
 collider, and a guess of infinite energy (inside) leaves every later decrease unresolvable.
 
 The full-space gradient and Hessian come from :class:`latentsim.solve.implicit_euler.ImplicitEuler`
@@ -307,13 +307,13 @@ class _ReducedProblem:
         return self.solver.energy(x, self.x_prev, self.x_prev2, self.xD), x
 
     def max_step(self, q, dq) -> float:
-        """The contact barrier's ``max_step`` along the chord from phi(q) to phi(q + dq): the step fraction
-        that keeps every vertex outside the colliders, exact for a linear map (for a decoder the trial
-        tests each chord it takes); 1 without colliders."""
+        """The contact barrier's ``max_step`` along x + t J dq (x = phi(q) and J from the last ``stop``): the
+        step fraction that keeps every vertex outside the colliders, exact for a linear map (for a decoder
+        the trial tests each chord it takes); 1 without colliders."""
         contact = self.solver.inner.step_contact
         if contact is None:
             return 1.0
-        return contact.max_step(self.x, self.solver.subspace.map(q + dq, self.xD) - self.x)
+        return contact.max_step(self.x, (self.J @ dq).reshape(-1, 3))
 
     def accept(self, trial, e_old, seconds):
         self.info.energies.append(trial.energy)
