@@ -236,16 +236,12 @@ def _beam_over_a_ball(beam):
     return pot, centre, V[D][None] + shift[:, None, :]
 
 
-@pytest.mark.parametrize("start_at_impact", [True, False])
-def test_with_a_collider_every_reduced_iterate_stays_outside_and_a_full_rank_subspace_is_the_full_space(beam, start_at_impact, monkeypatch):
+def test_with_a_collider_every_reduced_iterate_stays_outside_and_a_full_rank_subspace_is_the_full_space(beam):
     """The reduced line search starts from the collider's first time of impact along the step (exact for a
     linear map) and rejects any trial whose straight path from the iterate crosses a collider; its initial
     guesses are those whose path from x_{t-1} stays outside.  A full-rank subspace then takes the full space's
     steps, frame by frame, as the tip meets the ball and slides off it; testing only where a step lands, it
-    jumped into the ball (5.9 mm at frame 4) and off the full space's path.  The trial's test alone (the
-    search started from the full step, as where a decoder's chord is not its path) keeps it outside too."""
-    if not start_at_impact:
-        monkeypatch.setattr("latentsim.solve.reduced._ReducedProblem.max_step", lambda self, q, dq: 1.0)
+    jumped into the ball (5.9 mm at frame 4) and off the full space's path."""
     V, D, _, _ = beam
     pot, centre, xD = _beam_over_a_ball(beam)
     full = ImplicitEuler(pot, NewtonSettings(tolerance=1e-9))
@@ -276,3 +272,34 @@ def test_a_reduced_step_never_starts_inside_a_collider(beam):
     q = sub.project(inside, inside[D])
     with pytest.raises(ReducedFailed, match="every initial guess has a non-finite energy"):
         ReducedImplicitEuler(sub, pot).step(q, q, inside, inside, inside[D])
+
+
+@pytest.mark.parametrize("linear", [True, False])
+def test_a_trial_whose_path_crosses_a_collider_is_rejected_and_the_search_starts_short_of_it(beam, linear, monkeypatch):
+    """The line search's two guards, for a step that would carry the beam's tip through the ball to its far side
+    (an outside point, of finite energy): ``max_step`` starts the search short of the first impact, and a trial
+    whose chord from the iterate crosses the ball costs inf, where the map is not linear (a decoder's chord is
+    not its path); a short trial keeps its energy."""
+    from latentsim.solve.reduced import ReducedStepInfo, _NewtonProblem
+
+    V, D, _, _ = beam
+    pot, centre, _ = _beam_over_a_ball(beam)
+    coords = _hard_coords(V, D)
+    sub = LinearSubspace(coords, coords.encode(torch.as_tensor(V), torch.as_tensor(V[D])).numpy(), np.eye(coords.dim))
+    monkeypatch.setattr(sub, "linear", linear, raising=False)
+    solver = ReducedImplicitEuler(sub, pot)
+    solver.inner.prepare_contact(V, V[D], V[D])
+    problem = _NewtonProblem(solver, V, V, V[D], ReducedStepInfo())
+    q = sub.project(V, V[D])
+    problem.stop(q, 0)
+    free = np.ones(len(V), dtype=bool)
+    free[D] = False
+    down = np.where(free[:, None], [0.0, -0.1, 0.0], 0.0)  # the free vertices 10 cm down: the tip's corner through the ball
+    dq = sub.project(V + down, V[D]) - q
+    assert np.linalg.norm(sub.map(q + dq, V[D]) - centre, axis=-1).min() > 0.02  # it lands outside, beyond the ball
+    alpha0 = problem.max_step(q, dq)
+    assert alpha0 == pytest.approx(0.9 * 0.3, rel=1e-9)  # the corner 3 cm above the ball: impact at 0.3 of the step
+    e_far, _ = problem.trial(q + dq, 1.0, True)
+    e_short, _ = problem.trial(q + alpha0 * dq, alpha0, True)
+    assert np.isfinite(e_short)
+    assert (e_far == np.inf) != linear  # a linear map's trials stay within max_step: not tested again

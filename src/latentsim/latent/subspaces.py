@@ -63,6 +63,8 @@ class LinearSubspace:
     basis : (d, r) columns spanning the subspace.
     """
 
+    linear = True  # phi(q + dq) - phi(q) = J dq: a reduced step's chord is its path
+
     def __init__(self, coords, u0, basis):
         self.coords = coords
         self.u0 = np.asarray(u0, dtype=np.float64).reshape(-1)

@@ -302,8 +302,10 @@ class _ReducedProblem:
     def trial(self, q, alpha, searching):
         x = self.solver.subspace.map(q, self.xD)
         contact = self.solver.inner.step_contact
-        if contact is not None and not contact.first_impact(self.x, x - self.x) > 1.0:
-            return np.inf, x  # the straight path from the iterate passes through a collider: rejected, as inside one
+        # the straight path from the iterate passes through a collider: rejected, as inside one (for a linear map
+        # max_step has kept every trial's path outside already)
+        if contact is not None and not getattr(self.solver.subspace, "linear", False) and not contact.first_impact(self.x, x - self.x) > 1.0:
+            return np.inf, x
         return self.solver.energy(x, self.x_prev, self.x_prev2, self.xD), x
 
     def max_step(self, q, dq) -> float:
