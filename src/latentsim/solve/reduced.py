@@ -27,10 +27,11 @@ is the Hessian-free alternative.
 
 With colliders (the potential's contact barrier) every iterate stays outside them, as in the full
 space: an initial guess counts only where the straight path to it from x_{t-1} stays outside (and
-x_{t-1}'s own projection is tried where neither other guess's does); the line search starts from the colliders' first time of
-impact along the step's tangent J dq (exact for a linear map) and rejects a trial whose chord from the
-iterate crosses one.  Testing only where a step lands lets a step jump through a thin
-collider, and a guess of infinite energy (inside) leaves every later decrease unresolvable.
+x_{t-1}'s own projection is tried where neither other guess's does); the line search starts from
+the colliders' first time of impact along the step's tangent J dq (exact for a linear map), and for
+a nonlinear map rejects a trial whose chord from the iterate crosses one.  Testing only where a step
+lands lets a step jump through a thin collider, and from a guess of infinite energy (inside one) no
+later decrease is resolvable.
 
 The full-space gradient and Hessian come from :class:`latentsim.solve.implicit_euler.ImplicitEuler`
 (the compiled assembly of :mod:`latentsim.solve.assembly`); physics is not re-implemented here.
@@ -38,7 +39,8 @@ Both minimisers run the one Newton loop and line search of :mod:`latentsim.solve
 
 A subspace is any object with ``dim``, ``n_vertices``, ``hard_dirichlet``,
 ``dirichlet`` and ``jacobian(q, xD) -> (x (n, 3), J (3n, r))`` /
-``map(q, xD) -> x``: :class:`~latentsim.latent.subspaces.LinearSubspace` (x = X + U q in the
+``map(q, xD) -> x`` (with colliders also ``project(x, xD) -> q``, and ``linear`` True where
+phi is linear in q): :class:`~latentsim.latent.subspaces.LinearSubspace` (x = X + U q in the
 relative coordinates) and :class:`~latentsim.latent.subspaces.DecoderSubspace` (the autoencoder's
 decoder), re-exported here.
 """
@@ -260,7 +262,8 @@ class ReducedImplicitEuler:
         Returns
         -------
         q (r,), x (n, 3), :class:`ReducedStepInfo`.  Raises :class:`ReducedFailed`
-        when the test is not met in ``max_iterations`` or a value is non-finite.
+        when the test is not met in ``max_iterations``, a value is non-finite, or every
+        initial guess has a non-finite energy (or a path from x_{t-1} through a collider).
         """
         xD = np.asarray(xD, dtype=np.float64)
         self.inner.prepare_contact(x_prev, xD, np.asarray(x_prev)[self.D])  # attached colliders where this step's targets put them; friction lagged from x_prev
