@@ -92,6 +92,19 @@ def test_barrier_term_gradient_and_hessian_against_its_oracle_and_finite_differe
         assert torch.allclose(Hp, H)
 
 
+@pytest.mark.parametrize("name", COLLIDERS)
+def test_the_extended_barriers_closed_form_holds_inside_the_collider_too(name):
+    """The finite continuation's gradient and Hessian (a projection's, a learned loss's) against the oracle, with
+    vertices on both sides of the seam and inside the collider, where the plain barrier is infinite."""
+    c = COLLIDERS[name]
+    x = _points_near(c)
+    n, _ = c.distance_derivatives(x)
+    x = torch.cat([x, x - 0.03 * n])  # the same points moved 3 cm against the surface: many inside
+    assert (c.distance(x) < 0).sum() >= 2
+    term = ContactBarrier(len(x), [c], d_hat=0.05, kappa=2.0).extended(0.2)
+    _closed_form_against_oracle_and_differences(term, x, rtol=1e-8)
+
+
 def test_the_barrier_is_zero_beyond_d_hat_and_repels_inside_it():
     plane = HalfSpace((0.0, 0.0, 0.0), (0.0, 0.0, 1.0))
     x = torch.tensor([[0.0, 0.0, 0.2], [0.3, -0.1, 0.004]], dtype=F64)

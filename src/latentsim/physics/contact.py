@@ -51,15 +51,21 @@ def barrier(d: torch.Tensor, d_hat: float, kappa: float, extend_below: float | N
     return torch.where(d < de, b0 + b1 * (d - de) + 0.5 * b2 * (d - de) ** 2, b)
 
 
-def barrier_derivatives(d: torch.Tensor, d_hat: float, kappa: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """b'(d) and b''(d) elementwise for d > 0 (0 for d >= d_hat)."""
+def barrier_derivatives(d: torch.Tensor, d_hat: float, kappa: float, extend_below: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """b'(d) and b''(d) elementwise for d > 0 (0 for d >= d_hat); with ``extend_below`` = d_e, those of
+    :func:`barrier`'s quadratic continuation below d_e (b'(d_e) + b''(d_e) (d - d_e) and b''(d_e)), for every d."""
     inside = (d < d_hat) & (d > 0)
     s = torch.where(inside, d, torch.full_like(d, d_hat))
     r = s - d_hat
     db = -kappa * (2 * r * torch.log(s / d_hat) + r**2 / s)
     d2b = -kappa * (2 * torch.log(s / d_hat) + 4 * r / s - r**2 / s**2)
     zero = torch.zeros_like(d)
-    return torch.where(inside, db, zero), torch.where(inside, d2b, zero)
+    db, d2b = torch.where(inside, db, zero), torch.where(inside, d2b, zero)
+    if extend_below is None:
+        return db, d2b
+    e1, e2 = barrier_derivatives(torch.full_like(d, float(extend_below)), d_hat, kappa)
+    below = d < extend_below
+    return torch.where(below, e1 + e2 * (d - extend_below), db), torch.where(below, e2, d2b)
 
 
 def rigid_pose(rest: np.ndarray, targets) -> tuple[torch.Tensor, torch.Tensor]:
@@ -427,7 +433,7 @@ class ContactBarrier(EnergyTerm):
         H = torch.zeros(x.shape + (3,), dtype=x.dtype, device=x.device)
         for c in self.colliders:
             d = c.distance(x)
-            db, d2b = barrier_derivatives(d, self.d_hat, self.kappa)
+            db, d2b = barrier_derivatives(d, self.d_hat, self.kappa, self.extend_below)
             n, hd = c.distance_derivatives(x)
             g = g + db[:, None] * n
             if hessian:

@@ -52,7 +52,7 @@ from latentsim.scene import CONTACT_ATTR, contact_from_artefact, posed_collider_
 __all__ = ["evaluate_scene", "render_scene", "summarise", "write_scene_evaluation"]
 
 # per-step timings a rollout may record beside ``step_ms`` (NaN where it did not)
-_STEP_PARTS = ("integrate_ms", "decode_ms", "numpy_step_ms", "compiled_step_ms", "floor_ms", "jvp_torch_ms", "jvp_forward_ms")
+_STEP_PARTS = ("integrate_ms", "decode_ms", "numpy_step_ms", "compiled_step_ms", "floor_ms", "jvp_torch_ms", "jvp_forward_ms", "projection_ms")
 _TRAIN_SECONDS = ("autoencoder_train_seconds", "integrator_train_seconds")
 
 

@@ -18,9 +18,11 @@ from latentsim.io import atomic_h5, open_artefact, write_dataset
 from latentsim.latent.autoencoder import encode_positions
 from latentsim.latent.data import load_sequences
 from latentsim.latent.integrator import boundary_inputs
+from latentsim.latent.projection import ContactProjection
 from latentsim.latent.rollout import rollout
 from latentsim.latent.serialization import autoencoder_coordinates, load_autoencoder, load_extra, load_integrator
 from latentsim.latent.stability import stress_test
+from latentsim.latent.subspaces import DecoderSubspace
 from latentsim.latent.timing import EagerStepper, rigid_frame_steppers, time_full_space, time_jvps, time_steppers
 from latentsim.runtime import compiled as runtime_compiled
 from latentsim.scene import contact_from_artefact, potential_from_artefact
@@ -50,6 +52,7 @@ def rollout_scene(trajectories, ae_path, integrator_path, settings: dict, out, m
     extra, ae_extra = load_extra(integrator_path), load_extra(ae_path)
     scene = _read_scene(trajectories, ae_path, cfg)
     steppers = _steppers(ae, integ, scene["coords"], runtime_paths)
+    scene["projection"] = _projection(ae, scene, cfg["contact_projection"], trajectories)
     with atomic_h5(out, config=settings, seed=seed) as g:
         for k, v in {**scene["attrs"], **scene["full"]}.items():
             g.attrs[k] = v
@@ -86,6 +89,16 @@ def _read_scene(trajectories, ae_path, cfg: dict) -> dict:
         }
 
 
+def _projection(ae, scene: dict, settings: dict, trajectories) -> ContactProjection | None:
+    """The contact projection of the rollouts' frames (``rollout.contact_projection``), or None where not enabled."""
+    if not settings["enabled"]:
+        return None
+    if scene["contact"] is None:
+        raise ValueError(f"{trajectories}: rollout.contact_projection.enabled, but the scene has no colliders (its config's contact block)")
+    pot = scene["potential"]
+    return ContactProjection(DecoderSubspace(ae, scene["coords"]), scene["contact"], pot.masses.numpy(), float(pot.dt), settings)
+
+
 def _steppers(ae, integ, coords, runtime_paths) -> dict:
     """The steppers to time: eager PyTorch, and with ``runtime_paths`` the runtime exported there
     and read back (NumPy, compiled where numba imports) and its ``torch.export`` program."""
@@ -112,6 +125,18 @@ def _roll_out(h, name: str, s: dict, integ, ae, scene: dict, steppers: dict, met
     timing = time_steppers(steppers, z01[1], z01[0], p_last, s["dirichlet_positions"][-1], cfg["timing_repeats"])
     if "numpy" in steppers:
         timing.update(time_jvps(ae, steppers["numpy"], coords, z01[1], cfg["timing_repeats"]))
+    if scene["projection"] is not None:  # the frames written are projected; a frame's time includes its share of the projections
+        last = len(x) - 1 if res["diverged_frame"] < 0 else int(res["diverged_frame"])
+        unprojected = res["positions"].numpy()
+        proj = scene["projection"].frames(res["latents"].numpy(), unprojected, s["dirichlet_positions"], last)
+        res["positions"] = torch.as_tensor(proj["positions"])
+        timing["projection_ms"] = 1e3 * proj["seconds"] / max(last + 1, 1)
+        timing["step_ms"] += timing["projection_ms"]
+        h.attrs["projected_frames"] = int(proj["projected"].sum())
+        write_dataset(h, "unprojected_positions", unprojected)
+        write_dataset(h, "projected", proj["projected"])
+        write_dataset(h, "projection_iterations", proj["iterations"])
+        log.info("rollout %s: %d frames projected out of the colliders, %.3f ms a frame", name, int(proj["projected"].sum()), timing["projection_ms"])
     h.attrs["split"] = "test"
     h.attrs["method"] = method
     h.attrs["diverged_frame"] = int(res["diverged_frame"])

@@ -1,0 +1,152 @@
+"""A contact projection of a latent rollout's frames (``rollout.contact_projection``; in neither paper).
+
+The integrator's loss holds its barrier (sec. 4 of the docs' methods), but where a network does not learn a
+collider its rollout can pass through it (the cloth over the ball, docs/measurements.md).  The projection
+keeps what a user sees outside: each decoded frame x_p within d_hat of a collider is replaced by the decode
+of the latent
+
+    q* = argmin_q  1/(2 h^2) sum_i m_i |D(q)_i - x_p,i|^2 + B(D(q)),
+
+the state of the autoencoder's latent space nearest x_p in the kinetic (mass-weighted) norm of one step, with
+B the scene's barrier continued quadratically below ``extend_below`` of d_hat (finite inside a collider,
+:meth:`~latentsim.physics.contact.ContactBarrier.extended`).  Newton over q (r unknowns: the Hessian
+J^T H J plus the decoder's curvature, the Gauss-Newton matrix where that is not positive definite) runs the
+one minimiser of :mod:`latentsim.solve.newton`, from q = z_t.
+
+The projection changes the frames written, not the integrator's state: z_t goes on to the next step as the
+network predicted it (fed back, the projected latents lie off the network's training data, and one of three
+cloth rollouts diverged; docs/measurements.md).  The rollout's dynamics therefore still does not respond to
+the collider; its frames are kept out of it.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+
+from latentsim.solve.newton import LineSearch, minimise
+
+__all__ = ["ContactProjection"]
+
+
+class _Stalled(Exception):
+    """The line search found no decrease: the last iterate stands."""
+
+
+class _Problem:
+    """One frame's projection as the problem of :func:`latentsim.solve.newton.minimise` over q."""
+
+    def __init__(self, owner: "ContactProjection", barrier, x_pred, xD):
+        self.o, self.barrier, self.x_pred, self.xD = owner, barrier, x_pred, xD
+
+    def energy(self, x) -> float:
+        kinetic = 0.5 * float((self.o.weights * ((x - self.x_pred) ** 2).sum(-1)).sum())
+        return kinetic + float(self.barrier.energy(torch.as_tensor(x)))
+
+    def stop(self, q, k) -> bool:
+        o = self.o
+        x, J = o.subspace.jacobian(q, self.xD)
+        g = o.weights[:, None] * (x - self.x_pred)
+        H = np.zeros((len(x), 3, 3))
+        H[:] = np.eye(3) * o.weights[:, None, None]
+        near = (self.barrier.distances(torch.as_tensor(x)) < self.barrier.d_hat).numpy()
+        if near.any():
+            gb, Hb = self.barrier.local_gradient_hessian(torch.as_tensor(x[near])[:, None, :], project=True)
+            g[near] += gb.numpy()
+            H[near] += Hb.numpy()
+        Jv = J.reshape(-1, 3, J.shape[-1])
+        self.g, self.gq = g, np.einsum("nai,na->i", Jv, g)
+        self.Hq = np.einsum("nai,nab,nbj->ij", Jv, H, Jv)
+        self.q, self.k = q, k
+        return False
+
+    def direction(self, q, k):
+        curvature = getattr(self.o.subspace, "curvature", None)  # a linear map has none
+        try:
+            L = np.linalg.cholesky(self.Hq + curvature(q, self.xD, self.g.reshape(-1)))
+        except (np.linalg.LinAlgError, TypeError):  # no curvature, or away from a minimum not PD: Gauss-Newton
+            L = np.linalg.cholesky(self.Hq + 1e-12 * np.trace(self.Hq) / len(self.Hq) * np.eye(len(self.Hq)))
+        dq = -np.linalg.solve(L.T, np.linalg.solve(L, self.gq))
+        slope = float(self.gq @ dq)
+        if -slope <= self.o.tolerance * max(self.e, 1e-300):  # the decrease left is below the tolerance: converged
+            return None
+        return dq, slope
+
+    def trial(self, q, alpha, searching):
+        x = self.o.subspace.map(q, self.xD)
+        return self.energy(x), x
+
+    def accept(self, trial, e_old, seconds):
+        self.e = trial.energy
+
+    def line_search_failed(self, k, seconds):
+        raise _Stalled()
+
+
+class ContactProjection:
+    """Projects decoded frames out of a scene's colliders (the module docstring).
+
+    Parameters
+    ----------
+    subspace : the autoencoder's latent space as a map with ``map``, ``jacobian`` and optionally ``curvature``
+        (:class:`latentsim.latent.subspaces.DecoderSubspace`; any map of :mod:`latentsim.solve.reduced`).
+    contact : the scene's :class:`~latentsim.physics.contact.ContactBarrier`; masses (n,), dt : the scene's.
+    settings : the ``rollout.contact_projection`` block (every key): the barrier's ``barrier_d_hat``,
+        ``barrier_kappa`` (multiples of the scene's) and ``barrier_extend_below``; ``iterations``, Newton's at most
+        per attempt; ``tolerance``, the relative predicted decrease -g . dq / E below which an attempt has
+        converged; ``stiffening``, the attempts after the first, each with kappa ten times larger, while the
+        projected frame is still inside a collider (a softer barrier converges faster, but where the mass term
+        outweighs it, stops inside).
+    """
+
+    def __init__(self, subspace, contact, masses, dt: float, settings: dict):
+        self.subspace, self.contact = subspace, contact
+        self.barrier = contact.extended(settings["barrier_extend_below"], settings["barrier_d_hat"], settings["barrier_kappa"])
+        self.weights = np.asarray(masses, dtype=np.float64).reshape(-1) / float(dt) ** 2
+        self.iterations, self.tolerance = int(settings["iterations"]), float(settings["tolerance"])
+        self.stiffening = int(settings["stiffening"])
+        self.search = LineSearch()
+
+    def needed(self, x, xD) -> bool:
+        """Whether frame x (n, 3) comes within d_hat of a collider posed at the frame's prescribed xD."""
+        return bool(float(self.contact.posed(xD).distances(torch.as_tensor(x)).min()) < self.barrier.d_hat)
+
+    def project(self, z, x, xD):
+        """(q*, D(q*), Newton iterations) of one frame: its latent z (r,), decode x (n, 3), prescribed xD (m, 3).
+        Attempts with a stiffer barrier from where the last stopped, while D(q*) is inside a collider."""
+        x, xD = np.asarray(x, dtype=np.float64), np.asarray(xD, dtype=np.float64)
+        q, total = np.asarray(z, dtype=np.float64), 0
+        surface = self.contact.posed(xD)
+        for level in range(self.stiffening + 1):
+            barrier = self.barrier if level == 0 else self.barrier.extended(self.barrier.extend_below / self.barrier.d_hat, 1.0, 10.0**level)
+            problem = _Problem(self, barrier.posed(xD), x, xD)
+            problem.e = problem.energy(self.subspace.map(q, xD))
+            try:
+                q, info = minimise(problem, q, problem.e, self.search, self.iterations)
+                total += info.iterations
+            except _Stalled:
+                q, total = problem.q, total + problem.k
+            y = self.subspace.map(q, xD)
+            if float(surface.distances(torch.as_tensor(y)).min()) >= 0:
+                break
+        return q, y, total
+
+    def frames(self, latents, positions, dirichlet_positions, last: int | None = None) -> dict:
+        """Every frame of a rollout (latents (T, r), positions (T, n, 3), prescribed (T, m, 3)) up to ``last``
+        (its last finite frame; all by default) that comes within d_hat of a collider, projected.
+
+        Returns ``positions`` (a projected copy), ``projected`` (T,) bool, ``iterations`` (T,) (0 where not
+        projected) and ``seconds`` (the projections' wall time, the tests of every frame included)."""
+        X = np.array(positions, dtype=np.float64)
+        T = len(X) if last is None else int(last) + 1
+        projected = np.zeros(len(X), dtype=bool)
+        iterations = np.zeros(len(X), dtype=np.int64)
+        t0 = time.perf_counter()
+        for t in range(T):
+            if not np.isfinite(X[t]).all() or not self.needed(X[t], dirichlet_positions[t]):
+                continue
+            _, X[t], iterations[t] = self.project(latents[t], X[t], dirichlet_positions[t])
+            projected[t] = True
+        return {"positions": X, "projected": projected, "iterations": iterations, "seconds": time.perf_counter() - t0}
