@@ -23,7 +23,7 @@ import torch
 import yaml
 
 from latentsim.checksum import KEY as CHECKSUM
-from latentsim.config import scene_methods, scene_seeds, validate_config, with_defaults
+from latentsim.config import scene_methods, scene_seeds, validate_config
 
 from workflow_support import HANG_SECONDS, snakemake
 
@@ -369,8 +369,7 @@ def test_tiny_contact_stays_out_of_its_ball_in_the_full_space_and_every_method_i
     with h5py.File(work / "results/rollout/tiny_contact/self_supervised/seed0/rollout.h5") as f:
         g = f["sequences/line"]
         own, shown, projected, attrs = g["unprojected_positions"][()], g["positions"][()], g["projected"][()], dict(g.attrs)
-    reach = with_defaults("rollout", {}, "test")["contact_projection"]["barrier_d_hat"] * barrier.d_hat
-    assert projected.tolist() == (barrier.distances(torch.as_tensor(own)).amin(-1).numpy() < reach).tolist() and projected.any()
+    assert projected.tolist() == (barrier.distances(torch.as_tensor(own)).amin(-1).numpy() < barrier.d_hat).tolist() and projected.any()
     assert np.array_equal(shown[~projected], own[~projected]) and not np.array_equal(shown, own)
     assert (barrier.distances(torch.as_tensor(shown)).amin(-1).numpy() >= 0).all() and m.loc["self_supervised", "max_penetration"] == 0
     assert attrs["projected_frames"] == projected.sum() and 0 < attrs["projection_ms"] <= attrs["step_ms"]

@@ -2,7 +2,7 @@
 
 The integrator's loss holds its barrier (sec. 4 of the docs' methods), but where a network does not learn a
 collider its rollout can pass through it (the cloth over the ball, docs/measurements.md).  The projection
-keeps what a user sees outside: each decoded frame x_p within d_hat of a collider is replaced by the decode
+keeps what a user sees outside: each decoded frame x_p within the scene's d_hat of a collider is replaced by the decode
 of the latent
 
     q* = argmin_q  1/(2 h^2) sum_i m_i |D(q)_i - x_p,i|^2 + B(D(q)),
@@ -110,8 +110,10 @@ class ContactProjection:
         self.search = LineSearch()
 
     def needed(self, x, xD) -> bool:
-        """Whether frame x (n, 3) comes within d_hat of a collider posed at the frame's prescribed xD."""
-        return bool(float(self.contact.posed(xD).distances(torch.as_tensor(x)).min()) < self.barrier.d_hat)
+        """Whether frame x (n, 3) comes within the scene's d_hat of a collider posed at the frame's prescribed xD
+        (where the full space's barrier acts; the projection's own reaches further, and would push frames that
+        are fine away from the surface)."""
+        return bool(float(self.contact.posed(xD).distances(torch.as_tensor(x)).min()) < self.contact.d_hat)
 
     def project(self, z, x, xD):
         """(q*, D(q*), Newton iterations) of one frame: its latent z (r,), decode x (n, 3), prescribed xD (m, 3).
@@ -135,7 +137,7 @@ class ContactProjection:
 
     def frames(self, latents, positions, dirichlet_positions, last: int | None = None) -> dict:
         """Every frame of a rollout (latents (T, r), positions (T, n, 3), prescribed (T, m, 3)) up to ``last``
-        (its last finite frame; all by default) that comes within d_hat of a collider, projected.
+        (its last finite frame; all by default) that comes within the scene's d_hat of a collider, projected.
 
         Returns ``positions`` (a projected copy), ``projected`` (T,) bool, ``iterations`` (T,) (0 where not
         projected) and ``seconds`` (the projections' wall time, the tests of every frame included)."""
