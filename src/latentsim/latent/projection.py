@@ -49,16 +49,14 @@ class _Problem:
         o = self.o
         x, J = o.subspace.jacobian(q, self.xD)
         g = o.weights[:, None] * (x - self.x_pred)
-        H = np.zeros((len(x), 3, 3))
-        H[:] = np.eye(3) * o.weights[:, None, None]
+        Hq = (J * np.repeat(o.weights, 3)[:, None]).T @ J  # the mass term's J^T M J / h^2
         near = (self.barrier.distances(torch.as_tensor(x)) < self.barrier.d_hat).numpy()
-        if near.any():
+        if near.any():  # the barrier's: its few vertices' 3 x 3 blocks
             gb, Hb = self.barrier.local_gradient_hessian(torch.as_tensor(x[near])[:, None, :], project=True)
             g[near] += gb.numpy()
-            H[near] += Hb.numpy()
-        Jv = J.reshape(-1, 3, J.shape[-1])
-        self.g, self.gq = g, np.einsum("nai,na->i", Jv, g)
-        self.Hq = np.einsum("nai,nab,nbj->ij", Jv, H, Jv)
+            Jn = J.reshape(-1, 3, J.shape[-1])[near]
+            Hq += (Jn.transpose(0, 2, 1) @ Hb.numpy() @ Jn).sum(0)
+        self.g, self.gq, self.Hq = g, J.T @ g.reshape(-1), Hq
         self.q, self.k = q, k
         return False
 
