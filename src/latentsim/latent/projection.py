@@ -1,17 +1,17 @@
 """A contact projection of a latent rollout's frames (``rollout.contact_projection``; in neither paper).
 
-The integrator's loss holds its barrier (sec. 4 of the docs' methods), but where a network does not learn a
-collider its rollout can pass through it (the cloth over the ball, docs/measurements.md).  The projection
-keeps what a user sees outside: each decoded frame x_p within the scene's d_hat of a collider is replaced by the decode
-of the latent
+The integrator's loss holds a contact barrier, but where a network does not learn a collider its rollout can pass
+through it (the cloth over the ball, docs/measurements.md).  The projection keeps what a user sees outside: each
+decoded frame x_p within the scene's d_hat of a collider is replaced by the decode of the latent
 
     q* = argmin_q  1/(2 h^2) sum_i m_i |D(q)_i - x_p,i|^2 + B(D(q)),
 
-the state of the autoencoder's latent space nearest x_p in the kinetic (mass-weighted) norm of one step, with
-B the scene's barrier continued quadratically below ``extend_below`` of d_hat (finite inside a collider,
-:meth:`~latentsim.physics.contact.ContactBarrier.extended`).  Newton over q (r unknowns: the Hessian
-J^T H J plus the decoder's curvature, the Gauss-Newton matrix where that is not positive definite) runs the
-one minimiser of :mod:`latentsim.solve.newton`, from q = z_t.
+the state of the autoencoder's latent space nearest x_p in the kinetic (mass-weighted) norm of one step, with B the
+scene's barrier at the settings' reach and stiffness (by default the loss's: ten times d_hat, a hundredth of kappa),
+continued quadratically below a fraction of that reach (finite inside a collider,
+:meth:`~latentsim.physics.contact.ContactBarrier.extended`), and stiffened tenfold while the result is still inside.
+Newton over q (r unknowns: the Hessian J^T H J plus the decoder's curvature, the Gauss-Newton matrix where that
+is not positive definite) runs the one minimiser of :mod:`latentsim.solve.newton`, from q = z_t.
 
 The projection changes the frames written, not the integrator's state: z_t goes on to the next step as the
 network predicted it (fed back, the projected latents lie off the network's training data, and one of three
