@@ -104,6 +104,7 @@ def validate_config(config: dict, schema_path=SCHEMA) -> dict:
     _check_nm_study(config)
     _check_latent_dims(config)
     _check_conditioning(config)
+    _check_contact_projection(config)
     return config
 
 
@@ -310,6 +311,14 @@ def _train_frames(scene: dict) -> list[int]:
     ``train_frames`` of each sequence that sets it."""
     out = [int(q["frames"]) for q in scene.get("sequences", []) if q.get("split", "train") == "train"]
     return out + [int(q["train_frames"]) for q in scene.get("sequences", []) if q.get("train_frames")]
+
+
+def _check_contact_projection(config: dict) -> None:
+    """A scene whose rollouts are projected out of its colliders has colliders."""
+    for name, scene in config.get("scenes", {}).items():
+        if (scene.get("rollout") or {}).get("contact_projection", {}).get("enabled") and not (scene.get("contact") or {}).get("colliders"):
+            raise ConfigError(f"config key 'scenes.{name}.rollout.contact_projection.enabled': the scene has no colliders to project its "
+                              f"frames out of (give them under 'scenes.{name}.contact.colliders', or leave the projection off)")  # fmt: skip
 
 
 def _check_latent_dims(config: dict) -> None:

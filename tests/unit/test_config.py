@@ -57,6 +57,13 @@ def test_string_where_a_number_goes_is_named(tiny):
         validate_config(tiny)
 
 
+def test_a_contact_projection_without_colliders_is_named(tiny):
+    tiny["scenes"]["tiny_cloth"]["rollout"] = {"contact_projection": {"enabled": True}}
+    with pytest.raises(ConfigError, match=r"scenes\.tiny_cloth\.rollout\.contact_projection\.enabled.*no colliders"):
+        validate_config(tiny)
+    validate_config(copy.deepcopy(yaml.safe_load((ROOT / "config" / "tiny.yaml").read_text())))  # tiny_contact's, with its ball, passes
+
+
 def test_enum_lists_allowed_values(tiny):
     tiny["scenes"]["tiny_rods"]["model"] = "fem"
     with pytest.raises(ConfigError, match=r"scenes\.tiny_rods\.model.*allowed values: \['rods', 'shell', 'tets'\]"):

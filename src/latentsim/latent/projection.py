@@ -49,7 +49,7 @@ class _Problem:
         o = self.o
         x, J = o.subspace.jacobian(q, self.xD)
         g = o.weights[:, None] * (x - self.x_pred)
-        Hq = (J * np.repeat(o.weights, 3)[:, None]).T @ J  # the mass term's J^T M J / h^2
+        Hq = (J * o.dof_weights[:, None]).T @ J  # the mass term's J^T M J / h^2
         near = (self.barrier.distances(torch.as_tensor(x)) < self.barrier.d_hat).numpy()
         if near.any():  # the barrier's: its few vertices' 3 x 3 blocks
             gb, Hb = self.barrier.local_gradient_hessian(torch.as_tensor(x[near])[:, None, :], project=True)
@@ -103,6 +103,7 @@ class ContactProjection:
         self.subspace, self.contact = subspace, contact
         self.barrier = contact.extended(settings["barrier_extend_below"], settings["barrier_d_hat"], settings["barrier_kappa"])
         self.weights = np.asarray(masses, dtype=np.float64).reshape(-1) / float(dt) ** 2
+        self.dof_weights = np.repeat(self.weights, 3)  # per coordinate, the rows of J
         self.iterations, self.tolerance = int(settings["iterations"]), float(settings["tolerance"])
         self.stiffening = int(settings["stiffening"])
         self.search = LineSearch()
