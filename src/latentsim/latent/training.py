@@ -30,11 +30,11 @@ from latentsim.latent.base import LossHealth, TrainingDiverged, minibatches, pot
 from latentsim.latent.conditioning import CONDITION_DIM, AtCondition, Conditioning, with_condition
 from latentsim.latent.coordinates import RelativeCoordinates
 from latentsim.latent.data import build_triplets, triplet_rows
-from latentsim.latent.integrator import LatentIntegrator
+from latentsim.latent.integrator import LatentIntegrator, boundary_inputs
 from latentsim.latent.loss import integrator_loss
 from latentsim.latent.serialization import atomic_save, load_checked
 from latentsim.physics.kernels import with_compiled_elastic
-from latentsim.scene import dirichlet_step
+from latentsim.scene import dirichlet_step, dirichlet_trajectory
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +82,7 @@ def fit_integrator(
         decay of the learning rate to it; None: constant), batch_size, mode ('self_supervised' |
         'supervised'), noise_scale, supervised_weight, balancing, balancing_eps, use_penalty,
         residual, barrier_d_hat, barrier_kappa, barrier_extend_below (the loss's contact barrier,
-        relative to the potential's), own_rollouts_every, own_rollouts_start (see below), origin_input
+        relative to the potential's), own_rollouts_every, own_rollouts_start, own_rollouts_speeds (see below), origin_input
         (each p_t ends with the frame's mean prescribed position, :func:`~latentsim.latent.integrator.boundary_inputs`;
         needs prescribed vertices, not with ``conditioning``), and the
         health rule's divergence_factor, max_loss, latent_range_factor); those
@@ -120,6 +120,9 @@ def fit_integrator(
     only from those of the training data.  A conditioned training rolls each sequence out at a
     condition drawn from its box (:func:`own_rollout_triplets_at_conditions`), and those rows' loss
     is taken at that condition: states of conditions no training sequence was simulated at.
+    With ``own_rollouts_speeds`` [lo, hi] each rollout of an unconditioned integrator also rolls each
+    moving training sequence out once more under its program at a speed drawn from that range
+    (:func:`own_rollout_triplets_at_speeds`): states of faster or slower motions than the data's.
 
     Returns
     -------
@@ -167,6 +170,7 @@ def fit_integrator(
     own_every = int(cfg["own_rollouts_every"])
     if own_every > 0 and cfg["mode"] != "self_supervised":
         raise ValueError(f"{label or 'integrator'}: own_rollouts_every needs a self-supervised training")
+    programs = _speed_programs(sequences, cfg, conditioning, label)
     device = resolve_device(device)
     ae_f, pot, data = _training_setup(ae, coords, potential, sequences, device, compiled, cfg)
     integ = _new_integrator(data, cfg, seed, device, conditioning)
@@ -189,6 +193,10 @@ def fit_integrator(
             if own_every > 0 and epoch >= int(cfg["own_rollouts_start"]) and (epoch - int(cfg["own_rollouts_start"])) % own_every == 0:
                 if conditioning is None:
                     own = own_rollout_triplets(integ, data, rows_per_sequence, centre, 2.0 * radius)
+                    if programs is not None:
+                        at_speeds = own_rollout_triplets_at_speeds(integ, data, rows_per_sequence, centre, 2.0 * radius, programs, cfg["own_rollouts_speeds"],
+                                                                   gen, float(pot.dt), bool(cfg["origin_input"]), coords)  # fmt: skip
+                        own = {key: torch.cat([val, at_speeds[key]]) for key, val in own.items()}
                 else:
                     own = own_rollout_triplets_at_conditions(integ, data, rows_per_sequence, centre, 2.0 * radius, conditioning, gen)
                 history.setdefault("own_triplets", []).append(int(own["z"].shape[0]))
@@ -307,6 +315,70 @@ def own_rollout_triplets_at_conditions(
         xD = torch.stack(xD)
         own["xD_prev2"], own["xD_prev"], own["xD"] = xD[:n], xD[1 : n + 1], xD[2:]
         own["condition"] = torch.tensor([hi, Ei], dtype=torch.float64, device=xD.device).expand(n, 2).clone()
+        parts.append(own)
+    return {key: torch.cat([q[key] for q in parts]) for key in parts[0]}
+
+
+def _speed_programs(sequences: Sequence[dict], cfg: dict, conditioning: Conditioning | None, label: str) -> list | None:
+    """What ``own_rollouts_speeds`` scales: for each training sequence that gives triplets (in
+    :func:`~latentsim.latent.data.triplet_rows`' order), its boundary-condition program (T, 6)
+    (float64; None where the program is still, a free body: no speed to scale) and its first frame's
+    prescribed positions (m, 3); None where the setting is not given.  Raises ValueError, naming the
+    key, where it cannot apply."""
+    speeds = cfg["own_rollouts_speeds"]
+    if speeds is None:
+        return None
+    what = f"{label or 'integrator'}: integrator.own_rollouts_speeds"
+    if int(cfg["own_rollouts_every"]) <= 0:
+        raise ValueError(f"{what} scales the own rollouts' programs, but there are none (own_rollouts_every is 0)")
+    if conditioning is not None:
+        raise ValueError(f"{what} is not for a conditioned integrator (its own rollouts are drawn at conditions of its box)")
+    lo, hi = (float(v) for v in speeds)
+    if not 0 < lo <= hi:
+        raise ValueError(f"{what} must be [lo, hi] with 0 < lo <= hi, got {list(speeds)}")
+    programs = []
+    for s in sequences:
+        if len(s["positions"]) < 3:
+            continue
+        bc = np.asarray(s.get("bc", np.zeros((len(s["positions"]), 0))), dtype=np.float64)
+        if bc.ndim != 2 or bc.shape[1] != 6:
+            raise ValueError(f"{what} scales a boundary-condition program of 6 numbers a frame (velocity, angular velocity); got shape {bc.shape}")
+        programs.append((bc if bc.any() else None, np.asarray(s["dirichlet_positions"], dtype=np.float64)[0]))
+    if all(bc is None for bc, _ in programs):
+        raise ValueError(f"{what}: no training sequence has a program to scale (all are still: a free body's)")
+    return programs
+
+
+@torch.no_grad()
+def own_rollout_triplets_at_speeds(
+    integ: LatentIntegrator, data: dict, rows_per_sequence: Sequence[int], centre: torch.Tensor, max_distance: float, programs: Sequence, speeds,
+    gen: torch.Generator, dt: float, origin: bool, coords: RelativeCoordinates | None = None,
+) -> dict:  # fmt: skip
+    """:func:`own_rollout_triplets` under faster or slower programs: each training sequence whose
+    program moves (``programs``, :func:`_speed_programs`) rolled out from its first two ground-truth
+    latents under its program with every velocity and angular velocity scaled by a factor f drawn by
+    ``gen`` log-uniformly from ``speeds`` = [lo, hi], its prescribed positions stepped from its first
+    frame's by the scaled program at the time step ``dt`` (:func:`~latentsim.scene.dirichlet_trajectory`),
+    and the integrator's inputs made of them (:func:`~latentsim.latent.integrator.boundary_inputs`,
+    ``origin`` and ``coords`` as in the training).  Each row holds the frame's Dirichlet targets
+    under the scaled program (the self-supervised loss needs nothing else there); its ``z`` is the
+    recorded frame's, as no ground truth exists at other speeds.  Also returns ``speed`` (N,), each
+    row's factor."""
+    lo, hi = (math.log(float(v)) for v in speeds)
+    ends = np.cumsum(rows_per_sequence).tolist()
+    factors = torch.exp(lo + (hi - lo) * torch.rand(len(ends), generator=gen, dtype=torch.float64)).tolist()
+    parts = []
+    for a, b, (bc, xD0), f in zip([0] + ends[:-1], ends, programs, factors):
+        if bc is None:
+            continue
+        sub = {key: val[a:b] for key, val in data.items()}
+        xD = dirichlet_trajectory(xD0, f * bc, dt)
+        p = torch.as_tensor(boundary_inputs(f * bc, xD, origin, coords)).to(sub["p"])
+        xD = torch.as_tensor(xD).to(sub["xD"])
+        for key, arr in (("p", p), ("xD", xD)):
+            sub[key], sub[key + "_prev"], sub[key + "_prev2"] = arr[2:], arr[1:-1], arr[:-2]
+        own = own_rollout_triplets(integ, sub, [b - a], centre, max_distance)
+        own["speed"] = torch.full((own["z"].shape[0],), f, dtype=torch.float64, device=own["z"].device)
         parts.append(own)
     return {key: torch.cat([q[key] for q in parts]) for key in parts[0]}
 
