@@ -114,6 +114,35 @@ def test_with_colliders_a_stress_rollout_reports_how_deep_it_entered_one_before_
     assert bad["survived"] < T and np.isfinite(bad["max_penetration"]) and bad["max_penetration"] < 3.0
 
 
+def test_where_the_rollout_projects_its_frames_the_stress_rollouts_are_projected_too():
+    """With the rollout's contact projection the surviving frames near a collider are projected as a test
+    rollout's are: the reported depth is the projected frames' (out of the half-space), the network's own
+    is kept beside it, and survival is the network's."""
+    from latentsim.config import with_defaults
+    from latentsim.latent.projection import ContactProjection
+    from latentsim.latent.subspaces import DecoderSubspace
+    from latentsim.physics.contact import ContactBarrier, HalfSpace
+
+    ae, coords, rest = _tiny_autoencoder()
+    T = 30
+    cond = stability.Condition("still", np.zeros((T, 6)), np.repeat(rest[None, :1].numpy(), T, 0))
+    diag = float(np.linalg.norm(rest.numpy().max(0) - rest.numpy().min(0)))
+    z = torch.zeros(2)
+    with torch.no_grad():
+        x = latent.decode_latents(ae, coords, torch.zeros(1, 2), torch.as_tensor(cond.dirichlet_positions[:1]))[0].numpy()
+    level = float(x[:, 1].min()) + 0.002  # the lowest vertex 2 mm below the floor
+    floor = ContactBarrier(len(rest), [HalfSpace((0.0, level, 0.0), (0.0, 1.0, 0.0))], 1e-3, 1.0)
+    settings = with_defaults("rollout", {"contact_projection": {"enabled": True}}, "test")["contact_projection"]
+    proj = ContactProjection(DecoderSubspace(ae, coords), floor, np.full(len(rest), 1e-3), 0.01, settings)
+    r = stability.survive_latent(_Linear(0.5), ae, coords, z, z, cond, np.array([0]), diag, max_extent=3.0, contact=floor, projection=proj)
+    assert r["survived"] == T and r["projected_frames"] == T
+    assert r["max_penetration_own"] == pytest.approx(0.002 / diag, rel=1e-6) and r["max_penetration"] == 0
+    plain = stability.survive_latent(_Linear(0.5), ae, coords, z, z, cond, np.array([0]), diag, max_extent=3.0, contact=floor)
+    assert plain["max_penetration"] == r["max_penetration_own"] and "projected_frames" not in plain
+    bad = stability.survive_latent(_Linear(1.5, 1.0), ae, coords, z, z, cond, np.array([0]), diag, max_extent=3.0, contact=floor, projection=proj)
+    assert bad["survived"] == stability.survive_latent(_Linear(1.5, 1.0), ae, coords, z, z, cond, np.array([0]), diag, max_extent=3.0)["survived"]
+
+
 class _SpeedSensitive(torch.nn.Module):
     """Contracting while the boundary moves slowly; exploding above ``limit`` (|p_t| max-norm), and
     for good once its latent has run away (|z| > 10)."""

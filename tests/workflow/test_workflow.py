@@ -374,6 +374,14 @@ def test_tiny_contact_stays_out_of_its_ball_in_the_full_space_and_every_method_i
     assert (barrier.distances(torch.as_tensor(shown)).amin(-1).numpy() >= 0).all() and m.loc["self_supervised", "max_penetration"] == 0
     assert attrs["projected_frames"] == projected.sum() and 0 < attrs["projection_ms"] <= attrs["step_ms"]
     assert m.loc["self_supervised", "latent_ms"] == pytest.approx(attrs["step_ms"], rel=1e-4)  # the table keeps 6 digits
+    # the stress conditions' frames are projected too: the depth shown is the projected frames', the network's own beside it
+    with h5py.File(work / "results/rollout/tiny_contact/self_supervised/seed0/rollout.h5") as f:
+        groups = {c: dict(g.attrs) for c, g in f["stability"].items()}
+    assert groups and all(a["max_penetration"] <= a["max_penetration_own"] and a["projected_frames"] >= 0 for a in groups.values())
+    assert sum(a["projected_frames"] for a in groups.values()) > 0
+    st = pd.read_csv(work / "results/evaluation/tiny_contact/stress.csv").set_index(["method", "condition"])
+    for c, a in groups.items():
+        assert st.loc[("self_supervised", c), "max_penetration_own"] == pytest.approx(a["max_penetration_own"], rel=1e-4, abs=1e-12)
     other = pd.read_csv(work / "results/evaluation/tiny_cloth/metrics.csv")
     assert "max_penetration" not in other.columns  # a scene without colliders has no such column
     # the glance table carries it for the contact scene alone, and the full space never enters

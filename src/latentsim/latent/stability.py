@@ -113,7 +113,7 @@ def stress_conditions(bc, rest_dirichlet, dt: float, train_frames: int, factors,
 
 
 def survive_latent(integrator, ae, coords, z0, z1, condition: Condition, dirichlet, rest_diag: float,
-                   max_extent: float, latent_std=None, seed: int = 0, chunk: int = 256, contact=None) -> dict:  # fmt: skip
+                   max_extent: float, latent_std=None, seed: int = 0, chunk: int = 256, contact=None, projection=None) -> dict:  # fmt: skip
     """Roll a latent integrator out under one condition; how long does it survive?
 
     The latents are integrated autoregressively from ``z0, z1`` (perturbed by
@@ -128,7 +128,12 @@ def survive_latent(integrator, ae, coords, z0, z1, condition: Condition, dirichl
     T when none), ``dirichlet_error_end`` (mean Dirichlet error / rest_diag
     at the last surviving frame) and ``dirichlet_error`` ((survived,) per frame); with ``contact``
     (a :class:`~latentsim.physics.contact.ContactBarrier`, the scene's colliders) also
-    ``max_penetration``, the deepest entry into a collider of any surviving frame / rest_diag.
+    ``max_penetration``, the deepest entry into a collider of any surviving frame / rest_diag.  With
+    ``projection`` (a :class:`~latentsim.latent.projection.ContactProjection`, the rollout's
+    ``contact_projection``) the surviving frames near a collider are projected out of it as the test
+    rollouts' are, ``max_penetration`` is the projected frames' and ``max_penetration_own`` the
+    network's own; ``projected_frames`` counts them.  Survival is the network's: the projection does
+    not feed back.
     """
     bc = torch.as_tensor(boundary_inputs(np.asarray(condition.bc), condition.dirichlet_positions, getattr(integrator, "origin", False), coords), dtype=torch.float32)
     T = len(bc)
@@ -148,7 +153,7 @@ def survive_latent(integrator, ae, coords, z0, z1, condition: Condition, dirichl
             if not torch.isfinite(Z[t]).all():
                 last = t
                 break
-        errors, depth = [], 0.0
+        errors, depth, own_depth, projected = [], 0.0, 0.0, 0
         survived = last
         xD_all = torch.as_tensor(condition.dirichlet_positions, dtype=torch.float64)
         for s in range(0, last, chunk):
@@ -160,8 +165,14 @@ def survive_latent(integrator, ae, coords, z0, z1, condition: Condition, dirichl
             err = dirichlet_error(x, dirichlet, condition.dirichlet_positions[s:e], rest_diag)
             k = int(np.argmax(bad)) if bad.any() else e - s
             if contact is not None and k:
-                d = contact.distances(torch.as_tensor(x[:k], dtype=torch.float64), xD_all[s : s + k]).amin(-1).numpy()
-                depth = max(depth, float(np.maximum(-d, 0.0).max()))
+                own_depth = max(own_depth, _deepest(contact, x[:k], xD_all[s : s + k]))
+                if projection is not None:
+                    with torch.inference_mode(False):  # the projection differentiates the decoder
+                        done = projection.frames(Z[s : s + k].numpy(), x[:k], condition.dirichlet_positions[s : s + k])
+                    projected += int(done["projected"].sum())
+                    depth = max(depth, _deepest(contact, done["positions"], xD_all[s : s + k]))
+                else:
+                    depth = own_depth
             if bad.any():
                 errors.append(err[:k])
                 survived = s + k
@@ -172,11 +183,20 @@ def survive_latent(integrator, ae, coords, z0, z1, condition: Condition, dirichl
            "dirichlet_error_end": float(err[-1]) if len(err) else float("nan")}  # fmt: skip
     if contact is not None:
         out["max_penetration"] = depth / rest_diag
+        if projection is not None:
+            out["max_penetration_own"] = own_depth / rest_diag
+            out["projected_frames"] = projected
     return out
 
 
+def _deepest(contact, x, xD) -> float:
+    """The deepest entry of frames ``x`` (T, n, 3) into the colliders posed by ``xD`` (T, m, 3) [m]; 0 when none enters."""
+    d = contact.distances(torch.as_tensor(x, dtype=torch.float64), xD).amin(-1).numpy()
+    return float(np.maximum(-d, 0.0).max())
+
+
 def stress_test(integrator, ae, coords, sequence: dict, rest_positions, dirichlet, dt: float, train_frames: int,
-                settings: dict, max_extent: float, contact=None):  # fmt: skip
+                settings: dict, max_extent: float, contact=None, projection=None):  # fmt: skip
     """Every stress condition of ``settings`` (a scene's ``rollout.stability``; keys absent take the
     config schema's defaults) on one test sequence.
 
@@ -191,6 +211,8 @@ def stress_test(integrator, ae, coords, sequence: dict, rest_positions, dirichle
     train_frames : length of the longest training sequence.
     contact : the scene's contact barrier (its colliders), or None: each result then also holds the
         deepest entry into one (:func:`survive_latent`).
+    projection : None, or the rollout's contact projection: the conditions' frames near a collider are
+        projected as the test rollouts' are (:func:`survive_latent`).
 
     Yields
     ------
@@ -207,4 +229,4 @@ def stress_test(integrator, ae, coords, sequence: dict, rest_positions, dirichle
     )  # fmt: skip
     for c in conditions:
         yield c, survive_latent(integrator, ae, coords, z[0], z[1], c, dirichlet, bbox_diagonal(rest), float(max_extent),
-                                latent_std=z.std(0), seed=0, contact=contact)  # fmt: skip
+                                latent_std=z.std(0), seed=0, contact=contact, projection=projection)  # fmt: skip

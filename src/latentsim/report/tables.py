@@ -66,10 +66,11 @@ def write_table(df: pd.DataFrame, path):
 def stress_over_seeds(stress: pd.DataFrame) -> pd.DataFrame:
     """The stress rows (:func:`stress_table`) as one row per scene, method and condition over the seeds:
     ``frames``, ``frames_survived`` (the least), ``diverged`` (in any seed), ``seeds``, ``seeds_survived``,
-    ``bc_error`` (the largest) and, with colliders, ``max_penetration`` (the deepest); what
+    ``bc_error`` (the largest) and, with colliders, ``max_penetration`` (the deepest; and ``max_penetration_own``
+    where the frames were projected); what
     :func:`latentsim.report.plots.stability_heatmap` colours by seed."""
     st = stress.assign(seed=_seeds(stress), diverged=stress["diverged"].astype(bool))
-    extra = {"max_penetration": ("max_penetration", "max")} if "max_penetration" in st.columns else {}
+    extra = {key: (key, "max") for key in ("max_penetration", "max_penetration_own") if key in st.columns}
     return st.groupby(["scene", "method", "condition"], sort=False).agg(
         frames=("frames", "max"), frames_survived=("frames_survived", "min"), diverged=("diverged", "any"), seeds=("seed", "nunique"),
         seeds_survived=("diverged", lambda d: int((~d).sum())), bc_error=("bc_error", "max"), **extra).reset_index()  # fmt: skip
@@ -80,9 +81,11 @@ def stress_table(scene: str, rollouts) -> pd.DataFrame:
 
     Columns: scene, method, seed (-1: no seed changes the method), condition, frames, frames_survived, diverged,
     bc_error (mean Dirichlet error / bbox diagonal at the last surviving frame); in a scene with colliders,
-    max_penetration (the deepest entry into one of any surviving frame / bbox diagonal).
+    max_penetration (the deepest entry into one of any surviving frame / bbox diagonal); where the rollout
+    projects its frames out of the colliders, that of the projected frames, and max_penetration_own the
+    network's own frames'.
     """
-    rows, contact = [], False
+    rows, contact, projected = [], False, False
     for path in rollouts:
         with open_artefact(path) as f:
             method, seed = str(f.attrs.get("method", "self_supervised")), int(f.attrs.get("seed", -1))
@@ -90,9 +93,12 @@ def stress_table(scene: str, rollouts) -> pd.DataFrame:
                 frames, survived = int(g.attrs["frames"]), int(g.attrs["survived"])
                 rows.append(dict(scene=scene, method=method, seed=seed, condition=cond, frames=frames, frames_survived=survived,
                                  diverged=survived < frames, bc_error=float(g.attrs["dirichlet_error_end"]),
-                                 max_penetration=float(g.attrs.get("max_penetration", np.nan))))  # fmt: skip
+                                 max_penetration=float(g.attrs.get("max_penetration", np.nan)),
+                                 max_penetration_own=float(g.attrs.get("max_penetration_own", np.nan))))  # fmt: skip
                 contact = contact or "max_penetration" in g.attrs
-    columns = ["scene", "method", "seed", "condition", "frames", "frames_survived", "diverged", "bc_error"] + (["max_penetration"] if contact else [])
+                projected = projected or "max_penetration_own" in g.attrs
+    columns = (["scene", "method", "seed", "condition", "frames", "frames_survived", "diverged", "bc_error"] + (["max_penetration"] if contact else [])
+               + (["max_penetration_own"] if projected else []))  # fmt: skip
     return pd.DataFrame(rows, columns=columns)
 
 

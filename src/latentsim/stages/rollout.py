@@ -152,15 +152,17 @@ def _roll_out(h, name: str, s: dict, integ, ae, scene: dict, steppers: dict, met
 
 
 def _stress(grp, integ, ae, scene: dict, cfg: dict) -> None:
-    """The stress conditions of ``cfg["stability"]`` on the first test sequence, one group each."""
+    """The stress conditions of ``cfg["stability"]`` on the first test sequence, one group each (their frames
+    projected out of the colliders as the test rollouts' are, where the rollout projects)."""
     name, s = next(iter(scene["tests"].items()))
     grp.attrs["sequence"] = name
     arrays = scene["arrays"]
     conditions = stress_test(integ, ae, scene["coords"], s, arrays["rest_positions"], arrays["dirichlet"], float(scene["attrs"]["dt"]),
-                             scene["train_frames"], cfg["stability"], float(cfg["max_extent"]), contact=scene["contact"])  # fmt: skip
+                             scene["train_frames"], cfg["stability"], float(cfg["max_extent"]), contact=scene["contact"],
+                             projection=scene["projection"])  # fmt: skip
     for c, r in conditions:
         h = grp.create_group(c.name)
-        for k in ("frames", "survived", "dirichlet_error_end", "max_penetration"):
+        for k in ("frames", "survived", "dirichlet_error_end", "max_penetration", "max_penetration_own", "projected_frames"):
             if k in r:
                 h.attrs[k] = r[k]
         h.attrs["perturbation"] = c.perturbation
