@@ -108,11 +108,18 @@ class ContactProjection:
         self.stiffening = int(settings["stiffening"])
         self.search = LineSearch()
 
+    def near(self, X, XD) -> np.ndarray:
+        """(T,) bool: which frames X (T, n, 3) come within the scene's d_hat of a collider posed at their prescribed
+        XD (T, m, 3) (where the full space's barrier acts; the projection's own reaches further, and would push
+        frames that are fine away from the surface); a frame that is not finite is not.  One batched test."""
+        X = torch.as_tensor(np.asarray(X, dtype=np.float64))
+        finite = torch.isfinite(X).all(-1).all(-1)
+        d = self.contact.distances(torch.where(finite[:, None, None], X, 0.0), torch.as_tensor(np.asarray(XD, dtype=np.float64))).amin(-1)
+        return (finite & (d < self.contact.d_hat)).numpy()
+
     def needed(self, x, xD) -> bool:
-        """Whether frame x (n, 3) comes within the scene's d_hat of a collider posed at the frame's prescribed xD
-        (where the full space's barrier acts; the projection's own reaches further, and would push frames that
-        are fine away from the surface)."""
-        return bool(float(self.contact.posed(xD).distances(torch.as_tensor(x)).min()) < self.contact.d_hat)
+        """Whether one frame x (n, 3), prescribed at xD (m, 3), comes within the scene's d_hat of a collider (:meth:`near`)."""
+        return bool(self.near(np.asarray(x)[None], np.asarray(xD)[None])[0])
 
     def project(self, z, x, xD):
         """(q*, D(q*), Newton iterations) of one frame: its latent z (r,), decode x (n, 3), prescribed xD (m, 3).
@@ -145,9 +152,7 @@ class ContactProjection:
         projected = np.zeros(len(X), dtype=bool)
         iterations = np.zeros(len(X), dtype=np.int64)
         t0 = time.perf_counter()
-        for t in range(T):
-            if not np.isfinite(X[t]).all() or not self.needed(X[t], dirichlet_positions[t]):
-                continue
+        for t in np.flatnonzero(self.near(X[:T], np.asarray(dirichlet_positions)[:T])):
             _, X[t], iterations[t] = self.project(latents[t], X[t], dirichlet_positions[t])
             projected[t] = True
         return {"positions": X, "projected": projected, "iterations": iterations, "seconds": time.perf_counter() - t0}
