@@ -90,18 +90,24 @@ def test_a_contracting_integrator_survives_and_an_exploding_one_fails_where_its_
     assert bad["survived"] == int(np.argmax(ext > 3.0 * diag))
 
 
+def _still_shape(T):
+    """The tiny autoencoder, a condition of T frames holding it still, its rest diagonal and its decode at z = 0."""
+    ae, coords, rest = _tiny_autoencoder()
+    cond = stability.Condition("still", np.zeros((T, 6)), np.repeat(rest[None, :1].numpy(), T, 0))
+    diag = float(np.linalg.norm(rest.numpy().max(0) - rest.numpy().min(0)))
+    with torch.no_grad():
+        x = latent.decode_latents(ae, coords, torch.zeros(1, 2), torch.as_tensor(cond.dirichlet_positions[:1]))[0].numpy()
+    return ae, coords, rest, cond, diag, x
+
+
 def test_with_colliders_a_stress_rollout_reports_how_deep_it_entered_one_before_it_failed():
     """The deepest entry of any surviving frame, over the diagonal: a half-space cutting through the decoded
     states gives their deepest vertex; one below every frame gives 0; frames after the failure do not count."""
     from latentsim.physics.contact import ContactBarrier, HalfSpace
 
-    ae, coords, rest = _tiny_autoencoder()
     T = 40
-    cond = stability.Condition("still", np.zeros((T, 6)), np.repeat(rest[None, :1].numpy(), T, 0))
-    diag = float(np.linalg.norm(rest.numpy().max(0) - rest.numpy().min(0)))
+    ae, coords, rest, cond, diag, x = _still_shape(T)
     z = torch.zeros(2)
-    with torch.no_grad():
-        x = latent.decode_latents(ae, coords, torch.zeros(1, 2), torch.as_tensor(cond.dirichlet_positions[:1]))[0].numpy()
     level = float(np.median(x[:, 1]))  # a plane through the middle of the (still) decoded shape
     cut = ContactBarrier(len(rest), [HalfSpace((0.0, level, 0.0), (0.0, 1.0, 0.0))], 1e-3, 1.0)
     r = stability.survive_latent(_Linear(0.5), ae, coords, z, z, cond, np.array([0]), diag, max_extent=3.0, contact=cut)
@@ -123,13 +129,9 @@ def test_where_the_rollout_projects_its_frames_the_stress_rollouts_are_projected
     from latentsim.latent.subspaces import DecoderSubspace
     from latentsim.physics.contact import ContactBarrier, HalfSpace
 
-    ae, coords, rest = _tiny_autoencoder()
     T = 30
-    cond = stability.Condition("still", np.zeros((T, 6)), np.repeat(rest[None, :1].numpy(), T, 0))
-    diag = float(np.linalg.norm(rest.numpy().max(0) - rest.numpy().min(0)))
+    ae, coords, rest, cond, diag, x = _still_shape(T)
     z = torch.zeros(2)
-    with torch.no_grad():
-        x = latent.decode_latents(ae, coords, torch.zeros(1, 2), torch.as_tensor(cond.dirichlet_positions[:1]))[0].numpy()
     level = float(x[:, 1].min()) + 0.002  # the lowest vertex 2 mm below the floor
     floor = ContactBarrier(len(rest), [HalfSpace((0.0, level, 0.0), (0.0, 1.0, 0.0))], 1e-3, 1.0)
     settings = with_defaults("rollout", {"contact_projection": {"enabled": True}}, "test")["contact_projection"]
