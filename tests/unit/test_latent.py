@@ -534,7 +534,7 @@ def test_own_rollouts_at_speeds_roll_each_sequence_out_under_its_program_scaled(
     integ.fit_normalization(*(tr[k] for k in ("z", "z_prev", "z_prev2", "p", "p_prev", "p_prev2")))
     integ.eval()
     lengths, centre = triplet_rows(seqs), tr["z"].mean(0)
-    cfg = {"own_rollouts_speeds": [2.0, 2.0], "own_rollouts_every": 1}
+    cfg = {"own_rollouts_speeds": [2.0, 2.0], "own_rollouts_every": 1, "supervised_weight": 0.0}
     programs = _speed_programs(seqs, cfg, None, "")
     assert programs[-1][0] is None and all(bc is not None for bc, _ in programs[:-1])
     dt = float(ch.pot.dt)
@@ -595,13 +595,14 @@ def test_own_rollouts_at_faster_programs_teach_the_integrator_faster_motion(chai
 
 def test_own_rollouts_at_speeds_refuse_what_they_cannot_scale(chain_setup):
     """The setting names itself where it cannot apply: no own rollouts, a conditioned integrator, a
-    program that is not (velocity, angular velocity), nothing that moves, a range upside down."""
+    program that is not (velocity, angular velocity), nothing that moves, a range upside down, a
+    supervised term (whose targets exist only at the recorded speeds)."""
     from latentsim.latent.conditioning import Conditioning
     from latentsim.latent.training import _speed_programs
 
     ch, seqs, coords, ae = chain_setup
     seqs6 = _programs6(seqs)
-    ok = {"own_rollouts_speeds": [0.5, 2.0], "own_rollouts_every": 1}
+    ok = {"own_rollouts_speeds": [0.5, 2.0], "own_rollouts_every": 1, "supervised_weight": 0.0}
     assert len(_speed_programs(seqs6, ok, None, "")) == 3
     assert _speed_programs(seqs6, {**ok, "own_rollouts_speeds": None}, None, "") is None
     box = Conditioning((0.02, 0.04), (1e5, 2e5), 1.0 / 30.0, 1e5)
@@ -611,6 +612,7 @@ def test_own_rollouts_at_speeds_refuse_what_they_cannot_scale(chain_setup):
         (ok, seqs, None, "6 numbers a frame"),
         (ok, [{**s, "bc": torch.zeros_like(s["bc"])} for s in seqs6], None, "no training sequence has a program"),
         ({**ok, "own_rollouts_speeds": [2.0, 0.5]}, seqs6, None, "0 < lo <= hi"),
+        ({**ok, "supervised_weight": 1.0}, seqs6, None, "supervised term"),
     ]:
         with pytest.raises(ValueError, match=rf"scene x: integrator.own_rollouts_speeds.*{match}"):
             _speed_programs(sq, cfg, cond, "scene x")

@@ -333,6 +333,9 @@ def _speed_programs(sequences: Sequence[dict], cfg: dict, conditioning: Conditio
         raise ValueError(f"{what} scales the own rollouts' programs, but there are none (own_rollouts_every is 0)")
     if conditioning is not None:
         raise ValueError(f"{what} is not for a conditioned integrator (its own rollouts are drawn at conditions of its box)")
+    if float(cfg["supervised_weight"]) > 0:
+        raise ValueError(f"{what} is not for a training with a supervised term (supervised_weight {cfg['supervised_weight']}): "
+                         "ground truth exists only at the recorded speeds")  # fmt: skip
     lo, hi = (float(v) for v in speeds)
     if not 0 < lo <= hi:
         raise ValueError(f"{what} must be [lo, hi] with 0 < lo <= hi, got {list(speeds)}")
