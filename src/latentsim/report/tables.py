@@ -66,9 +66,8 @@ def write_table(df: pd.DataFrame, path):
 def stress_over_seeds(stress: pd.DataFrame) -> pd.DataFrame:
     """The stress rows (:func:`stress_table`) as one row per scene, method and condition over the seeds:
     ``frames``, ``frames_survived`` (the least), ``diverged`` (in any seed), ``seeds``, ``seeds_survived``,
-    ``bc_error`` (the largest) and, with colliders, ``max_penetration`` (the deepest; and ``max_penetration_own``
-    where the frames were projected); what
-    :func:`latentsim.report.plots.stability_heatmap` colours by seed."""
+    ``bc_error`` (the largest) and, with colliders, ``max_penetration`` and (projected) ``max_penetration_own``
+    (the deepest); what :func:`latentsim.report.plots.stability_heatmap` colours by seed."""
     st = stress.assign(seed=_seeds(stress), diverged=stress["diverged"].astype(bool))
     extra = {key: (key, "max") for key in ("max_penetration", "max_penetration_own") if key in st.columns}
     return st.groupby(["scene", "method", "condition"], sort=False).agg(
@@ -81,11 +80,10 @@ def stress_table(scene: str, rollouts) -> pd.DataFrame:
 
     Columns: scene, method, seed (-1: no seed changes the method), condition, frames, frames_survived, diverged,
     bc_error (mean Dirichlet error / bbox diagonal at the last surviving frame); in a scene with colliders,
-    max_penetration (the deepest entry into one of any surviving frame / bbox diagonal); where the rollout
-    projects its frames out of the colliders, that of the projected frames, and max_penetration_own the
-    network's own frames'.
+    max_penetration (the deepest entry into one of any surviving frame / bbox diagonal; where the rollout
+    projects its frames out of the colliders, the projected frames', and max_penetration_own the network's own).
     """
-    rows, contact, projected = [], False, False
+    rows, depths = [], ("max_penetration", "max_penetration_own")
     for path in rollouts:
         with open_artefact(path) as f:
             method, seed = str(f.attrs.get("method", "self_supervised")), int(f.attrs.get("seed", -1))
@@ -93,12 +91,8 @@ def stress_table(scene: str, rollouts) -> pd.DataFrame:
                 frames, survived = int(g.attrs["frames"]), int(g.attrs["survived"])
                 rows.append(dict(scene=scene, method=method, seed=seed, condition=cond, frames=frames, frames_survived=survived,
                                  diverged=survived < frames, bc_error=float(g.attrs["dirichlet_error_end"]),
-                                 max_penetration=float(g.attrs.get("max_penetration", np.nan)),
-                                 max_penetration_own=float(g.attrs.get("max_penetration_own", np.nan))))  # fmt: skip
-                contact = contact or "max_penetration" in g.attrs
-                projected = projected or "max_penetration_own" in g.attrs
-    columns = (["scene", "method", "seed", "condition", "frames", "frames_survived", "diverged", "bc_error"] + (["max_penetration"] if contact else [])
-               + (["max_penetration_own"] if projected else []))  # fmt: skip
+                                 **{k: float(g.attrs[k]) for k in depths if k in g.attrs}))  # fmt: skip
+    columns = ["scene", "method", "seed", "condition", "frames", "frames_survived", "diverged", "bc_error"] + [k for k in depths if any(k in r for r in rows)]
     return pd.DataFrame(rows, columns=columns)
 
 
