@@ -858,6 +858,14 @@ def test_rollout_divergence_detection(chain_setup, trained):
     assert torch.equal(calls[0][0][0], z[1]) and torch.equal(calls[0][1][0], z[0])
     assert torch.equal(calls[5][0][0], out["latents"][6]) and torch.equal(calls[5][1][0], out["latents"][5])
     assert torch.allclose(out["latents"][T - 1], z[1] + (T - 2), atol=1e-4)
+    # a correction (the contact projection fed back) is applied to the start and each prediction, and is what
+    # the next step is given: here halving every latent
+    seen, calls = [], []
+    halved = rollout(recorder, ae, coords, z[0], z[1], torch.arange(T, dtype=F64)[:, None], seq["dirichlet_positions"],
+                     correct=lambda t, zt: (seen.append(t), 0.5 * zt)[1])  # fmt: skip
+    assert seen == list(range(T))
+    assert torch.allclose(calls[0][0][0], 0.5 * z[1]) and torch.allclose(calls[0][1][0], 0.5 * z[0])
+    assert torch.equal(calls[5][0][0], halved["latents"][6]) and torch.allclose(halved["latents"][7], 0.5 * (halved["latents"][6] + 1.0))
 
     # relative coordinates x10 per step: extent / rest extent = 10^(t-1) -> exceeds 50 first at t = 3
     out = rollout(_Scaling(ae, 10.0), ae, coords, *args, max_extent=50.0, rest_positions=ch.X)

@@ -145,6 +145,51 @@ def test_where_the_rollout_projects_its_frames_the_stress_rollouts_are_projected
     assert bad["survived"] == stability.survive_latent(_Linear(1.5, 1.0), ae, coords, z, z, cond, np.array([0]), diag, max_extent=3.0)["survived"]
 
 
+class _Recording(torch.nn.Module):
+    """z_t = z_{t-1} (a shape held still), keeping every z_{t-1} it is given."""
+
+    def __init__(self):
+        super().__init__()
+        self.inputs = []
+
+    def forward(self, z1, z2, p, p1, p2):
+        self.inputs.append(z1.detach().clone())
+        return z1.clone()
+
+
+def test_a_projection_fed_back_is_the_state_the_next_step_starts_from():
+    """With ``feedback`` the projected latent is the next step's input: an integrator that holds its state
+    still, started 2 mm inside a floor, is given the projected start (outside the floor) at every step and
+    is never projected again (the state it holds stays out); the depth before projection is the start's,
+    2 mm.  Without feedback it is given its own latent, 2 mm inside, at every step, and every frame is
+    projected."""
+    from latentsim.config import with_defaults
+    from latentsim.latent.projection import ContactProjection
+    from latentsim.latent.subspaces import DecoderSubspace
+    from latentsim.physics.contact import ContactBarrier, HalfSpace
+
+    T = 12
+    ae, coords, rest, cond, diag, x = _still_shape(T)
+    z = torch.zeros(2)
+    level = float(x[:, 1].min()) + 0.002
+    floor = ContactBarrier(len(rest), [HalfSpace((0.0, level, 0.0), (0.0, 1.0, 0.0))], 1e-3, 1.0)
+    runs = {}
+    for feedback in (False, True):
+        settings = with_defaults("rollout", {"contact_projection": {"enabled": True, "feedback": feedback}}, "test")["contact_projection"]
+        proj = ContactProjection(DecoderSubspace(ae, coords), floor, np.full(len(rest), 1e-3), 0.01, settings)
+        integ = _Recording()
+        r = stability.survive_latent(integ, ae, coords, z, z, cond, np.array([0]), diag, max_extent=3.0, contact=floor, projection=proj)
+        runs[feedback] = (r, torch.cat(integ.inputs))
+    (plain, plain_in), (fed, fed_in) = runs[False], runs[True]
+    assert plain["projected_frames"] == T and torch.equal(plain_in, torch.zeros_like(plain_in))
+    assert fed["projected_frames"] == 2 and fed["max_penetration"] == 0 and plain["max_penetration"] == 0
+    assert fed["max_penetration_own"] == pytest.approx(0.002 / diag, rel=1e-6) == plain["max_penetration_own"]
+    assert fed["survived"] == plain["survived"] == T
+    assert (fed_in - fed_in[0]).abs().max() == 0 and fed_in[0].abs().max() > 0
+    with torch.no_grad():
+        held = latent.decode_latents(ae, coords, fed_in[:1], torch.as_tensor(cond.dirichlet_positions[:1]))[0]
+    assert float(floor.distances(held).min()) >= 0
+
 class _SpeedSensitive(torch.nn.Module):
     """Contracting while the boundary moves slowly; exploding above ``limit`` (|p_t| max-norm), and
     for good once its latent has run away (|z| > 10)."""

@@ -13,10 +13,11 @@ continued quadratically below a fraction of that reach (finite inside a collider
 Newton over q (r unknowns: the Hessian J^T H J plus the decoder's curvature, the Gauss-Newton matrix where that
 is not positive definite) runs the one minimiser of :mod:`latentsim.solve.newton`, from q = z_t.
 
-The projection changes the frames written, not the integrator's state: z_t goes on to the next step as the
-network predicted it (fed back, the projected latents lie off the network's training data, and one of three
-cloth rollouts diverged; docs/measurements.md).  The rollout's dynamics therefore still does not respond to
-the collider; its frames are kept out of it.
+By default the projection changes the frames written, not the integrator's state: z_t goes on to the next step
+as the network predicted it, so the rollout's dynamics does not respond to the collider; its frames are kept out
+of it.  With ``feedback`` (:meth:`ContactProjection.step`) the projected latent is the state the next step starts
+from: the projection is part of the integrator's step, as a collision response, and what the next step sees
+(its two input latents, hence their velocity) has met the collider.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ import torch
 
 from latentsim.solve.newton import LineSearch, minimise
 
-__all__ = ["ContactProjection"]
+__all__ = ["ContactProjection", "FedBack"]
 
 
 class _Stalled(Exception):
@@ -106,6 +107,7 @@ class ContactProjection:
         self.dof_weights = np.repeat(self.weights, 3)  # per coordinate, the rows of J
         self.iterations, self.tolerance = int(settings["iterations"]), float(settings["tolerance"])
         self.stiffening = int(settings["stiffening"])
+        self.feedback = bool(settings["feedback"])
         self.search = LineSearch()
 
     def near(self, X, XD) -> np.ndarray:
@@ -156,3 +158,44 @@ class ContactProjection:
             _, X[t], iterations[t] = self.project(latents[t], X[t], dirichlet_positions[t])
             projected[t] = True
         return {"positions": X, "projected": projected, "iterations": iterations, "seconds": time.perf_counter() - t0}
+
+    def correct(self, z: torch.Tensor, xD):
+        """One predicted latent z (r,) at prescribed positions xD (m, 3) as the state to go on from:
+        (z', projected, Newton iterations, depth of D(z) inside a collider [m]); z' = q* (z's dtype and
+        device) where D(z) comes within the scene's d_hat of a collider, else z itself."""
+        q, xD = z.detach().cpu().double().numpy(), np.asarray(xD, dtype=np.float64)
+        x = self.subspace.map(q, xD)
+        if not np.isfinite(x).all():
+            return z, False, 0, 0.0
+        d = float(self.contact.distances(torch.as_tensor(x)[None], torch.as_tensor(xD)[None]).min())
+        if d >= self.contact.d_hat:
+            return z, False, 0, 0.0
+        q, _, iterations = self.project(q, x, xD)
+        return torch.as_tensor(q, dtype=z.dtype, device=z.device), True, iterations, max(-d, 0.0)
+
+    def step(self, dirichlet_positions) -> "FedBack":
+        """The projection as part of each step of a rollout prescribed at ``dirichlet_positions`` (T, m, 3)
+        (``feedback``): a callable ``(t, z_t) -> z_t'`` for :func:`latentsim.latent.rollout.rollout`."""
+        return FedBack(self, dirichlet_positions)
+
+
+class FedBack:
+    """The projection fed back (``feedback``): each latent the integrator predicts whose decode comes within the
+    scene's d_hat of a collider is replaced by its projection q* before the next step, so the rollout's state, and
+    with it the velocity the next step sees, responds to the collider.  Records per frame ``projected``,
+    ``iterations`` and ``own_depth``, the depth of the network's prediction inside a collider before projection
+    [m], and the wall ``seconds`` of the tests and projections."""
+
+    def __init__(self, owner: ContactProjection, dirichlet_positions):
+        self.o, self.XD = owner, np.asarray(dirichlet_positions, dtype=np.float64)
+        T = len(self.XD)
+        self.projected = np.zeros(T, dtype=bool)
+        self.iterations = np.zeros(T, dtype=np.int64)
+        self.own_depth = np.zeros(T)
+        self.seconds = 0.0
+
+    def __call__(self, t: int, z: torch.Tensor) -> torch.Tensor:
+        t0 = time.perf_counter()
+        z, self.projected[t], self.iterations[t], self.own_depth[t] = self.o.correct(z, self.XD[t])
+        self.seconds += time.perf_counter() - t0
+        return z

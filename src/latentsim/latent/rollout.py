@@ -28,6 +28,7 @@ def rollout(
     potential=None,
     max_extent: float | None = None,
     rest_positions: torch.Tensor | None = None,
+    correct: Callable | None = None,
 ) -> dict:
     """Autoregressive latent rollout from the first two frames' latents.
 
@@ -50,6 +51,9 @@ def rollout(
     dirichlet_positions : (T, m, 3) prescribed Dirichlet positions.
     potential : optional IncrementalPotential; if given, per-frame
         ``kinetic_energy`` and ``incremental_potential`` are returned too.
+    correct : optional ``(t, z_t) -> z_t'`` applied to z0, z1 and each finite predicted latent
+        before it is stored and fed to the next step (the contact projection fed back,
+        :meth:`latentsim.latent.projection.ContactProjection.step`).
 
     Returns
     -------
@@ -69,7 +73,7 @@ def rollout(
     for m in mods:
         m.eval()
     try:
-        Z, last, diverged = _integrate(integrator, z0, z1, bc.reshape(T, -1).to(ae.pca_in.weight.device, torch.float32))
+        Z, last, diverged = _integrate(integrator, z0, z1, bc.reshape(T, -1).to(ae.pca_in.weight.device, torch.float32), correct)
         X = torch.full((T, coords.n, 3), float("nan"), dtype=torch.float64)
         X[: last + 1] = decode_latents(ae, coords, Z[: last + 1], dirichlet_positions[: last + 1].to(Z.device)).cpu()
     finally:
@@ -88,21 +92,25 @@ def rollout(
     return out
 
 
-def _integrate(integrator: Callable, z0: torch.Tensor, z1: torch.Tensor, bc: torch.Tensor):
-    """Latents (T, r) float32 on the device of ``bc`` (T, k): z0, z1, then the integrator's, until
-    the first non-finite one; the last frame integrated, and that frame (-1 if none)."""
+def _integrate(integrator: Callable, z0: torch.Tensor, z1: torch.Tensor, bc: torch.Tensor, correct: Callable | None = None):
+    """Latents (T, r) float32 on the device of ``bc`` (T, k): z0, z1, then the integrator's (each
+    through ``correct`` where given), until the first non-finite one; the last frame integrated, and
+    that frame (-1 if none)."""
     T, dev = bc.shape[0], bc.device
     Z = torch.full((T, z0.shape[-1]), float("nan"), dtype=torch.float32, device=dev)
     Z[0], Z[1] = z0.to(dev, torch.float32), z1.to(dev, torch.float32)
+    if correct is not None:  # the starting state too
+        Z[0], Z[1] = correct(0, Z[0]), correct(1, Z[1])
     diverged = -1
     last = min(T, 2) - 1
     for t in range(2, T):
         zt = integrator(Z[t - 1 : t], Z[t - 2 : t - 1], bc[t : t + 1], bc[t - 1 : t], bc[t - 2 : t - 1])[0]
-        Z[t] = zt
         last = t
         if not torch.isfinite(zt).all():
+            Z[t] = zt
             diverged = t
             break
+        Z[t] = zt if correct is None else correct(t, zt)
     return Z, last, diverged
 
 

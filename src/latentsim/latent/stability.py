@@ -132,8 +132,10 @@ def survive_latent(integrator, ae, coords, z0, z1, condition: Condition, dirichl
     ``projection`` (a :class:`~latentsim.latent.projection.ContactProjection`, the rollout's
     ``contact_projection``) the surviving frames near a collider are projected out of it as the test
     rollouts' are, ``max_penetration`` is the projected frames' and ``max_penetration_own`` the
-    network's own; ``projected_frames`` counts them.  Survival is the network's: the projection does
-    not feed back.
+    network's own; ``projected_frames`` counts them.  Survival is the network's unless the projection
+    feeds back (its ``feedback``): then each projected latent is the next step's input, the frames are
+    the projected state's, and ``max_penetration_own`` is the deepest of the network's one-step
+    predictions before projection.
     """
     bc = torch.as_tensor(boundary_inputs(np.asarray(condition.bc), condition.dirichlet_positions, getattr(integrator, "origin", False), coords), dtype=torch.float32)
     T = len(bc)
@@ -147,12 +149,18 @@ def survive_latent(integrator, ae, coords, z0, z1, condition: Condition, dirichl
     Z = torch.full((T, z0.shape[-1]), float("nan"))
     Z[0], Z[1] = z0, z1
     last = T
+    fed = projection.step(condition.dirichlet_positions) if projection is not None and projection.feedback else None
+    if fed is not None:  # the starting state too
+        Z[0], Z[1] = fed(0, Z[0]), fed(1, Z[1])
     with torch.inference_mode():
         for t in range(2, T):
             Z[t] = integrator(Z[t - 1 : t], Z[t - 2 : t - 1], bc[t : t + 1], bc[t - 1 : t], bc[t - 2 : t - 1])[0]
             if not torch.isfinite(Z[t]).all():
                 last = t
                 break
+            if fed is not None:
+                with torch.inference_mode(False):
+                    Z[t] = fed(t, Z[t])
         errors, depth, own_depth, projected = [], 0.0, 0.0, 0
         survived = last
         xD_all = torch.as_tensor(condition.dirichlet_positions, dtype=torch.float64)
@@ -166,7 +174,11 @@ def survive_latent(integrator, ae, coords, z0, z1, condition: Condition, dirichl
             k = int(np.argmax(bad)) if bad.any() else e - s
             if contact is not None and k:
                 own_depth = max(own_depth, _deepest(contact, x[:k], xD_all[s : s + k]))
-                if projection is not None:
+                if fed is not None:  # the frames are already the projected state's
+                    depth = max(depth, _deepest(contact, x[:k], xD_all[s : s + k]))
+                    own_depth = max(own_depth, float(fed.own_depth[s : s + k].max()))
+                    projected += int(fed.projected[s : s + k].sum())
+                elif projection is not None:
                     with torch.inference_mode(False):  # the projection differentiates the decoder
                         done = projection.frames(Z[s : s + k].numpy(), x[:k], condition.dirichlet_positions[s : s + k])
                     projected += int(done["projected"].sum())

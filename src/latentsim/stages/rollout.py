@@ -117,23 +117,30 @@ def _roll_out(h, name: str, s: dict, integ, ae, scene: dict, steppers: dict, met
     coords = scene["coords"]
     x, xD = torch.as_tensor(s["positions"]), torch.as_tensor(s["dirichlet_positions"])
     z01 = encode_positions(ae, coords, x[:2], xD[:2])
+    projection = scene["projection"]
+    fed = projection.step(s["dirichlet_positions"]) if projection is not None and projection.feedback else None
     t0 = time.perf_counter()
-    res = rollout(integ, ae, coords, z01[0], z01[1], torch.as_tensor(s["bc"]), xD,
-                  potential=scene["potential"], max_extent=cfg["max_extent"], rest_positions=torch.as_tensor(scene["arrays"]["rest_positions"]))  # fmt: skip
+    res = rollout(integ, ae, coords, z01[0], z01[1], torch.as_tensor(s["bc"]), xD, potential=scene["potential"], max_extent=cfg["max_extent"],
+                  rest_positions=torch.as_tensor(scene["arrays"]["rest_positions"]), correct=fed)  # fmt: skip
     wall = time.perf_counter() - t0
     p_last = boundary_inputs(s["bc"], s["dirichlet_positions"], integ.origin, coords)[-1]
     timing = time_steppers(steppers, z01[1], z01[0], p_last, s["dirichlet_positions"][-1], cfg["timing_repeats"])
     if "numpy" in steppers:
         timing.update(time_jvps(ae, steppers["numpy"], coords, z01[1], cfg["timing_repeats"]))
-    if scene["projection"] is not None:  # the frames written are projected; a frame's time includes its share of the projections
+    if projection is not None:  # the frames written are projected; a frame's time includes its share of the projections
         last = len(x) - 1 if res["diverged_frame"] < 0 else int(res["diverged_frame"])
-        unprojected = res["positions"].numpy()
-        proj = scene["projection"].frames(res["latents"].numpy(), unprojected, s["dirichlet_positions"], last)
-        res["positions"] = torch.as_tensor(proj["positions"])
+        if fed is not None:  # projected as it went: the state is the projected one
+            proj = {"projected": fed.projected, "iterations": fed.iterations, "seconds": fed.seconds}
+            write_dataset(h, "predicted_depth", fed.own_depth)
+        else:
+            unprojected = res["positions"].numpy()
+            proj = projection.frames(res["latents"].numpy(), unprojected, s["dirichlet_positions"], last)
+            res["positions"] = torch.as_tensor(proj["positions"])
+            write_dataset(h, "unprojected_positions", unprojected)
         timing["projection_ms"] = 1e3 * proj["seconds"] / max(last + 1, 1)
         timing["step_ms"] += timing["projection_ms"]
         h.attrs["projected_frames"] = int(proj["projected"].sum())
-        write_dataset(h, "unprojected_positions", unprojected)
+        h.attrs["projection_fed_back"] = fed is not None
         write_dataset(h, "projected", proj["projected"])
         write_dataset(h, "projection_iterations", proj["iterations"])
         log.info("rollout %s: %d frames projected out of the colliders, %.3f ms a frame", name, int(proj["projected"].sum()), timing["projection_ms"])
