@@ -6,6 +6,7 @@ the repository's own results/ is never touched.
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 import re
@@ -402,6 +403,43 @@ def test_tiny_contact_stays_out_of_its_ball_in_the_full_space_and_every_method_i
     assert rec.loc[(0, "line"), "max_penetration"] == pytest.approx(max(-d.min(), 0.0) / diag, rel=1e-4, abs=1e-9)
     assert rec.loc[(0, "line"), "penetrating_frames"] == (d < 0).sum()
     assert "max_penetration" not in pd.read_csv(work / "results/evaluation/tiny_cloth/reconstruction.csv").columns
+
+
+def test_tiny_contacts_rollout_with_its_projection_fed_back_starts_each_step_from_the_projected_state(tiny_run, tmp_path):
+    """tiny_contact's rollout stage again with ``contact_projection.feedback``: up to the first frame the network
+    brings within d_hat of the ball the rollout is the tiny run's to the bit; from there on its stored latents are
+    the projected states (their decodes the frames written, all outside), so the motion differs from the run that
+    projected the frames alone; each frame's prediction depth is kept, and the stress conditions' frames are out."""
+    from latentsim.latent.autoencoder import decode_latents
+    from latentsim.latent.serialization import autoencoder_coordinates, load_autoencoder
+    from latentsim.scene import contact_from_artefact
+    from latentsim.stages.rollout import rollout_scene
+
+    work = tiny_run[0]
+    cfg = validate_config(yaml.safe_load(TINY.read_text()))
+    settings = copy.deepcopy(cfg["scenes"]["tiny_contact"]["rollout"])
+    settings["contact_projection"]["feedback"] = True
+    settings["full_frames_timed"] = 2
+    traj = work / "results/sim/tiny_contact/trajectories.h5"
+    ae_path = work / "results/autoencoder/tiny_contact/seed0/autoencoder.pt"
+    out = tmp_path / "rollout.h5"
+    rollout_scene(traj, ae_path, work / "results/integrator/tiny_contact/self_supervised/seed0/integrator.pt", settings, out, seed=0)
+    with h5py.File(traj) as f:
+        barrier, coords = contact_from_artefact(f), autoencoder_coordinates(f, ae_path)
+    with h5py.File(out) as f, h5py.File(work / "results/rollout/tiny_contact/self_supervised/seed0/rollout.h5") as g:
+        fed, plain = f["sequences/line"], g["sequences/line"]
+        Z, X, xD, projected = fed["latents"][()], fed["positions"][()], fed["dirichlet_positions"][()], fed["projected"][()]
+        depth, Z_plain = fed["predicted_depth"][()], plain["latents"][()]
+        attrs, stress = dict(fed.attrs), {c: dict(h.attrs) for c, h in f["stability"].items()}
+    assert attrs["projection_fed_back"] and attrs["projected_frames"] == projected.sum() > 0
+    first = int(np.flatnonzero(projected)[0])
+    assert np.array_equal(Z[:first], Z_plain[:first]) and not np.allclose(Z[first + 1 :], Z_plain[first + 1 :])
+    with torch.no_grad():
+        decoded = decode_latents(load_autoencoder(ae_path), coords, torch.as_tensor(Z), torch.as_tensor(xD)).double().numpy()
+    np.testing.assert_allclose(decoded, X, atol=1e-12)  # the frames written are the states the rollout went on from
+    assert (barrier.distances(torch.as_tensor(X)).amin(-1).numpy() >= 0).all()
+    assert (depth >= 0).all() and (depth[~projected] == 0).all()
+    assert stress and all(a["max_penetration"] == 0 and a["max_penetration_own"] >= 0 for a in stress.values())
 
 
 def test_a_sweep_point_that_is_the_scenes_model_measures_it_instead_of_training_it_again(tiny_run):
