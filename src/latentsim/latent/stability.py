@@ -173,9 +173,10 @@ def survive_latent(integrator, ae, coords, z0, z1, condition: Condition, dirichl
             err = dirichlet_error(x, dirichlet, condition.dirichlet_positions[s:e], rest_diag)
             k = int(np.argmax(bad)) if bad.any() else e - s
             if contact is not None and k:
-                own_depth = max(own_depth, _deepest(contact, x[:k], xD_all[s : s + k]))
+                deepest = _deepest(contact, x[:k], xD_all[s : s + k])  # of the frames as decoded
+                own_depth = max(own_depth, deepest)
                 if fed is not None:  # the frames are already the projected state's
-                    depth = max(depth, _deepest(contact, x[:k], xD_all[s : s + k]))
+                    depth = max(depth, deepest)
                     own_depth = max(own_depth, float(fed.own_depth[s : s + k].max()))
                     projected += int(fed.projected[s : s + k].sum())
                 elif projection is not None:
