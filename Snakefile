@@ -37,3 +37,11 @@ rule all:
         all_targets(),
         neural_modes_targets(),
         report_pages(),
+
+
+# The sizing sweeps (``sweep`` of each scene): every point trained over the seeds, each scene's choice and its report
+# page.  Not part of ``all`` (unless ``sizing_in_all``), which trains the sizes the config records (``sweep.chosen``).
+rule sizing:
+    input:
+        list(sweep_choices().values()),
+        [c.removesuffix(".csv") + ".html" for c in sweep_choices().values()],

@@ -105,6 +105,7 @@ def validate_config(config: dict, schema_path=SCHEMA) -> dict:
     _check_latent_dims(config)
     _check_conditioning(config)
     _check_contact_projection(config)
+    _check_sweep_chosen(config)
     return config
 
 
@@ -437,6 +438,26 @@ def autoencoder_dir(config: dict, scene: str, method: str = "self_supervised", s
     seed = scene_seeds(config, scene)[0] if seed is None else seed
     base = f"results/autoencoder/{scene}/{method}" if own_autoencoder(config, method) else f"results/autoencoder/{scene}"
     return f"{base}/{seed_dir(seed)}"
+
+
+def _check_sweep_chosen(config: dict) -> None:
+    """A sweep's recorded choice (``sweep.chosen.point``) is one of its points, and the size of one of the scene's
+    methods: `all` trains the scenes at their recorded sizes without rerunning the sweep."""
+    for name, scene in config.get("scenes", {}).items():
+        sweep = scene.get("sweep", {})
+        chosen = sweep.get("chosen")
+        if not chosen or chosen["point"] == "none":
+            continue
+        key = f"scenes.{name}.sweep.chosen.point"
+        r, i = (int(v) for v in chosen["point"][1:].split("_s"))
+        if r not in sweep.get("latent_dims", []) or i >= len(sweep.get("sizes", [])):
+            raise ConfigError(f"config key '{key}': {chosen['point']!r} is not a point of the scene's sweep (latent_dims "
+                              f"{sweep.get('latent_dims', [])}, {len(sweep.get('sizes', []))} sizes)")  # fmt: skip
+        if sweep_point_method(config, name, r, i) is None:
+            size = sweep["sizes"][i]
+            raise ConfigError(f"config key '{key}': the sweep chose latent {r} with decoder {size['autoencoder']} and integrator "
+                              f"{size['integrator']} at commit {chosen['commit']}, but none of the scene's methods has that size; "
+                              f"set scenes.{name}.autoencoder and integrator to it (or record the sweep's new choice)")  # fmt: skip
 
 
 def sweep_point_settings(config: dict, scene: str, latent_dim: int, size_index: int) -> dict:

@@ -155,6 +155,35 @@ def test_a_sweep_method_the_scene_does_not_run_is_named(tiny):
         validate_config(tiny)
 
 
+def test_the_default_config_records_every_sweeps_choice_at_the_size_all_trains():
+    """`all` runs no sweep: each scene's recorded choice (sweep.chosen) is the size of one of its methods, so the
+    tables reproduce the sweep's choice without rerunning it (validation refuses a config where it is not)."""
+    cfg = load_config(ROOT / "config" / "config.yaml")
+    swept = {n: s["sweep"] for n, s in cfg["scenes"].items() if s["sweep"].get("latent_dims")}
+    assert swept and all(sw["chosen"] is not None for sw in swept.values()), [n for n, sw in swept.items() if not sw["chosen"]]
+    for name, sw in swept.items():
+        if sw["chosen"]["point"] != "none":
+            r, i = (int(v) for v in sw["chosen"]["point"][1:].split("_s"))
+            assert sweep_point_method(cfg, name, r, i) is not None, name
+    # the cloth's three-seed sweep chose the paper's latent 4 and 200 x 3 decoder, the cantilever's the linear decoder
+    assert (cfg["scenes"]["cloth"]["autoencoder"]["latent_dim"], cfg["scenes"]["cloth"]["autoencoder"]["widths"]) == (4, [200, 200, 200])
+    assert (cfg["scenes"]["cantilever"]["autoencoder"]["latent_dim"], cfg["scenes"]["cantilever"]["autoencoder"]["widths"]) == (2, [])
+
+
+@pytest.mark.parametrize(
+    "point, message",
+    [("r2_s0", r"sweep\.chosen\.point'.*latent 2 with decoder \[32, 32\].*none of the scene's methods has that size"),
+     ("r6_s0", r"sweep\.chosen\.point'.*'r6_s0' is not a point of the scene's sweep"),
+     ("r4_s9", r"sweep\.chosen\.point'.*'r4_s9' is not a point")],
+)  # fmt: skip
+def test_a_recorded_sweep_choice_no_method_has_or_no_point_is_named(tiny, point, message):
+    tiny["scenes"]["tiny_cloth"]["sweep"]["chosen"] = {"point": point, "commit": "abc1234", "seeds": 1}
+    with pytest.raises(ConfigError, match=message):
+        validate_config(tiny)
+    tiny["scenes"]["tiny_cloth"]["sweep"]["chosen"]["point"] = "r4_s0"  # the scene's own size
+    validate_config(tiny)
+
+
 @pytest.mark.parametrize("definition", ["autoencoder", "integrator", "rollout", "stability"])
 def test_every_setting_the_latent_code_reads_has_a_description_and_a_default(definition):
     """The schema is the one table of defaults: code called with partial settings fills them from it."""

@@ -5,7 +5,7 @@ import warnings
 import pandas as pd
 import pytest
 
-from latentsim.latent.sweep import choose, parse_label, point_label
+from latentsim.latent.sweep import choose, chosen_label, parse_label, point_label, recorded_choice_note
 
 
 def _rows(points):
@@ -31,6 +31,20 @@ def test_smallest_passing_model_is_chosen_judged_on_its_worst_sequence():
     chosen = t[t["chosen"]]
     assert len(chosen) == 1 and chosen.iloc[0]["parameters"] == 900 and chosen.iloc[0]["latent_dim"] == 4
     assert t.loc[0, "mean_error"] == pytest.approx(0.05)  # the worst sequence counts
+
+
+def test_the_chosen_point_is_labelled_by_its_size_index_and_compared_with_the_configs_record():
+    sizes = [{"autoencoder": [8, 8], "integrator": [8, 8]}, {"autoencoder": [32, 32], "integrator": [8, 8]}]
+    t = choose(_rows([(2, "8 8", 100, [0.05], False), (4, "32 32", 900, [0.004], False)]), tolerance=0.01)
+    assert chosen_label(t, sizes) == "r4_s1"
+    assert chosen_label(choose(_rows([(2, "8 8", 100, [0.05], False)]), tolerance=0.01), sizes) == "none"
+    with pytest.raises(ValueError, match="none of the sweep's sizes"):
+        chosen_label(t, sizes[:1])
+    same = recorded_choice_note("r4_s1", {"point": "r4_s1", "commit": "abc1234", "seeds": 3}, "cloth")
+    assert "the choice the config records (at abc1234)" in same
+    other = recorded_choice_note("r2_s0", {"point": "r4_s1", "commit": "abc1234", "seeds": 3}, "cloth")
+    assert "not r4_s1 as the config records" in other and "scenes.cloth.sweep.chosen" in other
+    assert "records no choice (scenes.cloth.sweep.chosen)" in recorded_choice_note("r2_s0", None, "cloth")
 
 
 def test_a_model_that_fails_a_stress_condition_is_not_chosen(tmp_path):

@@ -24,7 +24,7 @@ import torch
 import yaml
 
 from latentsim.checksum import KEY as CHECKSUM
-from latentsim.config import scene_methods, scene_seeds, validate_config
+from latentsim.config import load_config, scene_methods, scene_seeds, validate_config
 
 from workflow_support import HANG_SECONDS, snakemake
 
@@ -111,6 +111,22 @@ def test_dry_run_of_default_config_lists_every_stage_for_every_scene(tmp_path):
     # the same jobs, with the same outputs, as recorded (its header says what changed since the restructuring)
     recorded = [line for line in (ROOT / "tests/workflow/data/default_jobs.txt").read_text().splitlines() if not line.startswith("#")]
     assert planned_outputs(out) == recorded
+
+
+def test_the_sizing_sweeps_are_a_target_of_their_own_and_all_shows_those_that_ran(tmp_path):
+    """`all` on the default config plans no sweep job (the dry run above); `sizing` plans every scene's sweep and
+    nothing past the methods it measures; once a sweep's choice exists, `all`'s report takes it in."""
+    config = str(ROOT / "config" / "config.yaml")
+    swept = sorted(n for n, s in load_config(ROOT / "config" / "config.yaml")["scenes"].items() if s["sweep"].get("latent_dims"))
+    jobs = planned_jobs(snakemake("-n", "sizing", "--cores", "2", "--configfile", config, "--directory", str(tmp_path)).stdout)
+    assert sorted({s for r, s in jobs if r == "sweep_summary"}) == swept
+    assert not {r for r, _ in jobs} & {"evaluate", "summary", "rollout", "nm_train"}
+    choice = tmp_path / "results/sweep/cloth/choice.csv"
+    choice.parent.mkdir(parents=True)
+    choice.write_text("latent_dim\n4\n")
+    jobs = planned_jobs(snakemake("-n", "all", "--cores", "2", "--configfile", config, "--directory", str(tmp_path)).stdout)
+    # (here the cloth's points are missing, so its sweep is planned again; no other scene's)
+    assert ("report_sweep_page", "cloth") in jobs and {s for r, s in jobs if r.startswith("sweep_")} == {"cloth"}
 
 
 def test_dry_run_of_the_soft_solids_example_plans_every_stage_of_both_scenes(tmp_path):

@@ -1,5 +1,6 @@
 # Shared helpers: config validation on load and the params each rule receives.
 import json
+import os
 
 from snakemake.exceptions import WorkflowError
 
@@ -234,11 +235,21 @@ def sweep_results(wildcards):
 
 
 def sweep_choices():
-    """{scene: results/sweep/<scene>/choice.csv} for the scenes with a sizing sweep."""
+    """{scene: results/sweep/<scene>/choice.csv} for the scenes with a sizing sweep (the target ``sizing``)."""
     return {
         scene: f"results/sweep/{scene}/choice.csv"
         for scene in SCENES
         if sweep_points(scene)
+    }
+
+
+def reported_sweep_choices():
+    """The sweep choices that ``all`` shows: every one with ``sizing_in_all``, else those of the sweeps that have run
+    (``all`` trains the scenes at their recorded sizes and reruns no sweep)."""
+    return {
+        scene: path
+        for scene, path in sweep_choices().items()
+        if config["sizing_in_all"] or os.path.exists(path)
     }
 
 
@@ -392,7 +403,7 @@ def all_targets():
     out += [path for scene in SCENES for path in rollout_paths(scene)]
     out += expand("results/evaluation/{scene}/metrics.csv", scene=SCENES)
     out += expand("results/evaluation/{scene}/frames.png", scene=SCENES)
-    out += list(sweep_choices().values())
+    out += list(reported_sweep_choices().values())
     out += ["results/evaluation/summary.csv", "results/evaluation/summary.md"]
     out += ["results/mesh/quality.csv"]
     out += conditioned_targets()
@@ -401,11 +412,11 @@ def all_targets():
 
 def report_pages():
     """The HTML pages of the report's tables (see report.smk), the input of the default target: one per
-    Markdown target (its page job names it), one per sweep choice and the mesh quality table's.
+    Markdown target (its page job names it), one per reported sweep choice and the mesh quality table's.
     """
     md = [t for t in all_targets() + neural_modes_targets() if t.endswith(".md")]
     pages = [t.removesuffix(".md") + ".html" for t in md]
-    pages += [c.removesuffix(".csv") + ".html" for c in sweep_choices().values()]
+    pages += [c.removesuffix(".csv") + ".html" for c in reported_sweep_choices().values()]
     return pages + ["results/mesh/quality.html"]
 
 

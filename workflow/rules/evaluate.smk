@@ -78,7 +78,7 @@ rule summary:
             "results/evaluation/{scene}/reconstruction.csv", scene=SCENES
         ),
         stress=expand("results/evaluation/{scene}/stress.csv", scene=SCENES),
-        sweeps=list(sweep_choices().values()),
+        sweeps=list(reported_sweep_choices().values()),
     output:
         csv="results/evaluation/summary.csv",
         markdown="results/evaluation/summary.md",
@@ -108,6 +108,6 @@ rule summary:
         "../../envs/latentsim.yaml"
     params:
         sizes=model_sizes(),
-        sweep_choices=sweep_choices(),
+        sweep_choices=reported_sweep_choices(),
     script:
         "../scripts/summary.py"

@@ -47,5 +47,7 @@ rule sweep_summary:
         tolerance=sweep_tolerance,
         pass_fraction=lambda w: config["scenes"][w.scene]["sweep"]["pass_fraction"],
         method=lambda w: config["scenes"][w.scene]["sweep"]["method"],
+        sizes=lambda w: config["scenes"][w.scene]["sweep"]["sizes"],
+        recorded=lambda w: config["scenes"][w.scene]["sweep"]["chosen"],
     script:
         "../scripts/sweep_summary.py"

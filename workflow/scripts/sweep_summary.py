@@ -1,8 +1,11 @@
-"""Stage: the sizing sweep's choice and chart (see latentsim.latent.sweep.choose)."""
+"""Stage: the sizing sweep's choice and chart (see latentsim.latent.sweep.choose), and the choice against the config's
+record of it (a warning in the log when they differ)."""
+import logging
+
 import pandas as pd
 
 from latentsim.report.tables import write_table
-from latentsim.latent.sweep import choose, sweep_chart
+from latentsim.latent.sweep import choose, chosen_label, recorded_choice_note, sweep_chart
 from latentsim.utils import run_stage
 
 
@@ -11,6 +14,10 @@ def main(smk):
     table = choose(df, float(smk.params.tolerance), float(smk.params.pass_fraction)).assign(method=smk.params.method)
     write_table(table, smk.output.choice)
     sweep_chart(table, float(smk.params.tolerance), smk.wildcards.scene, smk.output.chart, method=smk.params.method)
+    label = chosen_label(table, smk.params.sizes)
+    note = recorded_choice_note(label, smk.params.recorded, smk.wildcards.scene)
+    log = logging.getLogger("latentsim")
+    (log.info if smk.params.recorded and smk.params.recorded["point"] == label else log.warning)(note)
 
 
 run_stage(snakemake, main)  # noqa: F821 (injected by Snakemake)

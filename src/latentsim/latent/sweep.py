@@ -70,6 +70,29 @@ def widths_label(widths) -> str:
     return " ".join(map(str, widths)) or "linear"
 
 
+def chosen_label(table: pd.DataFrame, sizes: list[dict]) -> str:
+    """The label (:func:`point_label`) of the point :func:`choose` marked ``chosen`` in ``table``, ``"none"`` when no
+    point passes; ``sizes`` is the scene's ``sweep.sizes``, whose index the label carries."""
+    rows = table[table["chosen"].astype(bool)]
+    if rows.empty:
+        return "none"
+    row = rows.iloc[0]
+    for i, size in enumerate(sizes):
+        if (widths_label(size["autoencoder"]), widths_label(size["integrator"])) == (str(row["autoencoder_widths"]), str(row["integrator_widths"])):
+            return point_label(int(row["latent_dim"]), i)
+    raise ValueError(f"sweep choice: widths {row['autoencoder_widths']!r}, {row['integrator_widths']!r} are none of the sweep's sizes")
+
+
+def recorded_choice_note(label: str, recorded: dict | None, scene: str) -> str:
+    """A sentence comparing a sweep's new choice ``label`` with the one the config records (``sweep.chosen``)."""
+    if not recorded:
+        return f"sweep of {scene} chose {label}; the config records no choice (scenes.{scene}.sweep.chosen)"
+    if recorded["point"] == label:
+        return f"sweep of {scene} chose {label}, the choice the config records (at {recorded['commit']})"
+    return (f"sweep of {scene} chose {label}, not {recorded['point']} as the config records (at {recorded['commit']}): "
+            f"set scenes.{scene}.sweep.chosen and the scene's sizes to the new choice, or keep them and say why")
+
+
 def parameter_count(module: torch.nn.Module) -> int:
     return int(sum(p.numel() for p in module.parameters()))
 
