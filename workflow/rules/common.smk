@@ -416,7 +416,9 @@ def report_pages():
     """
     md = [t for t in all_targets() + neural_modes_targets() if t.endswith(".md")]
     pages = [t.removesuffix(".md") + ".html" for t in md]
-    pages += [c.removesuffix(".csv") + ".html" for c in reported_sweep_choices().values()]
+    pages += [
+        c.removesuffix(".csv") + ".html" for c in reported_sweep_choices().values()
+    ]
     return pages + ["results/mesh/quality.html"]
 
 
