@@ -13,7 +13,7 @@ import pytest
 from latentsim.report.metrics import bbox_diagonal, kinetic_energy, rollout_metrics, vertex_errors
 from latentsim.report.plots import rollout_curves, speed_accuracy_chart
 from latentsim.report.tables import glance_grid, glance_table, speed_accuracy_points, table1, table2, write_glance_html, write_table_html
-from latentsim.stages.evaluate import evaluate_scene, summarise
+from latentsim.stages.evaluate import evaluate_scene, read_full_space_time, summarise
 
 
 def _swing(T=20, n=6):
@@ -114,6 +114,24 @@ def test_evaluate_scene_one_row_per_method_and_sequence(tmp_path):
     rollout_curves("a", free, tmp_path / "free.png")
     height = {k: plt.imread(tmp_path / f"{k}.png").shape[0] for k in ("errors", "free")}
     assert height["free"] == pytest.approx(2 / 3 * height["errors"], rel=0.02)
+
+
+def test_every_methods_speedup_divides_by_the_scenes_one_full_space_time(tmp_path):
+    """With the scene's timing table, every row's full_ms is that one time, not a rollout job's own (here 9 ms)."""
+    x, rest = _swing()
+    gt = _write(tmp_path / "trajectories.h5", rest, {"s0": (x, -1)})
+    ok = _write(tmp_path / "ok.h5", rest, {"s0": (x, -1)}, method="self_supervised")
+    other = _write(tmp_path / "other.h5", rest, {"s0": (x, -1)}, method="no_noise")
+    with h5py.File(ok, "a") as f:
+        f.attrs["full_ms"] = 9.0
+    assert evaluate_scene("a", gt, [ok])[0]["full_ms"].tolist() == [9.0]  # without the table: the job's own
+    df, _ = evaluate_scene("a", gt, [ok, other], full_ms=2.0)
+    assert df["full_ms"].tolist() == [2.0, 2.0] and df["speedup"].tolist() == [4.0, 4.0]
+    pd.DataFrame([{"sequence": "s0", "full_ms": 3.5, "full_iterations": 2.0, "full_frames_timed": 20}]).to_csv(tmp_path / "t.csv", index=False)
+    assert read_full_space_time(tmp_path / "t.csv") == 3.5
+    (tmp_path / "bad.csv").write_text("sequence,full_ms\ns0,nan\n")
+    with pytest.raises(ValueError, match=r"bad\.csv: not a full-space timing"):
+        read_full_space_time(tmp_path / "bad.csv")
 
 
 def _metrics():

@@ -233,6 +233,14 @@ def beam_trajectories(tmp_path_factory):
     return path / "trajectories.h5", arrays
 
 
+def test_the_scenes_full_space_time_is_one_row_of_the_first_test_sequence(beam_trajectories, tmp_path):
+    from latentsim.stages.evaluate import read_full_space_time, write_full_space_time
+
+    table = write_full_space_time(beam_trajectories[0], tmp_path / "full_space_time.csv", frames=3)
+    assert len(table) == 1 and table["sequence"].iloc[0] == "sway" and table["full_frames_timed"].iloc[0] == 3
+    assert table["full_iterations"].iloc[0] >= 1 and read_full_space_time(tmp_path / "full_space_time.csv") > 0
+
+
 def test_dynamics_rows_against_the_full_simulation(beam_trajectories):
     import h5py
 

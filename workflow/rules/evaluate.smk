@@ -1,8 +1,35 @@
 # Evaluation: errors of each rollout (every method and seed) against the full simulation, speed-ups, and the
 # summary tables with the spread over seeds.
+
+
+# The scene's full-space Newton frame timed once, in one process: the time every method's speed-up divides by.
+rule time_full_space:
+    input:
+        trajectories="results/sim/{scene}/trajectories.h5",
+    output:
+        table="results/evaluation/{scene}/full_space_time.csv",
+    log:
+        "logs/evaluation/{scene}_full_space_time.log",
+    benchmark:
+        "results/benchmarks/time_full_space/{scene}.tsv"
+    conda:
+        "../../envs/latentsim.yaml"
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=30,
+    params:
+        frames=lambda w: config["scenes"][w.scene]["rollout"]["full_frames_timed"],
+    script:
+        "../scripts/time_full_space.py"
+
+
+# Evaluation of one scene: every method's rollouts against the ground truth, each step against the scene's one
+# full-space time (rule time_full_space).
 rule evaluate:
     input:
         trajectories="results/sim/{scene}/trajectories.h5",
+        full_time="results/evaluation/{scene}/full_space_time.csv",
         rollouts=scene_rollouts,
         latents=lambda w: [
             f"{autoencoder_dir(config, w.scene, 'self_supervised', s)}/latents.h5"

@@ -149,7 +149,9 @@ def table1(df: pd.DataFrame, sized=()) -> pd.DataFrame:
     With several seeds (column ``seed``) each timing is the median over seeds of the seed's mean, and
     ``total_ms`` and ``speedup`` have their least and largest over seeds beside them (``_min``, ``_max``).
     ``floor_ms`` (where the rollouts timed it): one bare pass of the model's output layer over every DoF,
-    and ``step_over_floor`` (median, ``_max``) the step's time over it.
+    and ``step_over_floor`` (median, ``_max``) the step's time over it.  ``total_ms`` is integrate + decode plus, where
+    the scene projects its frames out of its colliders, ``projection_ms`` (a frame's share of it); ``full_ms`` is
+    the scene's one full-space time (rule ``time_full_space``) wherever the evaluation had it.
 
     sized : variants that are whole models of another size (their own autoencoder); each gets a row of
         its own below its scene's, so the table shows the speed of the model a scene needs beside the
@@ -159,7 +161,7 @@ def table1(df: pd.DataFrame, sized=()) -> pd.DataFrame:
     for scene, method, _, g in _own_models(df, sized):
         paper = li2025_table1(scene)
         # each seed's mean over the test sequences, then the median over seeds (least and largest beside it)
-        cols = ["full_ms", "integrate_ms", "decode_ms", "latent_ms"] + [c for c in ("numpy_step_ms", "floor_ms") if c in g]
+        cols = ["full_ms", "integrate_ms", "decode_ms", "latent_ms"] + [c for c in ("numpy_step_ms", "floor_ms", "projection_ms") if c in g]
         ps = g.assign(seed=_seeds(g)).groupby("seed")[cols].mean()
         ps["speedup"] = ps["full_ms"] / ps["latent_ms"]
         floor = ps["floor_ms"] if "floor_ms" in ps else pd.Series(np.nan, index=ps.index)
@@ -172,6 +174,7 @@ def table1(df: pd.DataFrame, sized=()) -> pd.DataFrame:
             full_ms=ps["full_ms"].median(),
             integrate_ms=ps["integrate_ms"].median(),
             decode_ms=ps["decode_ms"].median(),
+            projection_ms=ps["projection_ms"].median() if "projection_ms" in ps else np.nan,
             total_ms=ps["latent_ms"].median(),
             total_ms_min=ps["latent_ms"].min(),
             total_ms_max=ps["latent_ms"].max(),

@@ -5,8 +5,9 @@
   Dirichlet error relative to the rest bounding-box diagonal, kinetic energy ratio, the steady
   state's error and motion, first diverged frame; a rollout that diverged, even at frame 0, gets a
   row with infinite errors) and the timings: ``full_ms`` (the full-space
-  Newton frame, timed in the rollout's own job where it did) against ``latent_ms`` (one latent step:
-  integration + decoding), ``speedup``; beside it the reconstruction and stress tables, the scene's
+  Newton frame, timed once per scene by :func:`write_full_space_time`, rule ``time_full_space``, so that every
+  method's speed-up divides by the same time) against ``latent_ms`` (one latent step: integration + decoding,
+  plus the contact projection where it is on), ``speedup``; beside it the reconstruction and stress tables, the scene's
   speed-accuracy chart and its curves over time;
 - :func:`summarise` (rule ``summary``): the scenes' tables together, Li et al. Tables 1-2, the
   stability, reconstruction and model-size tables (:mod:`latentsim.report.tables`), a Markdown copy
@@ -27,6 +28,7 @@ import pandas as pd
 import torch
 
 from latentsim.io import atomic_path, open_artefact, require
+from latentsim.latent.timing import time_full_space
 from latentsim.report.metrics import bbox_diagonal, penetration, rollout_metrics
 from latentsim.report.paraview import write_xdmf_series
 from latentsim.report.plots import empty_figure, rollout_curves, speed_accuracy_chart, stability_heatmap
@@ -56,7 +58,29 @@ _STEP_PARTS = ("integrate_ms", "decode_ms", "numpy_step_ms", "compiled_step_ms",
 _TRAIN_SECONDS = ("autoencoder_train_seconds", "integrator_train_seconds")
 
 
-def evaluate_scene(scene: str, trajectories, rollouts):
+def write_full_space_time(trajectories, out_csv, frames: int = 20) -> pd.DataFrame:
+    """Rule ``time_full_space``: the scene's full-space Newton frame timed once, in this one process
+    (:func:`latentsim.latent.timing.time_full_space` on the first test sequence, ``frames`` frames spread over it),
+    the time every method's speed-up divides by.  One row: sequence, full_ms, full_iterations, full_frames_timed."""
+    with open_artefact(trajectories) as f:
+        tests = [name for name, g in require(f, "sequences").items() if str(g.attrs.get("split", "test")) == "test"]
+        if not tests:
+            raise ValueError(f"{trajectories}: no test sequence to time the full space on")
+        row = dict(sequence=tests[0], **time_full_space(f, tests[0], int(frames)))
+    table = pd.DataFrame([row])
+    write_table(table, out_csv)
+    return table
+
+
+def read_full_space_time(path) -> float:
+    """The scene's one full-space ms per frame from :func:`write_full_space_time`'s table (the file named if it is not one)."""
+    table = pd.read_csv(path)
+    if list(table.columns[:2]) != ["sequence", "full_ms"] or len(table) != 1 or not np.isfinite(table["full_ms"].iloc[0]):
+        raise ValueError(f"{path}: not a full-space timing (one row: sequence, full_ms, ...); delete it and rerun")
+    return float(table["full_ms"].iloc[0])
+
+
+def evaluate_scene(scene: str, trajectories, rollouts, full_ms: float | None = None):
     """Metrics of every method's rollouts against the full simulation.
 
     Parameters
@@ -66,13 +90,15 @@ def evaluate_scene(scene: str, trajectories, rollouts):
     rollouts : one path or a list of rollout files (trajectory layout, attrs
         ``method`` and ``seed``, -1 for a method no seed changes); each holds some of the ground
         truth's sequences; a method may have one file per seed.
+    full_ms : the scene's one full-space ms per frame (:func:`write_full_space_time`), every row's; None: the
+        rollout job's own timing where it made one, else the simulator's median ms per frame.
 
     Returns
     -------
     table : one row per (method, seed, sequence): the metrics of
         :func:`latentsim.report.metrics.rollout_metrics` (over the whole sequence: infinite errors for a
         rollout that diverged, at any frame),
-        full_ms (the simulator's median ms/frame, or the rollout job's own full-space timing),
+        full_ms (``full_ms``, or as there),
         latent_ms (one latent step) and its parts, runtime, speedup, dof, latent_dim and the
         training seconds.
     curves : {method: {sequence: per-frame arrays}} for :func:`latentsim.report.plots.rollout_curves`
@@ -107,12 +133,11 @@ def evaluate_scene(scene: str, trajectories, rollouts):
                     if contact is not None:
                         metrics.update(penetration(contact, pred, diag, int(g.attrs["diverged_frame"]), gt["dirichlet_positions"][()]))
                     curves.setdefault(method, {}).setdefault(name, curve)  # the curves of the method's first seed
-                    # same-run timing of full-space frames when the rollout stage measured it
-                    full_ms = float(fr.attrs.get("full_ms", np.median(gt["frame_ms"][1:])))
+                    full = full_ms if full_ms is not None else float(fr.attrs.get("full_ms", np.median(gt["frame_ms"][1:])))
                     latent_ms = float(g.attrs["step_ms"])
                     parts = {k: float(g.attrs.get(k, np.nan)) for k in _STEP_PARTS}
-                    rows.append(dict(scene=scene, method=method, seed=seed, sequence=name, **metrics, full_ms=full_ms, latent_ms=latent_ms,
-                                     runtime=str(g.attrs.get("runtime", "")), **parts, speedup=full_ms / latent_ms,
+                    rows.append(dict(scene=scene, method=method, seed=seed, sequence=name, **metrics, full_ms=full, latent_ms=latent_ms,
+                                     runtime=str(g.attrs.get("runtime", "")), **parts, speedup=full / latent_ms,
                                      dof=int(rest.size), latent_dim=int(g["latents"].shape[-1]), **train_s))  # fmt: skip
     return pd.DataFrame(rows), curves
 
@@ -122,12 +147,14 @@ def _posed_at(entries, rest_dirichlet, dirichlet_positions, frame: int) -> list[
     return posed_collider_entries(entries, rest_dirichlet, dirichlet_positions[frame])
 
 
-def write_scene_evaluation(scene: str, trajectories, rollouts, latents, *, metrics, reconstruction, stress, chart, figure) -> pd.DataFrame:
+def write_scene_evaluation(scene: str, trajectories, rollouts, latents, *, metrics, reconstruction, stress, chart, figure,
+                           full_time=None) -> pd.DataFrame:  # fmt: skip
     """Rule ``evaluate``: :func:`evaluate_scene`'s table to ``metrics``, the autoencoder's reconstruction
     and the stress conditions' tables, the scene's speed-accuracy ``chart`` and its curves over time
-    (``figure``).  Returns the metrics table."""
+    (``figure``); ``full_time``: the scene's full-space timing table (:func:`write_full_space_time`).
+    Returns the metrics table."""
     rollouts = list(rollouts)
-    table, curves = evaluate_scene(scene, trajectories, rollouts)
+    table, curves = evaluate_scene(scene, trajectories, rollouts, None if full_time is None else read_full_space_time(full_time))
     write_table(table, metrics)
     write_table(reconstruction_table(scene, latents), reconstruction)
     write_table(stress_table(scene, rollouts), stress)
@@ -179,7 +206,10 @@ def _summary_markdown(glance, t1, t2, st, sz, rec, df, dv=None, said="") -> str:
             markdown(dv if dv is not None else pd.DataFrame()), "",
             "## Every method per scene: median ms per frame, speed-up over the full space, errors, kinetic energy ratio, "
             "test sequences and stress conditions survived, Pareto front", "", markdown(glance), "",
-            "## Li et al. Table 1: full space vs latent integrator (ours, then the paper's)", "", markdown(t1), "",
+            "## Li et al. Table 1: full space vs latent integrator (ours, then the paper's)", "",
+            "`full_ms`: one full-space Newton frame of the scene, timed once in one process (every method's speed-up divides "
+            "by it); `total_ms`: one latent step, `integrate_ms` + `decode_ms` + `projection_ms` (the contact projection, "
+            "where the scene has it on; empty elsewhere), one thread.", "", markdown(t1), "",
             "## Li et al. Table 2: single-vertex Jvp (torch.func.jvp, forward mode), our latent step, a Fulton-style reduced step", "",
             markdown(t2), "",
             "## Stability: frames survived per method, seed and test sequence (Li et al. Fig. 8-11)", "", markdown(st), "",
