@@ -57,10 +57,15 @@ def snh_parameters(youngs_modulus, poisson_ratio):
 
 
 def snh_density(F: torch.Tensor, mu, lam) -> torch.Tensor:
-    """Psi(F) - Psi(I) of the module docstring; F (..., 3, 3), mu, lam broadcastable to (...) -> (...)."""
+    """Psi(F) - Psi(I) of the module docstring; F (..., 3, 3), mu, lam broadcastable to (...) -> (...).
+
+    mu and lam given as Python numbers (``snh_density(F, *snh_parameters(E, nu))``) are taken in float64:
+    alpha and Psi(I) cancel the rest energy only to the precision they are computed in (float32's would leave
+    about 1e-8 mu at F = I)."""
+    mu, lam = (m if isinstance(m, torch.Tensor) else torch.as_tensor(m, dtype=torch.float64, device=F.device) for m in (mu, lam))
     Ic = (F * F).sum((-1, -2))
     J = torch.linalg.det(F)
-    ratio = torch.where(torch.as_tensor(lam) != 0, torch.as_tensor(mu) / torch.as_tensor(lam), 0.0)  # a zero-weight element: 0
+    ratio = torch.where(lam != 0, mu / lam, 0.0)  # a zero-weight element: 0
     alpha = 1.0 + 0.75 * ratio
     rest = 0.28125 * mu * ratio - 0.5 * mu * math.log(4.0)  # lam/2 (1 - alpha)^2 - mu/2 log 4
     return 0.5 * mu * (Ic - 3.0) + 0.5 * lam * (J - alpha) ** 2 - 0.5 * mu * torch.log(Ic + 1.0) - rest
