@@ -26,6 +26,12 @@ include: "workflow/rules/neural_modes.smk"
 include: "workflow/rules/report.smk"
 
 
+# The commit and machine of every run, in its log (.snakemake/log/), for tools/run_record.py.
+onstart:
+    for line in run_header():
+        logger.info(line)
+
+
 # The report's landing page: snakemake --report report.html (docs/report.md).
 report: "workflow/report/workflow.rst"
 

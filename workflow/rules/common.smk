@@ -45,6 +45,22 @@ except (ConfigError, MeshError) as e:
 SCENES = sorted(config["scenes"])
 
 
+def run_header():
+    """What a run's log records at its start, for its record (tools/run_record.py): the workflow's commit
+    (``-dirty`` with uncommitted changes; unknown outside a git checkout) and the machine."""
+    import subprocess
+
+    from latentsim.provenance import environment
+
+    git = ["git", "-C", workflow.basedir, "describe", "--always", "--dirty", "--abbrev=7"]
+    commit = subprocess.run(git, capture_output=True, text=True).stdout.strip()
+    env = environment()
+    return [
+        f"latentsim commit: {commit or 'unknown'}",
+        f"latentsim machine: {env['processor']}, {env['cpus']} cpus",
+    ]
+
+
 INTEGRATOR_METHODS = ["self_supervised"] + sorted(config["integrator_variants"])
 # variants that are whole models of another size: they train their own autoencoder
 SIZED_METHODS = [m for m in INTEGRATOR_METHODS if own_autoencoder(config, m)]

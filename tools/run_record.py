@@ -1,0 +1,111 @@
+"""The record of a pipeline run, from Snakemake's own logs and benchmark files, as JSON.
+
+    python tools/run_record.py RUN_FOLDER [--out docs/runs/all.json] [--target all]
+
+A long run (the default ``all`` takes hours on 2 cores) may take several parts: a part stops when its
+session ends and the next resumes it from the same folder (``snakemake --unlock``, then the same command;
+the default profile sets ``rerun-incomplete``).  Each part is one Snakemake log in
+``RUN_FOLDER/.snakemake/log/``; the workflow writes its commit and machine at the top of each
+(``onstart`` in the Snakefile).  The record holds, per part: the log, the command, its commit and machine,
+start and end (UTC as the log gives them), wall minutes, jobs finished, the steps done of the steps
+planned, and how it ended (``complete``, ``failed``, naming the rules, or ``stopped``); in all: wall
+minutes (the parts' sum), jobs, whether the target completed, CPU and job minutes, and minutes per
+stage summed over each stage's jobs (``benchmarks/stage_times.py`` on ``results/benchmarks``).  Parts whose
+command does not ask for ``--target`` (dry runs, single files) are left out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+from datetime import datetime
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from stage_times import stage_times  # noqa: E402 (the one reading of the benchmark files)
+
+STAMP = re.compile(r"^\[(\w{3} \w{3} +\d+ \d\d:\d\d:\d\d \d{4})\]$")
+STEPS = re.compile(r"^(\d+) of (\d+) steps \((\d+)%\) done$")
+
+
+def _time(text: str) -> datetime:
+    return datetime.strptime(" ".join(text.split()), "%a %b %d %H:%M:%S %Y")
+
+
+def read_part(path: Path) -> dict:
+    """One Snakemake log: its command, commit, machine, start, end, jobs and how it ended."""
+    lines = path.read_text(errors="replace").splitlines()
+    field = lambda key: next((ln.split(":", 1)[1].strip() for ln in lines if ln.strip().startswith(key + ":")), None)  # noqa: E731
+    start = field("Date")
+    stamps = [_time(m.group(1)) for ln in lines if (m := STAMP.match(ln.strip()))]
+    steps = [m.groups() for ln in lines if (m := STEPS.match(ln.strip()))]
+    failed = sorted({m.group(1) for ln in lines if (m := re.match(r"^Error in rule (\w+):", ln.strip()))})
+    begin = datetime.strptime(start, "%Y-%m-%d %H:%M:%S") if start else (stamps[0] if stamps else None)
+    end = stamps[-1] if stamps else begin
+    done = bool(steps) and steps[-1][0] == steps[-1][1]
+    planned = next((int(m.group(1)) for ln in lines if (m := re.match(r"^total\s+(\d+)$", ln.strip()))), None)
+    return {
+        "log": path.name,
+        "command": field("Command"),
+        "commit": field("latentsim commit"),
+        "machine": field("latentsim machine"),
+        "start": begin.isoformat() if begin else None,
+        "end": end.isoformat() if end else None,
+        "wall_min": round((end - begin).total_seconds() / 60, 2) if begin and end else 0.0,
+        "jobs_finished": sum(ln.startswith("Finished jobid") for ln in lines),
+        "steps_done": int(steps[-1][0]) if steps else 0,
+        "steps_planned": int(steps[-1][1]) if steps else planned,
+        "ended": "complete" if done else ("failed: " + ", ".join(failed) if failed else "stopped"),
+    }
+
+
+def asks_for(command: str | None, target: str) -> bool:
+    """Whether a logged command runs ``target`` (not a dry run)."""
+    words = (command or "").split()
+    return target in words and not ({"-n", "--dry-run", "--dryrun"} & set(words))
+
+
+def run_record(folder, target: str = "all") -> dict:
+    """The record of the run of ``target`` in ``folder`` (see the module's docstring)."""
+    folder = Path(folder)
+    logs = sorted((folder / ".snakemake" / "log").glob("*.snakemake.log"))
+    parts = [p for p in map(read_part, logs) if asks_for(p["command"], target)]
+    if not parts:
+        raise SystemExit(f"{folder}: no Snakemake log of a run of {target!r} under .snakemake/log/")
+    stages = stage_times(folder / "results" / "benchmarks")
+    per_stage = []
+    if not stages.empty:
+        g = stages.groupby("stage")[["jobs", "wall_s", "cpu_s"]].sum().sort_values("wall_s", ascending=False)
+        per_stage = [{"stage": s, "jobs": int(r.jobs), "job_min": round(r.wall_s / 60, 1), "cpu_min": round(r.cpu_s / 60, 1)} for s, r in g.iterrows()]
+    return {
+        "target": target,
+        "complete": parts[-1]["ended"] == "complete",
+        "commits": sorted({p["commit"] for p in parts if p["commit"]}),
+        "machines": sorted({p["machine"] for p in parts if p["machine"]}),
+        "wall_min": round(sum(p["wall_min"] for p in parts), 1),
+        "jobs_finished": sum(p["jobs_finished"] for p in parts),
+        "job_min": round(float(stages["wall_s"].sum()) / 60, 1) if not stages.empty else 0.0,
+        "cpu_min": round(float(stages["cpu_s"].sum()) / 60, 1) if not stages.empty else 0.0,
+        "parts": parts,
+        "stages": per_stage,
+    }
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("folder", help="the folder the run ran in (its .snakemake/log/ and results/benchmarks/)")
+    ap.add_argument("--target", default="all", help="the target whose run to record (default: all)")
+    ap.add_argument("--out", help="write the record here (default: print it)")
+    args = ap.parse_args(argv)
+    text = json.dumps(run_record(args.folder, args.target), indent=1) + "\n"
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(text)
+    else:
+        sys.stdout.write(text)
+
+
+if __name__ == "__main__":
+    main()
