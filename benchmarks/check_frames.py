@@ -6,11 +6,14 @@ gradient included).  Tet scenes also report the frames that end with an inverted
 nearest approach of any vertex to one over every frame (negative: inside).
 
     python benchmarks/check_frames.py [results/sim]
+
+It exits with status 1, naming the folder, when it finds no trajectories.h5 to check (a mistyped folder, or a run
+whose simulate stage has not run): a check of nothing is no pass.
 """
 
 from __future__ import annotations
 
-import sys
+import argparse
 from pathlib import Path
 
 import h5py
@@ -46,14 +49,22 @@ def check(path: Path) -> dict:
     return dict(law=law, frames=frames, worst=worst, inverted=inverted, nearest=nearest)
 
 
-def main(root: str = "results/sim") -> None:
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("root", nargs="?", default="results/sim",
+                        help="the run's folder of full simulations, one <scene>/trajectories.h5 each (default: %(default)s)")
+    root = Path(parser.parse_args(argv).root)
+    paths = sorted(root.glob("*/trajectories.h5"))
+    if not paths:
+        found = "no such folder" if not root.is_dir() else "no <scene>/trajectories.h5 in it"
+        parser.exit(1, f"check_frames: {root}: {found}; nothing to check (a run's simulations are in results/sim)\n")
     print("| scene | material | frames | max residual / tolerance (autograd) | frames ending with an inverted tet | nearest approach to a collider [m] |")
     print("|---|---|---|---|---|---|")
-    for path in sorted(Path(root).glob("*/trajectories.h5")):
+    for path in paths:
         r = check(path)
         near = "-" if r["nearest"] == float("inf") else f"{r['nearest']:.3g}"
         print(f"| {path.parent.name} | {r['law']} | {r['frames']} | {r['worst']:.2f} | {r['inverted']} | {near} |", flush=True)
 
 
 if __name__ == "__main__":
-    main(*sys.argv[1:])
+    main()

@@ -4,6 +4,7 @@ missing, a latent dimension the training data cannot fill (in the config and in 
 from __future__ import annotations
 
 import copy
+import runpy
 from pathlib import Path
 
 import h5py
@@ -184,3 +185,20 @@ def test_the_autoencoder_stage_names_scene_file_and_rank_and_writes_nothing(tmp_
     assert not model.exists() and not latents.exists()
     train_autoencoder(traj, {**settings, "latent_dim": 7}, 0, "cpu", model, latents)
     assert model.exists() and latents.exists()
+
+
+# --- the independent frame check finds nothing to check -------------------------------------------
+
+
+def test_the_frame_check_of_nothing_fails_naming_the_folder(tmp_path, capsys):
+    """benchmarks/check_frames.py on a mistyped folder, or one without trajectories, exits 1 naming it (it printed
+    an empty table and exited 0); --help is its usage, not a check of a folder named --help."""
+    main = runpy.run_path(str(ROOT / "benchmarks" / "check_frames.py"))["main"]
+    for root, found in ((tmp_path / "reslts" / "sim", "no such folder"), (tmp_path, "no <scene>/trajectories.h5 in it")):
+        with pytest.raises(SystemExit) as stop:
+            main([str(root)])
+        out = capsys.readouterr()
+        assert stop.value.code == 1 and f"{root}: {found}; nothing to check" in out.err and "| scene |" not in out.out
+    with pytest.raises(SystemExit) as stop:
+        main(["--help"])
+    assert stop.value.code == 0 and capsys.readouterr().out.startswith("usage: ")
