@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from stage_times import stage_times  # noqa: E402 (the one reading of the benchmark files)
 
 STAMP = re.compile(r"^\[(\w{3} \w{3} +\d+ \d\d:\d\d:\d\d \d{4})\]$")
-STEPS = re.compile(r"^(\d+) of (\d+) steps \((\d+)%\) done$")
+STEPS = re.compile(r"^(\d+) of (\d+) steps \(([\d.]+)%\) done$")
 
 
 def _time(text: str) -> datetime:
