@@ -103,6 +103,7 @@ def validate_config(config: dict, schema_path=SCHEMA) -> dict:
     _check_sequences(config)
     _check_nm_study(config)
     _check_latent_dims(config)
+    _check_pca_width(config)
     _check_conditioning(config)
     _check_contact_projection(config)
     _check_sweep_chosen(config)
@@ -353,6 +354,29 @@ def _check_latent_dims(config: dict) -> None:
                     f"config key '{key}': latent_dim {r} of scene {name} is above the rank of its training data: "
                     f"{why}, give at most {bound} independent directions; use latent_dim <= {bound} or add training frames"
                 )
+
+
+def _check_pca_width(config: dict) -> None:
+    """No latent dimension above the width of its autoencoder's PCA layer (``latent.Autoencoder``: ``pca_dim``,
+    0 standing for the first decoder width, or the latent dimension for a linear autoencoder), which keeps the
+    directions the latent coordinates are taken from.  Every autoencoder a scene trains: its own, a variant's
+    of another size, its conditioned one and each sizing-sweep point's."""
+    for name, scene in config.get("scenes", {}).items():
+        points = [(f"scenes.{name}.autoencoder", autoencoder_settings(config, name))]
+        points += [(f"integrator_variants.{m}.autoencoder", autoencoder_settings(config, name, m)) for m in scene.get("variants", []) if own_autoencoder(config, m)]
+        if conditioned(config, name):
+            points.append((f"scenes.{name}.conditioning.autoencoder", conditioned_autoencoder_settings(config, name)))
+        sweep = scene.get("sweep", {})
+        for i in range(len(sweep.get("sizes", []))):
+            points += [(f"scenes.{name}.sweep.sizes.{i}.autoencoder", sweep_point_settings(config, name, r, i)["autoencoder"]) for r in sweep.get("latent_dims", [])]
+        for key, ae in points:
+            r, widths, pca_dim = int(ae["latent_dim"]), list(ae["widths"]), int(ae.get("pca_dim") or 0)
+            width = pca_dim or (widths[0] if widths else r)
+            if width < r:
+                why = f"pca_dim {pca_dim}" if pca_dim else f"pca_dim 0: the first decoder width of widths {widths}"
+                raise ConfigError(f"config key '{key}': latent_dim {r} of scene {name} is above the width of the autoencoder's PCA layer, "
+                                  f"{width} ({why}), whose directions the latent coordinates are taken from: use latent_dim <= {width}, "
+                                  f"or a first width (or pca_dim) of at least {r}")  # fmt: skip
 
 
 def _check_nm_study(config: dict) -> None:

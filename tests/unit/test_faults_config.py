@@ -135,6 +135,33 @@ def test_a_latent_dim_the_training_frames_can_fill_passes(tiny):
     validate_config(tiny)
 
 
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        # the issue's case: it stopped inside the autoencoder job with "pca_dim ... 32 < latent_dim 60"
+        (lambda c: c["scenes"]["tiny_rods"]["autoencoder"].update(latent_dim=60),
+         r"'scenes\.tiny_rods\.autoencoder': latent_dim 60 of scene tiny_rods is above the width of the autoencoder's PCA layer, 32 "
+         r"\(pca_dim 0: the first decoder width of widths \[32, 32\]\).*use latent_dim <= 32, or a first width \(or pca_dim\) of at least 60"),
+        (lambda c: c["scenes"]["tiny_rods"]["autoencoder"].update(pca_dim=3), r"'scenes\.tiny_rods\.autoencoder': latent_dim 4 .*PCA layer, 3 \(pca_dim 3\)"),
+        (lambda c: c["integrator_variants"]["small"]["autoencoder"].update(widths=[1]), r"'integrator_variants\.small\.autoencoder': latent_dim 2 of scene tiny_rods .*PCA layer, 1"),
+        (lambda c: c["scenes"]["tiny_cloth"]["sweep"].update(sizes=[{"autoencoder": [3], "integrator": [8]}]),
+         r"'scenes\.tiny_cloth\.sweep\.sizes\.0\.autoencoder': latent_dim 4 of scene tiny_cloth .*PCA layer, 3 .*widths \[3\]"),
+        (lambda c: c["scenes"]["tiny_cloth"]["conditioning"].update(autoencoder={"widths": [2]}), r"'scenes\.tiny_cloth\.conditioning\.autoencoder': latent_dim 4 .*PCA layer, 2"),
+    ],
+)  # fmt: skip
+def test_a_latent_dim_above_the_pca_layer_is_named_on_load(tiny, edit, message):
+    edit(tiny)
+    with pytest.raises(ConfigError, match=message):
+        validate_config(tiny)
+
+
+def test_a_latent_dim_the_pca_layer_holds_passes(tiny):
+    tiny["scenes"]["tiny_rods"]["autoencoder"].update(latent_dim=32)  # as wide as the first width
+    tiny["scenes"]["tiny_nm"]["autoencoder"].update(widths=[])  # a linear autoencoder: the PCA layer is the latent's width
+    tiny["scenes"]["tiny_cloth"]["autoencoder"].update(widths=[2], pca_dim=8)  # pca_dim in place of the first width
+    validate_config(tiny)
+
+
 def _low_rank(n_frames, dim, rank, seed=0):
     """(n_frames, dim) float32 rows in a rank-``rank`` affine subspace (spread 1 to 0.1)."""
     g = torch.Generator().manual_seed(seed)
