@@ -48,7 +48,7 @@ def read_part(path: Path) -> dict:
     planned = next((int(m.group(1)) for ln in lines if (m := re.match(r"^total\s+(\d+)$", ln.strip()))), None)
     return {
         "log": path.name,
-        "command": field("Command"),
+        "command": re.sub(r"^\S*/", "", field("Command") or "") or None,  # the program's name, not where it is installed
         "commit": field("latentsim commit"),
         "machine": field("latentsim machine"),
         "start": begin.isoformat() if begin else None,
