@@ -58,7 +58,8 @@ def _describe(error: jsonschema.ValidationError) -> str:
         return f"config key '{path}': {error.instance!r} is a {type(error.instance).__name__}, expected {s['type']}"
     if v in ("minimum", "exclusiveMinimum", "maximum", "exclusiveMaximum"):
         bounds = {k: s[k] for k in ("minimum", "exclusiveMinimum", "maximum", "exclusiveMaximum") if k in s}
-        return f"config key '{path}': {error.instance!r} is out of range; allowed: {bounds}"
+        why = f" ({' '.join(s['description'].split())})" if s.get("description") else ""
+        return f"config key '{path}': {error.instance!r} is out of range; allowed: {bounds}{why}"
     if v == "required":
         return f"config key '{path}': {error.message}"
     return f"config key '{path}': {error.message}"

@@ -229,3 +229,18 @@ def test_the_frame_check_of_nothing_fails_naming_the_folder(tmp_path, capsys):
     with pytest.raises(SystemExit) as stop:
         main(["--help"])
     assert stop.value.code == 0 and capsys.readouterr().out.startswith("usage: ")
+
+
+# --- a divergence bound the rest shape already breaks ---------------------------------------------
+
+
+@pytest.mark.parametrize("bound", [0.5, 1.0])
+def test_a_divergence_bound_at_or_below_the_rest_shape_is_named_on_load(tiny, bound):
+    """rollout.max_extent is a multiple of the rest bounding-box diagonal: at or below 1 the rest shape itself is
+    beyond it, and every learned method 'diverged at frame 0' (it was accepted)."""
+    tiny["scenes"]["tiny_rods"]["rollout"] = {"max_extent": bound}
+    with pytest.raises(ConfigError, match=rf"'scenes\.tiny_rods\.rollout\.max_extent': {bound} is out of range; allowed: "
+                                          r"\{'exclusiveMinimum': 1\.0\} \(.*rest shape's own extent is 1 times its diagonal.*frame 0"):  # fmt: skip
+        validate_config(tiny)
+    tiny["scenes"]["tiny_rods"]["rollout"] = {"max_extent": 1.5}
+    validate_config(tiny)
