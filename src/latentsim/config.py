@@ -62,7 +62,44 @@ def _describe(error: jsonschema.ValidationError) -> str:
         return f"config key '{path}': {error.instance!r} is out of range; allowed: {bounds}{why}"
     if v == "required":
         return f"config key '{path}': {error.message}"
+    if v in ("oneOf", "anyOf"):
+        return _describe_alternatives(error, path)
     return f"config key '{path}': {error.message}"
+
+
+def _describe_alternatives(error: jsonschema.ValidationError, path: str) -> str:
+    """A value that fits none of a ``oneOf`` / ``anyOf``'s alternatives.  Where each alternative is an object of
+    one kind (its ``type`` a ``const``, as ``contact.colliders``' are): the problems of the alternative of the
+    value's kind, or, for a kind not among them, every kind with its fields; otherwise each alternative's
+    first problem."""
+    branches = error.validator_value
+    kinds = {b.get("properties", {}).get("type", {}).get("const"): i for i, b in enumerate(branches)}
+    kinds.pop(None, None)
+    by_branch: dict[int, list] = {i: [] for i in range(len(branches))}
+    for sub in error.context:
+        by_branch[sub.relative_schema_path[0]].append(sub)
+    if not kinds or len(kinds) < len(branches):
+        tried = "; or ".join(subs[0].message for subs in by_branch.values() if subs)
+        why = f" ({' '.join(error.schema['description'].split())})" if error.schema.get("description") else ""
+        return f"config key '{path}': {error.instance!r} fits none of the alternatives ({tried}){why}"
+
+    def fields(i):
+        required = [k for k in branches[i].get("required", []) if k != "type"]
+        optional = [k for k in branches[i].get("properties", {}) if k not in required and k != "type"]
+        return ", ".join(required) + (f"; optional: {', '.join(optional)}" if optional else "")
+
+    kind = error.instance.get("type") if isinstance(error.instance, dict) else None
+    if kind in kinds:
+        first, *more = dict.fromkeys(_describe(sub) for sub in by_branch[kinds[kind]])
+        here = f"config key '{path}': "  # said once for the problems of the mapping itself
+        problems = "; ".join([first] + [m.removeprefix(here) if first.startswith(here) else m for m in more])
+        return f"{problems} (type {kind} takes: {fields(kinds[kind])})"
+    allowed = "; ".join(f"{k} ({fields(i)})" for k, i in kinds.items())
+    if not isinstance(error.instance, dict):
+        given = f"{error.instance!r} is not a mapping"
+    else:
+        given = f"type {kind!r} is not allowed" if "type" in error.instance else "no 'type' given"
+    return f"config key '{path}': {given}; give a mapping with 'type' one of {list(kinds)} and its fields: {allowed}"
 
 
 def _seed_list(value):

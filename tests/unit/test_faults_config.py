@@ -244,3 +244,35 @@ def test_a_divergence_bound_at_or_below_the_rest_shape_is_named_on_load(tiny, bo
         validate_config(tiny)
     tiny["scenes"]["tiny_rods"]["rollout"] = {"max_extent": 1.5}
     validate_config(tiny)
+
+
+# --- a collider with a bad field ------------------------------------------------------------------
+
+KINDS = r"'type' one of \['half_space', 'sphere', 'capsule'\] and its fields: half_space \(point, normal; optional: attached\); sphere \(centre, radius; optional: attached\); capsule \(a, b, radius; optional: attached\)"
+
+
+@pytest.mark.parametrize(
+    "collider, message",
+    [
+        ({"type": "sphere", "center": [0, 0, 0], "radius": 0.1},
+         r"'scenes\.tiny_contact\.contact\.colliders\.0': unknown key\(s\) \['center'\]; allowed: \['attached', 'centre', 'radius', 'type'\]; "
+         r"'centre' is a required property \(type sphere takes: centre, radius; optional: attached\)"),
+        ({"type": "sphere", "centre": [0, 0, 0], "radius": -1.0}, r"'scenes\.tiny_contact\.contact\.colliders\.0\.radius': -1\.0 is out of range.*\(type sphere takes"),
+        ({"type": "capsule", "a": [0, 0], "b": [1, 0, 0], "radius": 0.1}, r"'scenes\.tiny_contact\.contact\.colliders\.0\.a': \[0, 0\] is too short \(type capsule takes: a, b, radius"),
+        ({"type": "ball", "centre": [0, 0, 0], "radius": 0.1}, rf"'scenes\.tiny_contact\.contact\.colliders\.0': type 'ball' is not allowed; give a mapping with {KINDS}"),
+        ({"centre": [0, 0, 0], "radius": 0.1}, rf"colliders\.0': no 'type' given; give a mapping with {KINDS}"),
+        ("sphere", rf"colliders\.0': 'sphere' is not a mapping; give a mapping with {KINDS}"),
+    ],
+)  # fmt: skip
+def test_a_collider_with_a_bad_field_names_the_field_and_the_kinds(tiny, collider, message):
+    """It said only "is not valid under any of the given schemas"."""
+    tiny["scenes"]["tiny_contact"]["contact"]["colliders"] = [collider]
+    with pytest.raises(ConfigError, match=message):
+        validate_config(tiny)
+
+
+def test_a_value_none_of_the_alternatives_take_says_what_each_wanted(tiny):
+    tiny["scenes"]["tiny_contact"]["contact"]["d_hat"] = -1.0
+    with pytest.raises(ConfigError, match=r"'scenes\.tiny_contact\.contact\.d_hat': -1\.0 fits none of the alternatives \(-1\.0 is less than or equal "
+                                          r"to the minimum of 0; or -1\.0 is not of type 'null'\) \(Activation distance of the barrier"):  # fmt: skip
+        validate_config(tiny)
