@@ -26,6 +26,7 @@ from latentsim.latent import (
     RelativeCoordinates,
     TrainingDiverged,
     balancing_weights,
+    fixed_balancing_weights,
     build_triplets,
     decode_latents,
     encode_positions,
@@ -345,6 +346,26 @@ def test_self_supervised_loss_is_the_incremental_potential(chain_setup):
     # supervised variant: squared L2 to the ground-truth latent
     loss_s, _ = integrator_loss(integ, ae, coords, ch.pot, batch, mode="supervised", noise_scale=0.0, balancing=False)
     assert torch.allclose(loss_s, ((pred - batch["z"]) ** 2).sum(-1).double().mean(), rtol=1e-6)
+
+
+def test_balancing_weights_computed_once_are_each_minibatchs(chain_setup):
+    """The supervised baselines' weights (no noise, fixed triplets) computed once over the set equal those the
+    loss computes from each shuffled minibatch's decodes (to float32 rounding: a GEMM of a handful of rows may
+    take another path than one of hundreds; from about ten rows on they agree to the bit on the machines tried),
+    and the loss is the weighted mean with them; with training noise they are refused."""
+    ch, _, coords, ae = chain_setup
+    integ, tr = _untrained(chain_setup)
+    fixed = fixed_balancing_weights(ae, coords, tr, float(ch.pot.dt), 1e-2)
+    assert fixed.shape == (tr["z"].shape[0],)
+    rows = torch.randperm(tr["z"].shape[0], generator=torch.Generator().manual_seed(0))[:32]
+    batch = {k: v[rows] for k, v in tr.items()}
+    loss, info = integrator_loss(integ, ae, coords, ch.pot, batch, mode="supervised", noise_scale=0.0, balancing=True)
+    loss_f, info_f = integrator_loss(integ, ae, coords, ch.pot, dict(batch, balance=fixed[rows]), mode="supervised", noise_scale=0.0, balancing=True)
+    assert torch.allclose(info_f["weights"], info["weights"], rtol=1e-6, atol=0) and torch.allclose(loss_f, loss, rtol=1e-6, atol=0)
+    assert torch.equal(info_f["weights"], fixed[rows]) and torch.equal(loss_f, (fixed[rows] * info_f["per_sample"]).mean())
+    assert float(info["weights"].max() / info["weights"].min()) > 1.5  # the weights are not all alike
+    with pytest.raises(ValueError, match="do not hold for inputs with training noise"):
+        integrator_loss(integ, ae, coords, ch.pot, dict(batch, balance=fixed[rows]), mode="supervised", noise_scale=0.1, balancing=True)
 
 
 def test_training_noise_doubles_batch_and_perturbs_only_latents(chain_setup):

@@ -33,7 +33,7 @@ from latentsim.latent.base import TrainingDiverged, resolve_device
 from latentsim.latent.coordinates import RelativeCoordinates, coordinates_for
 from latentsim.latent.data import BATCH_KEYS, build_triplets, load_sequences
 from latentsim.latent.integrator import LatentIntegrator
-from latentsim.latent.loss import balancing_weights, integrator_loss
+from latentsim.latent.loss import balancing_weights, fixed_balancing_weights, integrator_loss
 from latentsim.latent.rollout import rollout
 from latentsim.latent.serialization import autoencoder_coordinates, load_autoencoder, load_extra, load_integrator, save_module
 from latentsim.latent.training import fit_integrator, training_fingerprint

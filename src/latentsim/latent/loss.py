@@ -32,6 +32,23 @@ def balancing_weights(x_prev: torch.Tensor, x_prev2: torch.Tensor, dt: float, ep
     return 1.0 / torch.linalg.vector_norm(v, dim=-1).clamp_min(eps)
 
 
+@torch.no_grad()
+def fixed_balancing_weights(ae: Autoencoder, coords: RelativeCoordinates, data: dict, dt: float, eps: float = 1e-2, chunk: int = 256) -> torch.Tensor:
+    """:func:`balancing_weights` of every triplet of ``data`` (its decoded ``z_prev``, ``z_prev2``), once.
+
+    For a training whose inputs carry no noise and whose triplets do not change (the supervised baselines) the
+    weights are the same every epoch; :func:`integrator_loss` takes them as the batch's ``balance`` instead of
+    decoding two latents per sample in every minibatch.  Decoded ``chunk`` rows at a time (a decode's rows do not
+    depend on each other)."""
+    out = []
+    for a in range(0, data["z_prev"].shape[0], chunk):
+        rows = slice(a, a + chunk)
+        x1 = decode_latents(ae, coords, data["z_prev"][rows], data["xD_prev"][rows])
+        x2 = decode_latents(ae, coords, data["z_prev2"][rows], data["xD_prev2"][rows])
+        out.append(balancing_weights(x1, x2, dt, eps))
+    return torch.cat(out)
+
+
 def integrator_loss(
     integrator: Callable,
     ae: Autoencoder,
@@ -82,7 +99,8 @@ def integrator_loss(
         and ``z`` (B, r) ground truth (needed for ``mode="supervised"``); optionally each
         sample's condition (:mod:`latentsim.latent.conditioning`): ``dt`` (B,) its time step,
         ``stiffness`` (B,) the factor on the elastic energy and ``scale`` (B,) a factor on its
-        weight.
+        weight; and ``balance`` (B,), the samples' balancing weights computed beforehand
+        (:func:`fixed_balancing_weights`; only without training noise, which would perturb the inputs).
     use_penalty : Dirichlet penalty in the potential; ``None`` -> on unless
         ``coords.hard_dirichlet`` (rods: roots re-applied exactly on decode).
     generator : CPU generator for the noise.
@@ -100,7 +118,10 @@ def integrator_loss(
     if use_penalty is None:
         use_penalty = not coords.hard_dirichlet
     clean = batch["z_prev"].shape[0]
+    fixed = batch.get("balance") if balancing else None
     if noise_scale and noise_scale > 0:
+        if fixed is not None:
+            raise ValueError("balancing weights computed beforehand (batch['balance']) do not hold for inputs with training noise")
         batch = with_training_noise(batch, noise_scale, generator)
     z1, z2 = batch["z_prev"], batch["z_prev2"]
     p, p1, p2 = batch["p"], batch["p_prev"], batch["p_prev2"]
@@ -109,7 +130,7 @@ def integrator_loss(
     count = z1.shape[0]
     pred = integrator(z1, z2, p, p1, p2)
 
-    need_prev = mode == "self_supervised" or balancing
+    need_prev = mode == "self_supervised" or (balancing and fixed is None)
     if need_prev:
         with torch.no_grad():  # constants w.r.t. the integrator weights
             x1 = decode_latents(ae, coords, z1, xD1)
@@ -121,7 +142,9 @@ def integrator_loss(
         if zt is None:
             raise ValueError("supervised loss needs the ground-truth latents batch['z']")
         per = ((pred - zt.to(pred)) ** 2).sum(-1).to(torch.float64)
-    if balancing:
+    if fixed is not None:
+        w = fixed.to(per)
+    elif balancing:
         dt = batch.get("dt")
         w = balancing_weights(x1, x2, float(potential.dt) if dt is None else dt.to(x1), balancing_eps).to(per)
     else:
