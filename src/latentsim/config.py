@@ -144,6 +144,7 @@ def validate_config(config: dict, schema_path=SCHEMA) -> dict:
     _check_pca_width(config)
     _check_conditioning(config)
     _check_contact_projection(config)
+    _check_d_hat(config)
     _check_sweep_chosen(config)
     return config
 
@@ -359,6 +360,35 @@ def _check_contact_projection(config: dict) -> None:
         if (scene.get("rollout") or {}).get("contact_projection", {}).get("enabled") and not (scene.get("contact") or {}).get("colliders"):
             raise ConfigError(f"config key 'scenes.{name}.rollout.contact_projection.enabled': the scene has no colliders to project its "
                               f"frames out of (give them under 'scenes.{name}.contact.colliders', or leave the projection off)")  # fmt: skip
+
+
+#: the largest ``contact.d_hat``, as a fraction of the rest bounding-box diagonal (the schema's d_hat says why)
+D_HAT_MAX_FRACTION = 0.05
+
+
+def check_d_hat(d_hat, diagonal: float, scene: str) -> None:
+    """Raise a ``ConfigError`` naming ``scenes.<scene>.contact.d_hat`` when ``d_hat`` [m] (null: IPC's default,
+    always below) is above :data:`D_HAT_MAX_FRACTION` of the rest bounding-box ``diagonal`` [m]."""
+    if d_hat is not None and float(d_hat) > D_HAT_MAX_FRACTION * diagonal:
+        raise ConfigError(
+            f"config key 'scenes.{scene}.contact.d_hat': {d_hat!r} m is {float(d_hat) / diagonal:.3g} times the rest bounding-box "
+            f"diagonal ({diagonal:.3g} m); the barrier would push every vertex within it away from the colliders: give at most "
+            f"{D_HAT_MAX_FRACTION:g} of the diagonal ({D_HAT_MAX_FRACTION * diagonal:.3g} m), or null (IPC's default, 1e-3 of it)"
+        )
+
+
+def _check_d_hat(config: dict) -> None:
+    """No ``contact.d_hat`` above :data:`D_HAT_MAX_FRACTION` of a generated mesh's rest diagonal, which its config
+    gives (a file's is known once the mesh is built: the simulation stage checks it there)."""
+    for name, scene in config.get("scenes", {}).items():
+        contact = scene.get("contact") or {}
+        if contact.get("d_hat") is None or not contact.get("colliders"):
+            continue
+        from latentsim.mesh.build import generated_diagonal  # numpy and the mesh code, for a scene that sets d_hat
+
+        diagonal = generated_diagonal(scene["model"], scene["mesh"])
+        if diagonal is not None:
+            check_d_hat(contact["d_hat"], diagonal, name)
 
 
 def _check_latent_dims(config: dict) -> None:

@@ -13,8 +13,9 @@ import pytest
 import torch
 import yaml
 
-from latentsim.config import ConfigError, load_config, validate_config
+from latentsim.config import D_HAT_MAX_FRACTION, SCHEMA, ConfigError, load_config, validate_config, with_defaults
 from latentsim.latent.autoencoder import LatentRankError, fit_autoencoder
+from latentsim.mesh.build import build_mesh, generated_diagonal
 from latentsim.stages.autoencoder import train_autoencoder
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -276,3 +277,41 @@ def test_a_value_none_of_the_alternatives_take_says_what_each_wanted(tiny):
     with pytest.raises(ConfigError, match=r"'scenes\.tiny_contact\.contact\.d_hat': -1\.0 fits none of the alternatives \(-1\.0 is less than or equal "
                                           r"to the minimum of 0; or -1\.0 is not of type 'null'\) \(Activation distance of the barrier"):  # fmt: skip
         validate_config(tiny)
+
+
+# --- a barrier distance a large part of the scene -------------------------------------------------
+
+
+def test_a_d_hat_large_for_a_generated_mesh_is_named_on_load(tiny):
+    """tiny_contact's cloth is 0.2 x 0.2 m (diagonal 0.283 m): 1.0 m threw it 1.75 diagonals in frame 1 and the run
+    completed.  The bound is on the placed mesh: scaled ten times, 0.1 m is within it."""
+    schema = yaml.safe_load(SCHEMA.read_text())
+    assert f"most {D_HAT_MAX_FRACTION:g} of that diagonal" in " ".join(schema["$defs"]["contact"]["properties"]["d_hat"]["description"].split())
+    contact = tiny["scenes"]["tiny_contact"]["contact"]
+    for d_hat, shown in ((1.0, r"1\.0 m is 3\.54 times"), (0.1, r"0\.1 m is 0\.354 times")):
+        contact["d_hat"] = d_hat
+        with pytest.raises(ConfigError, match=rf"'scenes\.tiny_contact\.contact\.d_hat': {shown} the rest bounding-box diagonal \(0\.283 m\).*"
+                                              r"at most 0\.05 of the diagonal \(0\.0141 m\), or null"):  # fmt: skip
+            validate_config(copy.deepcopy(tiny))
+    tiny["scenes"]["tiny_contact"]["mesh"]["scale"] = 10.0
+    validate_config(copy.deepcopy(tiny))
+    contact["d_hat"] = 0.01  # 0.035 of the diagonal at scale 1
+    tiny["scenes"]["tiny_contact"]["mesh"]["scale"] = 1.0
+    validate_config(tiny)
+
+
+@pytest.mark.parametrize(
+    "model, mesh",
+    [
+        ("rods", {"generator": "rod_bundle", "n_rods": 7, "vertices_per_rod": 9, "length": 0.3, "spacing": 0.02, "direction": [1.0, -1.0, 0.0]}),
+        ("rods", {"generator": "rod_bundle", "n_rods": 5, "rotate_axis": [1.0, 1.0, 0.0], "rotate_degrees": 30.0, "ring_radius": 0.08}),
+        ("shell", {"generator": "cloth_grid", "nx": 7, "ny": 3, "width": 0.4, "height": 0.1, "plane": "xz", "scale": 2.0, "rotate_degrees": 17.0}),
+        ("tets", {"generator": "beam_tets", "nx": 6, "ny": 2, "nz": 3, "length": 0.5, "width": 0.1, "height": 0.05, "rotate_axis": [0.0, 1.0, 1.0],
+                  "rotate_degrees": 40.0, "translate": [1.0, 2.0, 3.0]}),
+    ],
+)  # fmt: skip
+def test_a_generated_meshs_diagonal_from_its_config_is_the_built_meshs(model, mesh):
+    mesh = {**with_defaults("mesh", {k: v for k, v in mesh.items() if k != "ring_radius"}, "test"), **mesh}  # ring_radius: no default
+    V = build_mesh(model, mesh, {})["rest_positions"]
+    assert generated_diagonal(model, mesh) == pytest.approx(float(np.linalg.norm(V.max(0) - V.min(0))), rel=1e-12)
+    assert generated_diagonal(model, {**mesh, "generator": "file"}) is None  # known once the file is read

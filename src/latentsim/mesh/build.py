@@ -144,6 +144,23 @@ def build_mesh(model: str, cfg: dict, sources: dict) -> dict[str, np.ndarray]:
     return out
 
 
+def generated_diagonal(model: str, cfg: dict) -> float | None:
+    """The rest bounding-box diagonal [m] of a generated mesh, placed (``scale``, rotation, ``translate``), from
+    its config alone; None for a file's (known once it is read) or a config :func:`build_mesh` refuses.
+
+    The coarsest mesh of the same shape has the same box: a grid's vertices lie in the convex hull of its
+    corners and a rod's on the segment between its ends, which every resolution keeps, so one cell per axis and
+    two vertices per rod suffice, whatever the placement.
+    """
+    if cfg.get("generator") == "file":
+        return None
+    try:
+        V = build_mesh(model, {**cfg, "nx": 1, "ny": 1, "nz": 1, "vertices_per_rod": 2}, {})["rest_positions"]
+    except MeshError:
+        return None
+    return float(np.linalg.norm(V.max(0) - V.min(0)))
+
+
 def scene_mesh(scene: str, model: str, mesh_cfg: dict, dirichlet_rule: dict,
                sources: dict) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """A scene's checked mesh with its Dirichlet set (and, for tets, its surface).

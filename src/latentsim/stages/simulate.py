@@ -25,6 +25,7 @@ import meshio
 import numpy as np
 import torch
 
+from latentsim.config import ConfigError, check_d_hat
 from latentsim.io import atomic_h5, atomic_path, open_artefact, write_dataset
 from latentsim.mesh.geometry import tet_volumes
 from latentsim.report.paraview import single_block_xdmf
@@ -105,6 +106,12 @@ def simulate_scene(scene: str, mesh_h5, cfg: dict, out_h5, paraview_dir=None, pr
     model = arrays["model"]
     if model != cfg["model"]:
         raise SimulationError(f"scene '{scene}': {mesh_h5} holds a '{model}' mesh, the config says '{cfg['model']}'")
+    if (cfg.get("contact") or {}).get("colliders"):  # a mesh file's size is known from here on
+        rest = np.asarray(arrays["rest_positions"], dtype=np.float64)
+        try:
+            check_d_hat(cfg["contact"].get("d_hat"), float(np.linalg.norm(rest.max(0) - rest.min(0))), scene)
+        except ConfigError as e:
+            raise SimulationError(f"scene '{scene}' ({mesh_h5}): {e}") from None
     try:
         pot = build_potential(model, arrays, cfg["material"], cfg["dt"], cfg["gravity"], free_only=True, contact=cfg.get("contact"))
     except ValueError as e:  # e.g. a collider attached to a prescribed set that does not fix a pose

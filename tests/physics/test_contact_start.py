@@ -1,0 +1,35 @@
+"""What the simulation stage refuses before its first frame, naming the key: a ``contact.d_hat`` that is a large
+part of a mesh's size, which only the built mesh shows for a file's."""
+
+import re
+
+import pytest
+
+from latentsim.config import with_defaults
+from latentsim.stages.mesh import prepare_mesh
+from latentsim.stages.simulate import SimulationError, simulate_scene
+
+FLOOR = {"type": "half_space", "point": [0.0, -0.5, 0.0], "normal": [0.0, 1.0, 0.0]}
+
+
+def _cloth(tmp_path, held):
+    """A 0.2 m square cloth of 5 x 5 cells in the xy plane about the origin (36 vertices, 4 cm apart) as the mesh
+    stage writes it, ``held`` its prescribed vertices; and the simulation stage's settings for it, without colliders."""
+    mesh_h5 = tmp_path / "mesh.h5"
+    mesh = with_defaults("mesh", {"generator": "cloth_grid", "nx": 5, "ny": 5, "width": 0.2, "height": 0.2, "plane": "xy"}, "test")
+    prepare_mesh("cloth", "shell", mesh, with_defaults("dirichlet", {"type": "indices", "indices": held}, "test"), {}, mesh_h5)
+    cfg = dict(model="shell", material={"youngs_modulus": 1e5, "poisson_ratio": 0.3, "density": 200.0, "thickness": 0.001}, dt=1 / 30,
+               gravity=[0, -9.81, 0], newton=dict(tolerance=1e-6), sequences=[dict(name="s", split="train", frames=3)])  # fmt: skip
+    return mesh_h5, cfg
+
+
+def test_a_d_hat_too_large_for_the_built_mesh_stops_the_simulation(tmp_path):
+    """The issue's case, 1.0 m on a 0.2 m cloth (thrown 1.75 diagonals in frame 1): above 0.05 of the rest diagonal."""
+    mesh_h5, cfg = _cloth(tmp_path, [30, 35])
+    cfg["contact"] = {"colliders": [FLOOR], "d_hat": 1.0}
+    with pytest.raises(SimulationError, match=rf"scene 'cloth' \({re.escape(str(mesh_h5))}\): config key 'scenes\.cloth\.contact\.d_hat': 1\.0 m is 3\.54 times the "
+                                              r"rest bounding-box diagonal \(0\.283 m\).*at most 0\.05 of the diagonal \(0\.0141 m\)"):  # fmt: skip
+        simulate_scene("cloth", mesh_h5, cfg, tmp_path / "trajectories.h5")
+    assert not (tmp_path / "trajectories.h5").exists()
+    cfg["contact"]["d_hat"] = 0.01
+    simulate_scene("cloth", mesh_h5, cfg, tmp_path / "trajectories.h5")
