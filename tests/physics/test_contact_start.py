@@ -1,11 +1,15 @@
-"""What the simulation stage refuses before its first frame, naming the key: a ``contact.d_hat`` that is a large
-part of a mesh's size, which only the built mesh shows for a file's."""
+"""What the simulation stage refuses before its first frame, naming the key: a rest mesh that starts inside a
+collider (the barrier is infinite there; it said "every initial guess has a non-finite energy"), and a
+``contact.d_hat`` that is a large part of a mesh's size, which only the built mesh shows for a file's."""
 
 import re
 
+import numpy as np
 import pytest
+import torch
 
 from latentsim.config import with_defaults
+from latentsim.physics.contact import ContactBarrier, HalfSpace, Sphere
 from latentsim.stages.mesh import prepare_mesh
 from latentsim.stages.simulate import SimulationError, simulate_scene
 
@@ -21,6 +25,31 @@ def _cloth(tmp_path, held):
     cfg = dict(model="shell", material={"youngs_modulus": 1e5, "poisson_ratio": 0.3, "density": 200.0, "thickness": 0.001}, dt=1 / 30,
                gravity=[0, -9.81, 0], newton=dict(tolerance=1e-6), sequences=[dict(name="s", split="train", frames=3)])  # fmt: skip
     return mesh_h5, cfg
+
+
+def test_penetrations_count_the_vertices_inside_or_on_each_collider():
+    x = np.array([[0.0, 0.0, 0.0], [0.0, 0.5, 0.0], [0.0, 2.0, 0.0], [0.0, -0.5, 0.0]])
+    barrier = ContactBarrier(4, [HalfSpace((0, 0, 0), (0, 1, 0)), Sphere((0, 0.5, 0), 0.25)], d_hat=0.01, kappa=1.0)
+    (on_floor, floor_min), (in_ball, ball_min) = barrier.penetrations(x)
+    assert (on_floor, floor_min, in_ball, ball_min) == (2, -0.5, 1, -0.25)  # one on the plane, one below; the ball's centre
+    assert float(barrier.energy(torch.as_tensor(x))) == float("inf")
+    x[[0, 1, 3], 1] = 1.0  # all outside: none counted, a finite energy
+    assert barrier.penetrations(x) == [(0, 1.0), (0, 0.25)] and np.isfinite(float(barrier.energy(torch.as_tensor(x))))
+
+
+@pytest.mark.parametrize("attached", [False, True])
+def test_a_collider_the_rest_mesh_starts_inside_is_named_before_any_frame(tmp_path, attached):
+    """A ball about the cloth's centre holds its four middle vertices (2.8 cm from the centre, inside 5 cm); the
+    error names it by its index and type and counts them, static or attached to the held corner."""
+    mesh_h5, cfg = _cloth(tmp_path, [29, 34, 35])
+    ball = {"type": "sphere", "centre": [0.0, 0.0, 0.0], "radius": 0.05, "attached": attached}
+    cfg["contact"] = {"colliders": [FLOOR, ball]}
+    with pytest.raises(SimulationError, match=r"scene 'cloth': initial penetration: 4 of the rest mesh's 36 vertices lie inside or on collider 1 "
+                                              r"\(sphere\) of contact\.colliders \(config key 'scenes\.cloth\.contact\.colliders\.1'; deepest 0\.0217 m inside\)"):  # fmt: skip
+        simulate_scene("cloth", mesh_h5, cfg, tmp_path / "trajectories.h5")
+    assert not (tmp_path / "trajectories.h5").exists()
+    ball["radius"] = 0.02  # between the middle vertices: the cloth starts outside and runs
+    simulate_scene("cloth", mesh_h5, cfg, tmp_path / "trajectories.h5")
 
 
 def test_a_d_hat_too_large_for_the_built_mesh_stops_the_simulation(tmp_path):

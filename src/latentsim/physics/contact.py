@@ -424,6 +424,12 @@ class ContactBarrier(EnergyTerm):
         ``targets`` as in :meth:`energy`."""
         return torch.stack(self._signed_distances(x, targets)).amin(0)
 
+    def penetrations(self, x, targets=None) -> list[tuple[int, float]]:
+        """Per collider, how many vertices of x (n, 3) lie inside it or on its surface (signed distance <= 0,
+        where the barrier is infinite) and the smallest signed distance; ``targets`` as in :meth:`energy`."""
+        x = torch.as_tensor(np.asarray(x, dtype=float))
+        return [(int((d <= 0).sum()), float(d.min())) for d in self._signed_distances(x, targets)]
+
     def local_gradient_hessian(self, xe: torch.Tensor, project: bool = True, hessian: bool = True):
         """Per vertex: g = b'(d) grad d and H = b''(d) grad d grad d^T + b'(d) Hess d, summed over the
         colliders, H clamped to its non-negative eigenvalues when ``project``; H is None without

@@ -118,6 +118,7 @@ def simulate_scene(scene: str, mesh_h5, cfg: dict, out_h5, paraview_dir=None, pr
         raise SimulationError(f"scene '{scene}': {e}") from None
     contact = None  # the contact block with its defaults resolved, as the trajectories file records it
     if pot.contact is not None:
+        _check_initial_penetration(scene, pot.contact, cfg["contact"]["colliders"], arrays)
         contact = {"colliders": list(cfg["contact"]["colliders"]), "d_hat": pot.contact.d_hat, "kappa": pot.contact.kappa}
         if pot.contact.friction > 0:
             contact.update(friction=pot.contact.friction, friction_velocity=pot.contact.slip / float(cfg["dt"]))
@@ -178,6 +179,21 @@ def simulate_scene(scene: str, mesh_h5, cfg: dict, out_h5, paraview_dir=None, pr
                 _write_sequence(grp, f"{name}_train", {k: v[:n] for k, v in data.items()}, "train", v0)
     if paraview_dir is not None:
         write_paraview(paraview_dir, model, arrays, {k: v[1]["positions"] for k, v in results.items()}, cfg["dt"])
+
+
+def _check_initial_penetration(scene: str, barrier, colliders: list, arrays: dict) -> None:
+    """Every sequence starts at the rest state: no vertex of it may lie inside or on a collider (where it stands at
+    rest), where the barrier has no finite energy and no step can start.  Raises a ``SimulationError`` naming the
+    collider (its index in ``contact.colliders`` and its type) and how many vertices it holds."""
+    rest = np.asarray(arrays["rest_positions"], dtype=np.float64)
+    dirichlet = np.asarray(arrays.get("dirichlet", ()), dtype=np.int64)
+    for i, (count, deepest) in enumerate(barrier.penetrations(rest, rest[dirichlet] if barrier.moving else None)):
+        if count:
+            raise SimulationError(
+                f"scene '{scene}': initial penetration: {count} of the rest mesh's {len(rest)} vertices lie inside or on collider {i} "
+                f"({colliders[i]['type']}) of contact.colliders (config key 'scenes.{scene}.contact.colliders.{i}'; deepest "
+                f"{-deepest:.3g} m inside): move the collider or the mesh so that the rest shape starts outside every collider"
+            )
 
 
 def _write_sequence(grp, name, data, split, initial_velocity=None):
