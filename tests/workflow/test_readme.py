@@ -21,6 +21,8 @@ README = ROOT / "README.md"
 NOT_RUN = {
     "pip install -r envs/requirements.txt -e .": "the install: .ci/run runs it before the tests",
     "snakemake --cores 2 all": "the default run takes hours; its dry run is run below and in test_workflow",
+    "snakemake --cores 2 sizing": "the default config's sweeps take hours; the tiny run's sweep (sizing_in_all) runs the same rules, "
+                                  "and test_workflow dry-runs the target",
     "snakemake --report report.html": "needs the default run's results; the tiny run's report is built below",
     "snakemake --cores 2 all --configfile config/examples/ring.yaml": "run by test_example_scene.py",
     "snakemake --cores 2 all --configfile config/my_part.yaml": "the same run as the example's, in test_example_scene.py",
