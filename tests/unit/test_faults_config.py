@@ -315,3 +315,30 @@ def test_a_generated_meshs_diagonal_from_its_config_is_the_built_meshs(model, me
     V = build_mesh(model, mesh, {})["rest_positions"]
     assert generated_diagonal(model, mesh) == pytest.approx(float(np.linalg.norm(V.max(0) - V.min(0))), rel=1e-12)
     assert generated_diagonal(model, {**mesh, "generator": "file"}) is None  # known once the file is read
+
+
+# --- a tet count that takes the mesh stage minutes, or all the memory -----------------------------
+
+
+@pytest.mark.parametrize("target", [200_000, 1_000_000_000])
+def test_a_target_vertex_count_beyond_the_maximum_is_named_on_load(tiny, target):
+    """2e5 ran 14.5 minutes without a word, 1e9 until TetGen ran out of memory."""
+    tiny["scenes"]["tiny_rods"]["mesh"]["target_vertices"] = target
+    with pytest.raises(ConfigError, match=rf"'scenes\.tiny_rods\.mesh\.target_vertices': {target} is out of range; allowed: \{{'minimum': 0, "
+                                          r"'maximum': 50000\} \(.*2e5 took 14\.5 minutes"):  # fmt: skip
+        validate_config(tiny)
+
+
+def test_a_large_target_vertex_count_is_warned_of_in_the_mesh_stages_log(monkeypatch, caplog):
+    """Above LARGE_TARGET_VERTICES the warning comes before the meshing (stopped here before it starts)."""
+    import latentsim.mesh.build as build
+
+    def stop(*args):
+        raise RuntimeError("meshing starts")
+
+    monkeypatch.setattr(build, "build_mesh", stop)
+    for target, warned in ((build.LARGE_TARGET_VERTICES, False), (build.LARGE_TARGET_VERTICES + 1, True)):
+        caplog.clear()
+        with caplog.at_level("WARNING", logger=build.logger.name), pytest.raises(RuntimeError, match="meshing starts"):
+            build.scene_mesh("bunny", "tets", {"generator": "file", "file": "bunny.obj", "target_vertices": target}, {"type": "free"}, {})
+        assert (f"scene bunny: mesh.target_vertices {target} is above 10000: remeshing and TetGen may take many minutes" in caplog.text) == warned

@@ -42,6 +42,10 @@ GATE_MIN_DIHEDRAL_DEG = 5.0
 GATE_MIN_DIHEDRAL_DEG_FILE_TETS = 0.01
 
 
+#: a ``mesh.target_vertices`` above this is warned of in the mesh stage's log (the schema's maximum is 50000)
+LARGE_TARGET_VERTICES = 10_000
+
+
 def quality_gate(cfg: dict) -> float:
     """The smallest dihedral angle [degrees] a scene's tets may have (0: no gate).
 
@@ -178,6 +182,9 @@ def scene_mesh(scene: str, model: str, mesh_cfg: dict, dirichlet_rule: dict,
         included) or an empty Dirichlet
         set, naming the scene.
     """
+    if model == "tets" and mesh_cfg.get("generator") == "file" and int(mesh_cfg.get("target_vertices") or 0) > LARGE_TARGET_VERTICES:
+        logger.warning("scene %s: mesh.target_vertices %d is above %d: remeshing and TetGen may take many minutes (2e5 took 14.5), "
+                       "and every later stage grows with the vertex count", scene, int(mesh_cfg["target_vertices"]), LARGE_TARGET_VERTICES)
     arrays = build_mesh(model, mesh_cfg, sources)
     gate = quality_gate(mesh_cfg)
     quality = check_mesh(arrays["rest_positions"], tets=arrays.get("tets"),
