@@ -1,5 +1,7 @@
 """Bad input named before it costs a run: non-finite config numbers, sequences that collide or are
-missing, a latent dimension the training data cannot fill (in the config and in the data)."""
+missing, a latent dimension the training data (in the config and in the data) or the autoencoder's PCA layer
+cannot fill, a divergence bound the rest shape breaks, a collider with a bad field, a barrier distance that is a
+large part of the scene, a tet count beyond the maximum; and the frame check run on nothing."""
 
 from __future__ import annotations
 
