@@ -87,6 +87,38 @@ def test_speed_accuracy_points_and_chart_one_scene_and_summary(tmp_path):
     _png(tmp_path / "summary.png")
 
 
+def _marker_path(marker):
+    """A marker's outline in points, as :meth:`~matplotlib.axes.Axes.scatter` stores it."""
+    from matplotlib.markers import MarkerStyle
+
+    style = MarkerStyle(marker)
+    return style.get_path().transformed(style.get_transform())
+
+
+@pytest.mark.parametrize("scene", ["cloth", None])
+def test_speed_accuracy_legend_markers_are_the_plotted_ones(scene):
+    """Each method's legend handle has the marker its points are drawn with (the full space's triangle at
+    error 0, a circle for a measured error), on one scene's chart and on the summary's small multiples."""
+    import matplotlib.pyplot as plt
+
+    pts = _speed_df()
+    fig = plots.speed_accuracy_figure(pts, scene=scene)
+    legend = fig.axes[0].get_legend() if scene else fig.legends[0]
+    in_legend = {t.get_text(): h.get_marker() for t, h in zip(legend.get_texts(), legend.legend_handles)}
+    plotted = {}
+    for ax in fig.axes:
+        for c in ax.collections:
+            if (c.get_gid() or "").startswith("point "):
+                plotted.setdefault(c.get_gid().removeprefix("point "), []).append(c.get_paths()[0])
+    plt.close(fig)
+    assert set(plotted) == set(pts["method"]) and len(plotted["full_space"]) == (1 if scene else 2)
+    assert in_legend["full_space"] == "v" and in_legend["pca"] == "o"
+    for method, paths in plotted.items():
+        drawn = _marker_path(in_legend[method])
+        for path in paths:
+            np.testing.assert_allclose(path.vertices, drawn.vertices, err_msg=method)
+
+
 def test_speed_accuracy_points_aggregate_sequences():
     from latentsim.report.tables import speed_accuracy_points
 

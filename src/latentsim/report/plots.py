@@ -45,6 +45,7 @@ __all__ = [
     "rollout_curves",
     "save_figure",
     "speed_accuracy_chart",
+    "speed_accuracy_figure",
     "stability_heatmap",
     "training_curves",
 ]
@@ -76,6 +77,21 @@ def method_colours(methods) -> dict:
 # --------------------------------------------------------------------------- speed vs accuracy
 
 
+def _point_marker(error: float) -> str:
+    """A speed-accuracy point's marker: a circle for a measured error, a down triangle for error 0 (the
+    full space itself), a cross for none (NaN, or infinite: diverged)."""
+    if np.isfinite(error) and error > 0:
+        return "o"
+    return "v" if error == 0 else "X"
+
+
+def _method_marker(errors) -> str:
+    """The legend's marker of a method drawn with ``errors`` (its points' mean errors): the marker all its
+    points share (the full space's triangle), else the circle."""
+    markers = {_point_marker(float(x)) for x in errors}
+    return markers.pop() if len(markers) == 1 else "o"
+
+
 def _draw_speed_accuracy(ax, pts: pd.DataFrame, colours: dict, annotate=True):
     """Scatter one scene's points on ``ax`` with their front (``on_front``)."""
     t = pts["ms_per_frame"].to_numpy(float)
@@ -100,9 +116,9 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, colours: dict, annotate=True):
     placed = []  # (log10 ms, log10 error) of the labels so far: a label near one moves up a line
     for i, r in enumerate(pts.itertuples(index=False)):
         c = colours[str(r.method)]
-        marker = "o" if positive[i] else ("v" if e[i] == 0 else "X")
         face = "none" if diverged[i] else c
-        ax.scatter([t[i]], [y[i]], s=60, marker=marker, facecolors=face, edgecolors=[c], linewidths=1.5, zorder=3, clip_on=False)
+        ax.scatter([t[i]], [y[i]], s=60, marker=_point_marker(e[i]), facecolors=face, edgecolors=[c], linewidths=1.5, zorder=3,
+                   clip_on=False, gid=f"point {r.method}")  # fmt: skip
         if positive[i] and seeds[i] > 1 and np.isfinite(lo[i]) and np.isfinite(hi[i]) and lo[i] > 0:
             # several seeds: a bar from the least to the largest mean error of the stable seeds
             ax.errorbar([t[i]], [e[i]], yerr=[[max(e[i] - lo[i], 0.0)], [max(hi[i] - e[i], 0.0)]], fmt="none", ecolor=c, capsize=4,
@@ -151,6 +167,11 @@ def _draw_speed_accuracy(ax, pts: pd.DataFrame, colours: dict, annotate=True):
 
 
 def speed_accuracy_chart(pts: pd.DataFrame, path, scene=None, title=None, dpi=100) -> None:
+    """:func:`speed_accuracy_figure` of ``pts``, saved to ``path`` (PNG unless the suffix says otherwise)."""
+    save_figure(speed_accuracy_figure(pts, scene=scene, title=title), path, dpi=dpi)
+
+
+def speed_accuracy_figure(pts: pd.DataFrame, scene=None, title=None):
     """Log ms per frame (x) against log error (y), one point per method, Pareto front marked.
 
     ``pts``: one row per scene and method, as :func:`latentsim.report.tables.speed_accuracy_points` gives
@@ -176,10 +197,14 @@ def speed_accuracy_chart(pts: pd.DataFrame, path, scene=None, title=None, dpi=10
     Parameters
     ----------
     pts : DataFrame, columns as above.
-    path : output image (PNG unless the suffix says otherwise).
     scene : str or None
         One scene's chart; ``None`` draws small multiples, one panel per scene,
-        with one legend (colour = method across all panels).
+        with one legend (colour = method across all panels; a method's marker is
+        the one its points share, the full space's triangle, else the circle).
+
+    Returns
+    -------
+    The figure (:class:`matplotlib.figure.Figure`), laid out and open.
     """
     df = pts
     _require_columns(df, ["scene", "method", "ms_per_frame", "mean_error", "diverged_frame", "on_front"], "speed_accuracy_chart")
@@ -211,7 +236,9 @@ def speed_accuracy_chart(pts: pd.DataFrame, path, scene=None, title=None, dpi=10
         ax.set_ylabel("mean error / bbox diagonal")
     for ax in axes.flat[len(scenes):]:
         ax.set_visible(False)
-    handles = [Line2D([], [], marker="o", ls="", color=c, label=m) for m, c in colours.items() if m in set(pts["method"])]
+    errors = pts.groupby(pts["method"].astype(str))["mean_error"]
+    handles = [Line2D([], [], marker=_method_marker(errors.get_group(m)), ls="", color=c, label=m)
+               for m, c in colours.items() if m in errors.groups]  # fmt: skip
     handles += [
         Line2D([0, 0], [0, 1], color="0.4", marker="_", ms=8, label="vertical whisker: up to the max vertex error (one seed)"),
         Line2D([0, 0], [0, 1], color="0.4", marker="_", ms=8, lw=1.6, label="bar: least to largest error over the seeds"),
@@ -229,7 +256,7 @@ def speed_accuracy_chart(pts: pd.DataFrame, path, scene=None, title=None, dpi=10
         axes[0, 0].legend(handles=handles, fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False)
         fig.tight_layout()
     _place_labels(fig, axes.flat[: len(scenes)])
-    save_figure(fig, path, dpi=dpi)
+    return fig
 
 
 def _place_labels(fig, axes) -> None:
