@@ -57,8 +57,7 @@ def step_numpy(model: runtime.TrainedModel, seq: dict, frames: int) -> tuple[np.
 def step_torch_export(program_path, z01: np.ndarray, seq: dict, frames: int) -> tuple[np.ndarray, float]:
     """The same frames with the ``torch.export`` program of the step, ``module(z_{t-1}, z_{t-2}, p_t, p_{t-1},
     p_{t-2}, xD_t) -> (z_t, x_t)``, started from the latents z01 (2, r) that the NumPy encoder gave."""
-    with open(program_path, "rb") as f:  # a file object: torch.export.load reads any suffix (runtime.pt) without a warning
-        step = torch.export.load(f).module()
+    step = runtime.load_program(program_path)  # checked against its checksum; takes inputs of any float dtype
     bc = torch.as_tensor(seq["bc"], dtype=torch.float32)
     xD = torch.as_tensor(seq["dirichlet_positions"], dtype=torch.float64)
     z = [torch.as_tensor(z01[0]), torch.as_tensor(z01[1])]

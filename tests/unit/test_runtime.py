@@ -211,6 +211,50 @@ def test_export_load_round_trip_and_rollout(mode, tmp_path):
         rt.export_runtime(ae, integ, coords, tmp_path / "runtime.bin")
 
 
+def test_a_checked_program_takes_float64_and_a_damaged_one_is_named_and_moved_aside(tmp_path, monkeypatch):
+    """runtime.pt carries the checksum of its weights: load_program steps it on float64 inputs (as h5py gives
+    them) exactly as the raw program on its own dtypes; a flipped weight byte or a truncated file is named and
+    moved aside; a write that fails leaves no temporary file."""
+    from latentsim.checksum import ArtefactError
+
+    ae, integ, coords = _trained_modules("mean", seed=5)
+    path = tmp_path / "runtime.pt"
+    rt.export_runtime(ae, integ, coords, path)
+    g = torch.Generator().manual_seed(7)
+    args = [torch.randn(R, generator=g), torch.randn(R, generator=g)] + [torch.randn(K, generator=g) for _ in range(3)]
+    xD = torch.randn(coords.dirichlet.numel(), 3, generator=g, dtype=torch.float64)
+    with open(path, "rb") as f:
+        raw = torch.export.load(f).module()
+    z_ref, x_ref = raw(*args, xD)
+    z, x = rt.load_program(path)(*(a.double().numpy() for a in args), xD.numpy())
+    assert torch.equal(z, z_ref) and torch.equal(x, x_ref)
+    # one weight changed in the file's bytes: the checksum catches it
+    data = bytearray(path.read_bytes())
+    with open(tmp_path / "runtime.pt", "rb") as f:
+        program = torch.export.load(f)
+    tensors = [t for t in [*program.state_dict.values(), *program.constants.values()] if torch.is_tensor(t) and t.numel() >= 8]
+    at = data.find(tensors[0].detach().numpy().tobytes()[:32])
+    assert at > 0
+    data[at + 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(ArtefactError, match=r"runtime\.pt: corrupt artefact \(its weights do not match its checksum"):
+        rt.load_program(path)
+    assert not path.exists() and (tmp_path / "runtime.pt.corrupt").exists()
+    rt.export_runtime(ae, integ, coords, path)
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(ArtefactError, match=r"runtime\.pt: corrupt artefact \(torch.export cannot read it"):
+        rt.load_program(path)
+    # a write that fails midway (a full disk) leaves neither the file nor its temporary
+    def full(*a, **k):
+        (tmp_path / "runtime.tmp.pt2").write_bytes(b"half")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(torch.export, "save", full)
+    with pytest.raises(OSError, match="No space left"):
+        rt.export_runtime(ae, integ, coords, path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["runtime.pt.corrupt"]
+
+
 @pytest.mark.parametrize(("mode", "layout"), LAYOUTS)
 def test_numpy_step_does_not_allocate(mode, layout, monkeypatch):
     """No per-step allocation: the traced peak over 20 steps stays far below

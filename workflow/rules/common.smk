@@ -47,12 +47,21 @@ SCENES = sorted(config["scenes"])
 
 def run_header():
     """What a run's log records at its start, for its record (tools/run_record.py): the workflow's commit
-    (``-dirty`` with uncommitted changes; unknown outside a git checkout) and the machine."""
+    (``-dirty`` with uncommitted changes; unknown outside a git checkout) and the machine.
+    """
     import subprocess
 
     from latentsim.provenance import environment
 
-    git = ["git", "-C", workflow.basedir, "describe", "--always", "--dirty", "--abbrev=7"]
+    git = [
+        "git",
+        "-C",
+        workflow.basedir,
+        "describe",
+        "--always",
+        "--dirty",
+        "--abbrev=7",
+    ]
     commit = subprocess.run(git, capture_output=True, text=True).stdout.strip()
     env = environment()
     return [
@@ -304,16 +313,19 @@ def gpu_count(wildcards):
 
 def scene_artefacts(scene):
     """The data artefacts of a scene's chain up to its rollouts (mesh, simulation, each method's
-    autoencoder and integrator): targets of rule all, so that one a reader found corrupt and moved
-    aside is written again on the next run (Snakemake skips a missing file that no job needs).
+    autoencoder and integrator, and the deployable runtime its rollout writes): targets of rule all, so that
+    one a reader found corrupt and moved aside is written again on the next run (Snakemake skips a missing
+    file that no job needs).
     """
     out = [f"results/mesh/{scene}/mesh.h5", f"results/sim/{scene}/trajectories.h5"]
     for m in scene_methods(config, scene):
         for seed in scene_seeds(config, scene):
             d = autoencoder_dir(config, scene, m, seed)
             i = f"results/integrator/{scene}/{m}/{seed_dir(seed)}"
+            r = f"results/rollout/{scene}/{m}/{seed_dir(seed)}"
             out += [f"{d}/autoencoder.pt", f"{d}/latents.h5"]
             out += [f"{i}/integrator.pt", f"{i}/history.h5"]
+            out += [f"{r}/runtime.npz", f"{r}/runtime.pt"]
     return list(dict.fromkeys(out))
 
 

@@ -42,7 +42,7 @@ encoder, version 1 files step but cannot encode) and a ``torch.export`` program 
 """
 
 from latentsim.runtime.encoder import Encoder
-from latentsim.runtime.files import export_runtime, load_runtime, read_runtime
+from latentsim.runtime.files import export_runtime, load_program, load_runtime, read_runtime
 from latentsim.runtime.frame import RigidFrameStepper
 from latentsim.runtime.fold import FORMAT, VERSION, fold_decoder, fold_encoder, fold_networks
 from latentsim.runtime.model import TrainedModel, load
@@ -70,6 +70,7 @@ __all__ = [
     "fold_networks",
     "jvp_vertex_torch",
     "load",
+    "load_program",
     "load_runtime",
     "read_runtime",
     "rollout_runtime",
