@@ -23,6 +23,7 @@ from pathlib import Path
 import pandas as pd
 from readme_glance import replace_block, run_commit
 
+from latentsim.io import read_csv
 from latentsim.provenance import recorded_environment
 from latentsim.report.tables import claims, divergence_table, glance_table
 
@@ -34,7 +35,7 @@ def seeded_scenes(results: Path) -> list[str]:
     """Scenes whose evaluation holds a method run with several seeds."""
     out = []
     for f in sorted((results / "evaluation").glob("*/metrics.csv")):
-        df = pd.read_csv(f)
+        df = read_csv(f)
         if "seed" in df and (df.groupby("method")["seed"].nunique() > 1).any():
             out.append(f.parent.name)
     return out
@@ -59,7 +60,7 @@ def claims_block(results: Path, scenes: list[str], commit: str) -> str:
         for name, into in (("metrics.csv", frames), ("stress.csv", stress)):
             if not (d / name).is_file():
                 sys.exit(f"{d / name} not found: run `snakemake --cores 2 results/evaluation/{scene}/metrics.csv` first")
-            into.append(pd.read_csv(d / name))
+            into.append(read_csv(d / name))
     df = pd.concat(frames, ignore_index=True)
     st = pd.concat(stress, ignore_index=True)
     glance, dv = glance_table(df, st), divergence_table(df, st)

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from latentsim.io import read_csv
 from latentsim.report.tables import glance_grid, markdown
 
 BEGIN = "<!-- glance: begin (written by python tools/readme_glance.py; do not edit by hand) -->"
@@ -46,7 +47,7 @@ def glance_block(results: Path, commit: str) -> str:
     for f in (li, nm):
         if not f.is_file():
             sys.exit(f"{f} not found: run `snakemake --cores 2 all` first")
-    glance = pd.read_csv(li)
+    glance = read_csv(li)
     finished = dt.datetime.fromtimestamp(li.stat().st_mtime, dt.timezone.utc).strftime("%Y-%m-%d")
     ss = glance[glance["method"] == "self_supervised"].set_index("scene")
     speed = pd.DataFrame({
@@ -56,7 +57,7 @@ def glance_block(results: Path, commit: str) -> str:
         "stress conditions survived": ss["stress_survived"].fillna("").astype(str).values,
         "kinetic-energy ratio": [f"{v:.2f}" for v in ss["kinetic_ratio"]],
     })
-    nm_table = pd.read_csv(nm)
+    nm_table = read_csv(nm)
     nm_cols = {"scene": "scene", "modes": "modes", "E_avg neural": "mean energy, Neural Modes",
                "E_avg linear": "mean energy, linear modes", "E ratio": "ratio"}
     nm_table = nm_table[list(nm_cols)].rename(columns=nm_cols)

@@ -14,7 +14,10 @@ for complete.  Every HDF5 artefact carries, at its root:
 
 Readers open them with :func:`open_artefact`, which verifies the checksum and turns a truncated,
 unreadable or altered file into an :class:`ArtefactError` naming it, after moving it aside so that
-the next ``snakemake`` run regenerates it (:mod:`latentsim.checksum`).
+the next ``snakemake`` run regenerates it (:mod:`latentsim.checksum`).  CSV tables, which have no room
+for one, get the SHA-256 of their bytes in a file beside them (``<name>.csv.sha256``, :func:`write_csv`),
+checked the same way by :func:`read_csv`: a table with rows removed, cut mid-row or edited is named and
+moved aside.
 
 The layout of each artefact is documented in ``docs/artefacts.md``.
 """
@@ -22,6 +25,8 @@ The layout of each artefact is documented in ``docs/artefacts.md``.
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import io
 import json
 import os
 import shutil
@@ -41,8 +46,10 @@ __all__ = [
     "h5_checksum",
     "open_artefact",
     "read_config_attr",
+    "read_csv",
     "read_tree",
     "require",
+    "write_csv",
     "write_dataset",
     "write_provenance",
     "write_tree",
@@ -69,6 +76,48 @@ def atomic_path(path):
             else:
                 tmp.unlink()
         raise
+
+
+CSV_CHECKSUM = ".sha256"  # the suffix of a CSV table's checksum file: metrics.csv -> metrics.csv.sha256
+
+
+def _checksum_path(path) -> Path:
+    path = Path(path)
+    return path.with_name(path.name + CSV_CHECKSUM)
+
+
+def write_csv(df, path, **to_csv) -> None:
+    """Write the DataFrame ``df`` as CSV (``to_csv``'s keywords) atomically, with the SHA-256 of its bytes in
+    ``<path>.sha256`` (written first: a run killed between the two leaves a table whose checksum does not
+    match, which :func:`read_csv` moves aside, never one that passes unchecked)."""
+    with atomic_path(path) as tmp:
+        df.to_csv(tmp, **to_csv)
+        with atomic_path(_checksum_path(path)) as side:
+            side.write_text(hashlib.sha256(tmp.read_bytes()).hexdigest() + "\n")
+
+
+def read_csv(path, **read_csv_kw):
+    """A CSV table the pipeline wrote (:func:`write_csv`), checked against its checksum file: one whose bytes do
+    not match it (rows removed, cut mid-row, edited) or that pandas cannot read is moved aside and named
+    (:func:`latentsim.checksum.corrupt`); one without a checksum file (written before they were) is read unverified."""
+    import pandas as pd
+
+    path = Path(path)
+    data = path.read_bytes()
+    side = _checksum_path(path)
+    if side.exists():
+        stored, actual = side.read_text().strip(), hashlib.sha256(data).hexdigest()
+        if stored != actual:
+            side.unlink(missing_ok=True)
+            raise corrupt(path, f"its bytes do not match its checksum in {side.name} (sha256 {actual[:12]}..., recorded {stored[:12]}...): "
+                                "rows removed, cut or edited")  # fmt: skip
+    else:
+        unverified(path)
+    try:
+        return pd.read_csv(io.BytesIO(data), **read_csv_kw)
+    except Exception as err:  # empty, binary, ragged: pandas' ParserError, EmptyDataError, UnicodeDecodeError, ...
+        side.unlink(missing_ok=True)
+        raise corrupt(path, f"pandas cannot read it as CSV: {type(err).__name__}: {err}") from err
 
 
 @contextlib.contextmanager

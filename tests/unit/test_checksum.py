@@ -279,3 +279,31 @@ def test_truncated_runtime_npz_names_the_file(tmp_path):
     with corrupt_error(path):
         rt.read_runtime(path)
     assert_moved_aside(path)
+
+
+def test_a_csv_table_is_checked_against_its_checksum_file(tmp_path, caplog):
+    """metrics.csv with rows removed, or cut mid-row, is named and moved aside (with its checksum file) instead of
+    read as a smaller table; a table without a checksum file reads with a warning."""
+    import pandas as pd
+
+    from latentsim.io import read_csv
+    from latentsim.report.tables import write_table
+
+    path = tmp_path / "metrics.csv"
+    df = pd.DataFrame({"method": ["a", "b", "c"], "seed": [0, 1, 2], "mean_error": [0.1, 0.2, 0.3]})
+    write_table(df, path)
+    assert (tmp_path / "metrics.csv.sha256").is_file()
+    assert read_csv(path).equals(df)
+    for damage in (lambda text: "\n".join(text.splitlines()[:2]) + "\n", lambda text: text[: len(text) - 5]):
+        path.write_text(damage(path.read_text()))
+        with pytest.raises(ArtefactError, match=r"metrics\.csv: corrupt artefact \(its bytes do not match its checksum in metrics\.csv\.sha256"):
+            read_csv(path)
+        assert not path.exists() and (tmp_path / "metrics.csv.corrupt").exists() and not (tmp_path / "metrics.csv.sha256").exists()
+        write_table(df, path)
+    (tmp_path / "metrics.csv.sha256").unlink()
+    with caplog.at_level(logging.WARNING):
+        assert read_csv(path).equals(df)
+    assert "no sha256 checksum" in caplog.text
+    path.write_bytes(b"\x00\xff\xfe binary")
+    with pytest.raises(ArtefactError, match=r"pandas cannot read it as CSV"):
+        read_csv(path)

@@ -4,13 +4,14 @@ import logging
 
 import pandas as pd
 
+from latentsim.io import read_csv
 from latentsim.report.tables import write_table
 from latentsim.latent.sweep import choose, chosen_label, recorded_choice_note, sweep_chart
 from latentsim.utils import run_stage
 
 
 def main(smk):
-    df = pd.concat([pd.read_csv(p) for p in smk.input.points], ignore_index=True)
+    df = pd.concat([read_csv(p) for p in smk.input.points], ignore_index=True)
     table = choose(df, float(smk.params.tolerance), float(smk.params.pass_fraction)).assign(method=smk.params.method)
     write_table(table, smk.output.choice)
     sweep_chart(table, float(smk.params.tolerance), smk.wildcards.scene, smk.output.chart, method=smk.params.method)

@@ -32,7 +32,7 @@ import torch
 
 from latentsim import runtime
 from latentsim.config import with_defaults
-from latentsim.io import open_artefact
+from latentsim.io import open_artefact, read_csv
 from latentsim.latent.autoencoder import encode_positions, fit_autoencoder
 from latentsim.latent.coordinates import coordinates_for
 from latentsim.latent.data import load_sequences
@@ -122,7 +122,7 @@ def sweep_point(trajectories, autoencoder: dict, integrator: dict, rollout: dict
         its :func:`pruned_row`.
     """
     if earlier:
-        before = pd.concat([pd.read_csv(p) for p in earlier["metrics"]], ignore_index=True)
+        before = pd.concat([read_csv(p) for p in earlier["metrics"]], ignore_index=True)
         reason = prune_reason(before, float(earlier["tolerance"]), float(earlier["pass_fraction"]), int(earlier["seeds"]))
         if reason is not None:
             log.info("seed %d not trained: the point %s", seed, reason)

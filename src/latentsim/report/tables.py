@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from latentsim.io import atomic_path, open_artefact, require
+from latentsim.io import atomic_path, open_artefact, read_csv, require, write_csv
 from latentsim.report.metrics import PENETRATION_LIMIT, pareto_front
 from latentsim.report.paper import li2025_table1, li2025_table2
 
@@ -58,9 +58,9 @@ __all__ = [
 
 
 def write_table(df: pd.DataFrame, path):
-    """Write ``df`` as CSV atomically (no index, floats to 6 significant digits)."""
-    with atomic_path(path) as tmp:
-        df.to_csv(tmp, index=False, float_format="%.6g")
+    """Write ``df`` as CSV atomically (no index, floats to 6 significant digits), with its checksum beside it
+    (:func:`latentsim.io.write_csv`; :func:`latentsim.io.read_csv` checks it)."""
+    write_csv(df, path, index=False, float_format="%.6g")
 
 
 def stress_over_seeds(stress: pd.DataFrame) -> pd.DataFrame:
@@ -280,7 +280,7 @@ def sizes_table(sizes: dict, choices: dict | None = None) -> pd.DataFrame:
         row.update(paper_latent=t1[1] if t1 else np.nan, paper_decoder_layers=t2[0] if t2 else "", paper_integrator_layers=t2[1] if t2 else "")
         path = (choices or {}).get(scene)
         if path is not None:
-            ch = pd.read_csv(path)
+            ch = read_csv(path)
             need = {"latent_dim", "autoencoder_widths", "integrator_widths", "parameters", "mean_error", "step_ms", "passes", "chosen"}
             if not need <= set(ch.columns):
                 raise ValueError(f"{path}: sweep choice table lacks columns {sorted(need - set(ch.columns))}")
@@ -663,7 +663,7 @@ def write_table_html(source, path, title: str | None = None, before: str = "") -
     """
     source = Path(source)
     if source.suffix == ".csv":
-        df = pd.read_csv(source)
+        df = read_csv(source)
         body, tables, found = html_table(df), 1, None
         note = f"{source.name}: {len(df)} rows x {len(df.columns)} columns (beside this page in results/)"
     elif source.suffix == ".md":
@@ -688,7 +688,7 @@ def write_glance_html(glance_csv, path, fragment, title: str = "At a glance: eve
     :func:`glance_table`'s CSV) above the whole glance table.  ``fragment``: the grid alone as an HTML
     fragment (a ``div`` with its own scoped style) for the report's landing page to include.
     """
-    glance = pd.read_csv(glance_csv)
+    glance = read_csv(glance_csv)
     grid = glance_grid(glance)
     note = f"<p>{html.escape(GLANCE_GRID_NOTE)}</p>"
     before = f"<h2>Scenes x compared methods</h2>\n{note}\n{html_table(grid)}\n<h2>Every method per scene (variants too)</h2>\n"

@@ -19,7 +19,7 @@ import pandas as pd
 import torch
 
 from latentsim.config import with_defaults
-from latentsim.io import atomic_path, open_artefact
+from latentsim.io import atomic_path, open_artefact, read_csv
 from latentsim.latent.autoencoder import encode_positions
 from latentsim.latent.conditioning import AtCondition, Conditioning, frame_factor, scaled_sequence
 from latentsim.latent.data import load_sequences
@@ -191,8 +191,8 @@ def summarise_conditioned(scene: str, metrics: list, frame_rates: list, toleranc
         diagonal), against which the frame-rate check's errors are read.
     train_conditions : {name: {time_step, youngs_modulus}} of the training sequences (marked in the figure).
     """
-    df = pd.concat([pd.read_csv(p) for p in metrics], ignore_index=True)
-    fr = pd.concat([pd.read_csv(p) for p in frame_rates], ignore_index=True) if frame_rates else pd.DataFrame(columns=FRAME_RATE_COLUMNS)
+    df = pd.concat([read_csv(p) for p in metrics], ignore_index=True)
+    fr = pd.concat([read_csv(p) for p in frame_rates], ignore_index=True) if frame_rates else pd.DataFrame(columns=FRAME_RATE_COLUMNS)
     table = conditioned_table(df)
     write_table(table, out_csv)
     with atomic_path(out_md) as tmp:

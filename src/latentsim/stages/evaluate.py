@@ -27,7 +27,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from latentsim.io import atomic_path, open_artefact, require
+from latentsim.io import atomic_path, open_artefact, read_csv, require
 from latentsim.latent.timing import time_full_space
 from latentsim.report.metrics import bbox_diagonal, penetration, rollout_metrics
 from latentsim.report.paraview import write_xdmf_series
@@ -74,7 +74,7 @@ def write_full_space_time(trajectories, out_csv, frames: int = 20) -> pd.DataFra
 
 def read_full_space_time(path) -> float:
     """The scene's one full-space ms per frame from :func:`write_full_space_time`'s table (the file named if it is not one)."""
-    table = pd.read_csv(path)
+    table = read_csv(path)
     if list(table.columns[:2]) != ["sequence", "full_ms"] or len(table) != 1 or not np.isfinite(table["full_ms"].iloc[0]):
         raise ValueError(f"{path}: not a full-space timing (one row: sequence, full_ms, ...); delete it and rerun")
     return float(table["full_ms"].iloc[0])
@@ -166,7 +166,7 @@ def write_scene_evaluation(scene: str, trajectories, rollouts, latents, *, metri
 def _reconstruction_summary(paths) -> pd.DataFrame:
     """The scenes' reconstruction tables as one row per scene and split: mean of the sequence means, max of the maxima
     (and of the depths inside the colliders, where a scene has them)."""
-    rec = pd.concat([pd.read_csv(t) for t in paths], ignore_index=True) if paths else pd.DataFrame()
+    rec = pd.concat([read_csv(t) for t in paths], ignore_index=True) if paths else pd.DataFrame()
     if not rec.empty:
         depth = {"max_penetration": ("max_penetration", "max")} if "max_penetration" in rec else {}
         rec = rec.groupby(["scene", "split"], sort=False).agg(mean_error=("mean_error", "mean"), max_error=("max_error", "max"), **depth).reset_index()
@@ -235,7 +235,7 @@ def summarise(tables: list, csv_path, md_path, fig_path, table1_path=None, stabi
     seeds every table states the spread over them; ``divergence_path`` gets
     :func:`~latentsim.report.tables.divergence_table` and ``claims_path`` the sentences of
     :func:`~latentsim.report.tables.claims` (also the summary's first section)."""
-    df = pd.concat([pd.read_csv(t) for t in tables], ignore_index=True)
+    df = pd.concat([read_csv(t) for t in tables], ignore_index=True)
     rec = _reconstruction_summary(reconstruction)
     write_table(df, csv_path)
     layers, sized = _sized_layers(sizes)
@@ -244,7 +244,7 @@ def summarise(tables: list, csv_path, md_path, fig_path, table1_path=None, stabi
     for table, path in ((sz, sizes_path), (t1, table1_path), (t2, table2_path), (st, stability_path)):
         if path is not None:
             write_table(table, path)
-    frames = [pd.read_csv(t) for t in stress]
+    frames = [read_csv(t) for t in stress]
     st_all = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
     speed_accuracy_chart(speed_accuracy_points(df), fig_path, scene=None, title="speed vs accuracy, every scene (full space at error 0)")
     glance = glance_table(df, st_all)

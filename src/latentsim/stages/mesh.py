@@ -13,7 +13,7 @@ import meshio
 import numpy as np
 import pandas as pd
 
-from latentsim.io import atomic_h5, atomic_path, open_artefact, write_dataset
+from latentsim.io import atomic_h5, atomic_path, open_artefact, write_csv, write_dataset
 from latentsim.mesh import scene_mesh
 from latentsim.mesh.build import quality_gate
 
@@ -63,8 +63,7 @@ def write_quality_table(meshes: dict, out_csv) -> pd.DataFrame:
                 row[k] = v.item() if isinstance(v, np.generic) else v
         rows.append(row)
     df = pd.DataFrame(rows, columns=["scene", "model", *QUALITY_COLUMNS])
-    with atomic_path(out_csv) as tmp:
-        df.to_csv(tmp, index=False)
+    write_csv(df, out_csv, index=False)
     return df
 
 
