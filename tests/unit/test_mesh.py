@@ -871,3 +871,27 @@ def test_quality_table_has_a_row_per_scene_with_the_gate_passed(tmp_path):
     assert b["n_tets"] > 0 and b["gate_min_dihedral_deg"] == 5.0 and b["n_below_min_dihedral"] == 0
     assert b["dihedral_min_deg"] >= 5.0 and b["radius_edge_max"] >= 0.612
     assert s["n_triangles"] == 24 and np.isnan(s["dihedral_min_deg"]) and s["angle_min_deg"] > 0
+
+
+def _cube(origin, size=1.0):
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float) * size + origin
+    f = np.array([[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4], [2, 3, 7], [2, 7, 6], [1, 2, 6], [1, 6, 5], [0, 4, 7], [0, 7, 3]])
+    return v, f
+
+
+def test_a_self_intersecting_surface_is_named_and_a_crashing_tetgen_stops_the_call_not_the_process():
+    """Two interpenetrating cubes as one surface: TetGen's error says the surface intersects itself.  A library that
+    aborts the process (as TetGen does on some damaged surfaces) is run in a child: its caller gets a MeshError."""
+    import os as _os
+
+    from latentsim.mesh.tetgen import _run_tetgen, in_child_process
+
+    (v1, f1), (v2, f2) = _cube(np.zeros(3)), _cube(np.array([0.5, 0.3, 0.2]))
+    with pytest.raises(MeshError, match="the surface intersects itself"):
+        _run_tetgen(np.vstack([v1, v2]), np.vstack([f1, f2 + 8]), "pYa0.01")
+    nodes, tets = _run_tetgen(v1, f1, "pYa0.01")  # a sound surface fills, through the same child process
+    assert tets.shape[1] == 4 and np.isclose(np.abs(M.tet_volumes(nodes, tets)).sum(), 1.0)
+    with pytest.raises(MeshError, match=r"TetGen crashed \(signal 6\)"):
+        in_child_process(_os.abort)
+    with pytest.raises(ZeroDivisionError):  # an ordinary exception comes back as itself
+        in_child_process(divmod, 1, 0)

@@ -48,8 +48,8 @@ from latentsim.utils import working_directory
 logger = logging.getLogger(__name__)
 
 
-def _run_tetgen(vertices: np.ndarray, triangles: np.ndarray, switches: str):
-    """One TetGen run: nodes (m, 3) float64 and tets (e, 4) int64, as TetGen orders them."""
+def _tetgen_call(vertices: np.ndarray, triangles: np.ndarray, switches: str):
+    """TetGen itself, in this process: (nodes, tets) as it returns them, or a :class:`MeshError`."""
     # tetgen (a compiled extension) is only needed where a surface is filled
     import tetgen
 
@@ -59,7 +59,50 @@ def _run_tetgen(vertices: np.ndarray, triangles: np.ndarray, switches: str):
         with tempfile.TemporaryDirectory() as scratch, working_directory(scratch):
             out = tg.tetrahedralize(switches=switches)
     except RuntimeError as exc:
-        raise MeshError(f"TetGen failed with switches {switches!r}: {exc}") from exc
+        hint = "; the surface intersects itself: repair it (e.g. remove self-intersecting faces) first" if "intersect" in str(exc) else ""
+        raise MeshError(f"TetGen failed with switches {switches!r}: {exc}{hint}") from exc
+    return np.asarray(out[0]), np.asarray(out[1])
+
+
+def _child(conn, call, args) -> None:
+    try:
+        conn.send(("ok", call(*args)))
+    except BaseException as exc:  # noqa: BLE001 (sent to the parent, which raises it)
+        conn.send(("error", exc))
+    finally:
+        conn.close()
+
+
+def in_child_process(call, *args):
+    """``call(*args)`` in a forked child process, its result or exception passed back: a compiled library that
+    aborts the process (TetGen on some damaged surfaces: ``malloc(): invalid size``, SIGABRT) kills the child
+    alone, and the caller gets a :class:`MeshError` saying so instead of a process gone without a word."""
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("fork")
+    parent, child = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_child, args=(child, call, args), daemon=True)
+    proc.start()
+    child.close()
+    try:
+        kind, value = parent.recv()
+    except EOFError:  # the child died without an answer
+        proc.join()
+        signal = f"signal {-proc.exitcode}" if proc.exitcode is not None and proc.exitcode < 0 else f"exit code {proc.exitcode}"
+        raise MeshError(f"TetGen crashed ({signal}) filling the surface: a surface that intersects itself or is otherwise "
+                        "damaged does this; repair it (closed, manifold, not self-intersecting) and run again") from None  # fmt: skip
+    finally:
+        parent.close()
+    proc.join()
+    if kind == "error":
+        raise value
+    return value
+
+
+def _run_tetgen(vertices: np.ndarray, triangles: np.ndarray, switches: str):
+    """One TetGen run, in a child process (:func:`in_child_process`): nodes (m, 3) float64 and tets (e, 4) int64,
+    as TetGen orders them."""
+    out = in_child_process(_tetgen_call, np.asarray(vertices), np.asarray(triangles), switches)
     nodes = np.asarray(out[0], dtype=np.float64)
     elems = np.asarray(out[1], dtype=np.int64)
     if elems.ndim != 2 or elems.shape[1] != 4 or len(elems) == 0:
