@@ -121,11 +121,13 @@ rule summary:
             "results/evaluation/stress_map.png",
             caption="../report/stress_map.rst",
             category="Summary",
+            labels={"title": "Stress conditions: map"},
         ),
         figure=report(
             "results/evaluation/speed_accuracy.png",
             caption="../report/speed_accuracy.rst",
             category="Summary",
+            labels={"title": "Speed against accuracy"},
         ),
     log:
         "logs/evaluation/summary.log",
