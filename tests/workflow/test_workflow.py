@@ -129,6 +129,23 @@ def test_the_sizing_sweeps_are_a_target_of_their_own_and_all_shows_those_that_ra
     assert ("report_sweep_page", "cloth") in jobs and {s for r, s in jobs if r.startswith("sweep_")} == {"cloth"}
 
 
+def test_a_second_configs_all_is_refused_before_any_job_where_another_configs_summary_is(tmp_path):
+    """The summary (and so the report) of one config's run is not replaced by another config's `all` in the same
+    folder: refused while the DAG is built, naming both configs (a dry run warns); the same config's run goes on."""
+    owner = tmp_path / "results/evaluation/summary_config.json"
+    owner.parent.mkdir(parents=True)
+    owner.write_text(json.dumps({"config_files": ["config/examples/ring.yaml"], "scenes": ["ring"]}))
+    out = snakemake("--cores", "1", "all", "--configfile", str(TINY), "--directory", str(tmp_path), check=False)
+    said = out.stdout + out.stderr
+    assert out.returncode != 0 and "written by the run of config/examples/ring.yaml (scenes ring)" in said
+    assert "this run, of config/tiny.yaml, would replace them" in said and not (tmp_path / "results/mesh").exists()
+    dry = snakemake("-n", "all", "--configfile", str(TINY), "--directory", str(tmp_path))
+    assert "Warning: results/evaluation/summary.* and the report were written by the run of config/examples/ring.yaml" in dry.stdout + dry.stderr
+    owner.write_text(json.dumps({"config_files": ["config/tiny.yaml"], "scenes": ["tiny_rods"]}))
+    same = snakemake("-n", "all", "--configfile", str(TINY), "--directory", str(tmp_path))
+    assert "Warning: results/evaluation/summary" not in same.stdout + same.stderr
+
+
 def test_dry_run_of_the_soft_solids_example_plans_every_stage_of_both_scenes(tmp_path):
     """config/examples/soft_solids.yaml (neo-Hookean giraffe and armadillo) validates and plans the simulation,
     the latent methods with their variant and the giraffe's Neural Modes (its full run: docs/measurements.md)."""

@@ -106,6 +106,7 @@ rule summary:
         ),
         stress=expand("results/evaluation/{scene}/stress.csv", scene=SCENES),
         sweeps=list(reported_sweep_choices().values()),
+        owner=summary_owner,
     output:
         csv="results/evaluation/summary.csv",
         markdown="results/evaluation/summary.md",
@@ -117,6 +118,7 @@ rule summary:
         sizes="results/evaluation/sizes.csv",
         divergence="results/evaluation/divergence.csv",
         claims="results/evaluation/claims.md",
+        owner=SUMMARY_OWNER,
         stress_map=report(
             "results/evaluation/stress_map.png",
             caption="../report/stress_map.rst",
@@ -138,5 +140,7 @@ rule summary:
     params:
         sizes=model_sizes(),
         sweep_choices=reported_sweep_choices(),
+        config_files=config_files(),
+        scenes=SCENES,
     script:
         "../scripts/summary.py"

@@ -1,4 +1,8 @@
-"""Stage: summary tables and charts across scenes (see latentsim.stages.evaluate.summarise)."""
+"""Stage: summary tables and charts across scenes (see latentsim.stages.evaluate.summarise), and the record of which
+config's run wrote them (so that another config's run in the same folder is refused instead of replacing them)."""
+import json
+
+from latentsim.io import atomic_path
 from latentsim.stages.evaluate import summarise
 from latentsim.utils import run_stage
 
@@ -23,6 +27,8 @@ def main(smk):
         divergence_path=out.divergence,
         claims_path=out.claims,
     )
+    with atomic_path(out.owner) as tmp:
+        tmp.write_text(json.dumps({"config_files": list(smk.params.config_files), "scenes": list(smk.params.scenes)}, indent=1) + "\n")
 
 
 run_stage(snakemake, main)  # noqa: F821 (injected by Snakemake)
