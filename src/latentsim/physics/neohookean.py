@@ -133,7 +133,7 @@ class StableNeoHookeanTets(StVKTets):
         W B^T (dP/dF) B, or the projected one with dP/dF clamped in its analytic eigensystem."""
         E = int(self.stencils.shape[0])
         args = (float64_array(self.grad_op), float64_array(self.rest_volume, E), float64_array(self.mu, E), float64_array(self.lam, E))
-        return KernelSpec(snh_kernels.snh_energy, snh_kernels.snh_run, args, 4)
+        return KernelSpec(snh_kernels.snh_energy, snh_kernels.snh_energy_gradient, snh_kernels.snh_run, args, 4)
 
 
 __all__ = ["StableNeoHookeanTets", "snh_density", "snh_parameters"]

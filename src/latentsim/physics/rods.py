@@ -211,7 +211,8 @@ class RodStretch(EnergyTerm):
         K = ks/|ebar| [u u^T + c (I - u u^T)],  c = 1 - |ebar|/l,
         with c clamped at 0 when projecting (exact eigenvalue clamp).
         """
-        return KernelSpec(rod_kernels.stretch_energy, rod_kernels.stretch_run, (float64_array(self.rest_length), float64_array(self.ks)), 2)
+        return KernelSpec(rod_kernels.stretch_energy, rod_kernels.stretch_energy_gradient, rod_kernels.stretch_run,
+                          (float64_array(self.rest_length), float64_array(self.ks)), 2)
 
 
 # --------------------------------------------------------------------------
@@ -317,4 +318,5 @@ class RodBend(EnergyTerm):
         in the stencil frame (the exact clamp of the 9x9 Hessian).
         """
         args = (float64_array(4.0 * self.kb / self.rest_voronoi), float64_array(self.rest_product))
-        return KernelSpec(rod_kernels.bend_energy, rod_kernels.bend_run, args, 3, translation_free_basis(3))
+        return KernelSpec(rod_kernels.bend_energy, rod_kernels.bend_energy_gradient, rod_kernels.bend_run,
+                          args, 3, translation_free_basis(3))

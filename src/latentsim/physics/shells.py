@@ -354,7 +354,8 @@ class ShellMembraneStVK(EnergyTerm):
         """
         sel = torch.tensor([[-1.0, -1.0], [1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)
         args = (float64_array(sel @ self.Dm_inv), float64_array(self.rest_area * self.thickness), float64_array(self.mu), float64_array(self.lam))
-        return KernelSpec(shell_kernels.membrane_energy, shell_kernels.membrane_run, args, 3, translation_free_basis(3))
+        return KernelSpec(shell_kernels.membrane_energy, shell_kernels.membrane_energy_gradient, shell_kernels.membrane_run,
+                          args, 3, translation_free_basis(3))
 
 
 # --------------------------------------------------------------------------
@@ -443,4 +444,5 @@ class ShellHinge(EnergyTerm):
         translation-free block (exact eigenvalue clamp).
         """
         args = (float64_array(self.kb * self.weight), float64_array(self.rest_angle))
-        return KernelSpec(shell_kernels.hinge_energy, shell_kernels.hinge_run, args, 4, translation_free_basis(4))
+        return KernelSpec(shell_kernels.hinge_energy, shell_kernels.hinge_energy_gradient, shell_kernels.hinge_run,
+                          args, 4, translation_free_basis(4))

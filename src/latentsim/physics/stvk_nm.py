@@ -134,7 +134,8 @@ class ShellMembraneNM(EnergyTerm):
         """The compiled kernels (``kernels.stvk_nm``), G (T, 3, 2) = [[-1, -1], [1, 0], [0, 1]] Dm^{-1}."""
         sel = torch.tensor([[-1.0, -1.0], [1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)
         args = (float64_array(sel @ self.Dm_inv), float64_array(self.rest_area * self.thickness), float64_array(self.mu), float64_array(self.lam))
-        return KernelSpec(nm_kernels.membrane_nm_energy, nm_kernels.membrane_nm_run, args, 3, translation_free_basis(3))
+        return KernelSpec(nm_kernels.membrane_nm_energy, nm_kernels.membrane_nm_energy_gradient, nm_kernels.membrane_nm_run,
+                          args, 3, translation_free_basis(3))
 
 
 class TetsNM(EnergyTerm):
@@ -197,4 +198,5 @@ class TetsNM(EnergyTerm):
     def kernel_spec(self) -> KernelSpec:
         """The compiled kernels (``kernels.stvk_nm``)."""
         args = (float64_array(self.grad_op), float64_array(self.rest_volume), float64_array(self.mu), float64_array(self.lam))
-        return KernelSpec(nm_kernels.tet_nm_energy, nm_kernels.tet_nm_run, args, 4, translation_free_basis(4))
+        return KernelSpec(nm_kernels.tet_nm_energy, nm_kernels.tet_nm_energy_gradient, nm_kernels.tet_nm_run,
+                          args, 4, translation_free_basis(4))

@@ -261,7 +261,7 @@ class StVKTets(EnergyTerm):
         W B^T (dP/dF) B, or the projected one with dP/dF clamped in its analytic eigensystem."""
         E = int(self.stencils.shape[0])
         args = (float64_array(self.grad_op), float64_array(self.rest_volume, E), float64_array(self.mu, E), float64_array(self.lam, E))
-        return KernelSpec(tet_kernels.tet_energy, tet_kernels.tet_run, args, 4)
+        return KernelSpec(tet_kernels.tet_energy, tet_kernels.tet_energy_gradient, tet_kernels.tet_run, args, 4)
 
 
 __all__ = [

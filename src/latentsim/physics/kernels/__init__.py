@@ -9,7 +9,8 @@ dominates the small per-stencil work, so the same formulas are compiled
 stencil by stencil:
 
 - ``core``: scatter into the gradient and the sparse Hessian, the Jacobi
-  eigensolver, the 3x3 SVD, the PSD projection;
+  eigensolver, the 3x3 SVD, the PSD projection, the lanes (the energy kernels
+  take one state or many, the state index innermost);
 - ``tets``, ``rods``, ``shells``: the kernels of each term (formulas in their
   docstrings); each term names its own (``EnergyTerm.kernel_spec``);
 - ``inertia``: inertia and gravity of the incremental potential;

@@ -11,7 +11,16 @@ r"""Shared pieces of the compiled per-stencil kernels (numba), written once.
 - ``project_psd``: THE eigenvalue clamp of a stencil Hessian (Teran et al.
   2005), on the span of an orthonormal basis: the identity for a plain clamp,
   ``translation_free_basis(k)`` for translation-invariant energies;
-- small 3-vector helpers (``skew``, ``matmul3``).
+- small 3-vector helpers (``skew``, ``matmul3``);
+- lanes: the energy and energy + gradient kernels take one state x (n, 3) or
+  L states x (n, 3, L), the state index innermost (``as_lanes``,
+  ``lane_count``).  Every per-stencil quantity then has a trailing lane axis
+  and every innermost loop runs over the lanes, contiguous in memory, so the
+  L states' identical arithmetic is vectorised; each lane performs exactly the
+  operations of a one-state pass, in the same order (no fast-math, no
+  reassociation), so the bits do not depend on L.  For one state L is the
+  constant 1 and the lane loops vanish at compile time.  ``energy_gradient_lanes``
+  is the loop of every energy + gradient kernel.
 
 Everything runs in float64 and is compiled once and cached on disk
 (``cache=True``); the kernels release the GIL (``nogil``).
@@ -23,6 +32,7 @@ import math
 
 import numpy as np
 from numba import njit
+from numba.extending import overload
 
 JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 # The helpers below marked INLINE are inlined into each run kernel (numba IR inlining) with the
@@ -32,7 +42,62 @@ JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 INLINE = dict(JIT, inline="always")
 
 
-GRADIENT, SCATTER, STORE = 0, 1, 2  # modes of the run kernels: gradient only, scatter, store per stencil
+SCATTER, STORE = 1, 2  # modes of the run kernels: scatter, store per stencil
+
+
+# ---------------------------------------------------------------------------
+# lanes: one state (n, 3) or L states (n, 3, L), the state index innermost
+# ---------------------------------------------------------------------------
+def as_lanes(x):
+    """x (n, 3) as a view (n, 3, 1), one lane; x (n, 3, L) as it is."""
+
+
+@overload(as_lanes, inline="always")
+def _as_lanes(x):
+    if x.ndim == 2:
+        return lambda x: x.reshape((x.shape[0], x.shape[1], 1))
+    return lambda x: x
+
+
+def lane_count(x):
+    """The number of lanes of x: the constant 1 for x (n, 3), L for x (n, 3, L)."""
+
+
+@overload(lane_count, inline="always")
+def _lane_count(x):
+    if x.ndim == 2:
+        return lambda x: 1
+    return lambda x: x.shape[2]
+
+
+@njit(**INLINE)
+def scatter_lanes(e, st, g, grad, k, L):
+    """Add stencil e's gradient g (3k, L) into grad (n, 3, L), lane by lane; k = st.shape[1]."""
+    for a in range(k):
+        v = st[e, a]
+        for i in range(3):
+            for s in range(L):
+                grad[v, i, s] += g[3 * a + i, s]
+
+
+@njit(**INLINE)
+def energy_gradient_lanes(local, scratch, x, st, order, args, grad, k):
+    """The body of every ``*_energy_gradient`` kernel: the energies (L,) of the stencils ``order``
+    in each lane of x (n, 3) or (n, 3, L), their gradients added into grad (x's shape).
+
+    Per stencil e, ``local(e, x, st, args, work, total, L)`` adds its energies into total (L,)
+    and leaves its gradients (3k, L) in ``work[0]``; ``work = scratch(L)`` holds its lanes, and
+    ``args`` the term's rest data.  A run kernel calls the same ``local`` with one lane.
+    """
+    L = lane_count(x)
+    xl, gl = as_lanes(x), as_lanes(grad)
+    work = scratch(L)
+    total = np.zeros(L)
+    for ii in range(order.shape[0]):
+        e = order[ii]
+        local(e, xl, st, args, work, total, L)
+        scatter_lanes(e, st, work[0], gl, k, L)
+    return total
 
 
 # ---------------------------------------------------------------------------
@@ -40,7 +105,7 @@ GRADIENT, SCATTER, STORE = 0, 1, 2  # modes of the run kernels: gradient only, s
 # ---------------------------------------------------------------------------
 @njit(**INLINE)
 def scatter_gradient(e, st, g, grad, k):
-    """Add stencil e's gradient g (3k,); k = st.shape[1]."""
+    """Add stencil e's gradient g (3k,) into grad (3n,); k = st.shape[1]."""
     for a in range(k):
         v = st[e, a]
         for i in range(3):

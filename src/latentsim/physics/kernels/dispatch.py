@@ -1,16 +1,19 @@
 r"""The compiled kernels of one energy term, and their batching over stencils, threads and states.
 
 Every ``EnergyTerm`` with compiled kernels names them (``EnergyTerm.kernel_spec``:
-a :class:`KernelSpec` of an energy kernel, a run kernel, the rest data and the
-stencil size, the kernels in ``kernels.tets``, ``kernels.rods``,
-``kernels.shells``).  :class:`TermKernel` holds them with float64 copies of
-the term's stencils and offers
+a :class:`KernelSpec` of an energy kernel, an energy + gradient kernel, a run
+kernel, the rest data and the stencil size, the kernels in ``kernels.tets``,
+``kernels.rods``, ``kernels.shells``).  :class:`TermKernel` holds them with
+float64 copies of the term's stencils and offers
 
 - ``energy(x)``: the term's energy at x (n, 3), gathered inside the kernel;
 - ``energy_gradient(x, grad)``: the energy, and the gradient added into the
   (3n,) ``grad``, in one pass (the line search: the accepted trial state's
   gradient then serves the next convergence test, and the Hessian is built
   only when that test fails);
+- ``energies(x, grad)``: the same for L states at once, x (n, 3, L) with the
+  state index innermost (``core.as_lanes``: the kernels vectorise over the
+  states, and each state's bits are those of a one-state pass);
 - ``accumulate(x, grad, data, slots, project)``: per stencil, the gradient and
   the Hessian (exact, or eigenvalue-clamped), added straight into the (3n,)
   gradient and into the data array of the free-DoF Hessian (the CSR data, or
@@ -29,9 +32,9 @@ written by both, then the separator, and the energies are summed in the fixed
 order (first half + second half) + separator.  Many states at once (the
 self-supervised losses) split the states over threads instead
 (``batch_energy_gradient``: contiguous, fixed ranges of states, each state
-computed whole by one thread).  No kernel uses numba's parallel loops, so the
-numba threading layer plays no part: the bits do not depend on the thread
-count or on the machine's load.
+computed whole by one thread, in blocks of ``LANES`` states per kernel call).
+No kernel uses numba's parallel loops, so the numba threading layer plays no
+part: the bits do not depend on the thread count or on the machine's load.
 """
 
 from __future__ import annotations
@@ -45,7 +48,7 @@ import scipy.sparse
 import torch
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-from latentsim.physics.kernels.core import GRADIENT, SCATTER, STORE
+from latentsim.physics.kernels.core import SCATTER, STORE
 
 
 def available() -> bool:
@@ -59,10 +62,14 @@ class KernelSpec:
 
     Attributes
     ----------
-    energy : ``energy(x, st, order, *args) -> float``, the summed energy of the stencils ``order``.
+    energy : ``energy(x, st, order, *args) -> (L,)``, the summed energy of the stencils ``order``
+        in each lane of x: one state x (n, 3), L = 1, or L states x (n, 3, L), the state index
+        innermost (``core.as_lanes``).
+    energy_gradient : ``energy_gradient(x, st, order, *args, grad) -> (L,)``, the same energies
+        and the gradients added into ``grad`` (x's shape).
     run : ``run(x, st, order, *args, project, [basis,] grad, data, slots, g_out, H_out, mode)``,
-        the energy and the gradient (mode GRADIENT), gradient and Hessian scattered (SCATTER)
-        or stored per stencil (STORE).
+        one state x (n, 3): the energy, and the gradient and Hessian scattered (SCATTER) or
+        stored per stencil (STORE).
     args : the per-stencil rest data, float64 arrays with the stencil axis first.
     k : vertices per stencil.
     basis : (3k, 3k-3) translation-free basis of the projection (``core.translation_free_basis``),
@@ -70,6 +77,7 @@ class KernelSpec:
     """
 
     energy: Callable
+    energy_gradient: Callable
     run: Callable
     args: tuple
     k: int
@@ -112,6 +120,7 @@ class TermKernel:
         self.stencils = np.ascontiguousarray(stencils, dtype=np.int64)
         self.k = spec.k
         self._energy = spec.energy
+        self._energy_gradient = spec.energy_gradient
         self._run = spec.run
         self._args = spec.args
         self._basis = spec.basis  # translation-free basis (projection), None for tets / stretch
@@ -147,11 +156,20 @@ class TermKernel:
         return self._visit(lambda order: run(x, st, order, *args, project, *extra, grad, data, slots, g_out, H_out, mode),
                            total=mode != STORE)  # fmt: skip
 
+    def energies(self, x: np.ndarray, grad: np.ndarray | None = None) -> np.ndarray:
+        """The term's energy in each lane of x: one state (n, 3) -> (1,), or L states (n, 3, L),
+        the state index innermost (C-contiguous float64) -> (L,); with ``grad`` (x's shape),
+        the gradients added into it, in the same pass."""
+        st, args = self.stencils, self._args
+        if grad is None:
+            fn = self._energy
+            return self._visit(lambda order: fn(x, st, order, *args))
+        fn = self._energy_gradient
+        return self._visit(lambda order: fn(x, st, order, *args, grad))
+
     def energy(self, x: np.ndarray) -> float:
         """The term's energy at x (n, 3)."""
-        x = np.ascontiguousarray(x, dtype=np.float64)
-        fn, st, args = self._energy, self.stencils, self._args
-        return float(self._visit(lambda order: fn(x, st, order, *args)))
+        return float(self.energies(np.ascontiguousarray(x, dtype=np.float64))[0])
 
     def accumulate(self, x, grad, data, slots, project: bool) -> float:
         """grad (3n,) += gradient; data[slots] += upper triangles of the stencil Hessians;
@@ -164,7 +182,8 @@ class TermKernel:
 
     def energy_gradient(self, x, grad) -> float:
         """grad (3n,) += gradient; returns the energy (one pass, no Hessian)."""
-        return self._call(x, False, grad, _EMPTY_F, _EMPTY_S, _EMPTY_G, _EMPTY_H, GRADIENT)
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        return float(self.energies(x, grad.reshape(x.shape, copy=False))[0])  # a view: the kernel adds into it
 
     def local(self, x, project: bool):
         """Per-stencil g (E, 3k) and H (E, 3k, 3k), like ``EnergyTerm.local_gradient_hessian``."""
@@ -225,8 +244,18 @@ def term_kernel(term) -> TermKernel | None:
 # ---------------------------------------------------------------------------
 # many states at once: the self-supervised losses
 # ---------------------------------------------------------------------------
+# states per kernel call: the block's per-stencil scratch (a few (3, 3, LANES) arrays) stays in the
+# L1/L2 cache.  On batches of 256 states (benchmarks/bench_energy_batch.py) blocks of 32 to 64 ran
+# fastest; blocks of 8 ran 1.7-3x slower, one block of 256 up to 1.4x slower.
+LANES = 64
+
+
 def batch_energy_gradient(kernels, x, gradient: bool = True, threads: int = 1):
     """Energies and gradients of the summed terms at each of B states, by the compiled kernels.
+
+    The states go to the kernels in blocks of ``LANES``, transposed to (n, 3, L), the state index
+    innermost (``TermKernel.energies``); each state's energy and gradient are, to the bit, those
+    of a one-state pass.
 
     Parameters
     ----------
@@ -240,18 +269,19 @@ def batch_energy_gradient(kernels, x, gradient: bool = True, threads: int = 1):
     -------
     E : (B,), G : (B, n, 3) or None
     """
-    x = np.ascontiguousarray(x, dtype=np.float64)
+    x = np.asarray(x, dtype=np.float64)
     B = x.shape[0]
     E = np.zeros(B)
     G = np.zeros(x.shape) if gradient else None
 
     def work(lo, hi):
-        for b in range(lo, hi):
+        for a in range(lo, hi, LANES):
+            b = min(a + LANES, hi)
+            xl = np.ascontiguousarray(x[a:b].transpose(1, 2, 0))
+            gl = np.zeros(xl.shape) if gradient else None
+            E[a:b] = sum(k.energies(xl, gl) for k in kernels)
             if gradient:
-                g = G[b].reshape(-1)
-                E[b] = sum(k.energy_gradient(x[b], g) for k in kernels)
-            else:
-                E[b] = sum(k.energy(x[b]) for k in kernels)
+                G[a:b] = gl.transpose(2, 0, 1)
 
     threads = max(1, min(int(threads), B))
     if threads == 1:

@@ -23,8 +23,9 @@ frame of the rotation-variant SVD F = U diag(sigma) V^T (Smith, de Goes, Kim
     flip  (ij):  s - p sigma_k,  eigenmatrix U (e_i e_j^T + e_j e_i^T) V^T / sqrt 2;
     twist (ij):  s + p sigma_k,  eigenmatrix U (e_i e_j^T - e_j e_i^T) V^T / sqrt 2;
 
-H_e^+ = W sum_k max(lambda_k, 0) g_k g_k^T with g_k = B^T vec(Q_k).  ``snh_energy``
-and ``snh_run`` follow the calling convention of ``dispatch.TermKernel``.
+H_e^+ = W sum_k max(lambda_k, 0) g_k g_k^T with g_k = B^T vec(Q_k).  ``snh_energy``,
+``snh_energy_gradient`` (one state or many, ``core.as_lanes``) and ``snh_run`` follow the
+calling convention of ``dispatch.TermKernel``.
 """
 
 from __future__ import annotations
@@ -34,21 +35,35 @@ import math
 import numpy as np
 from numba import njit
 
-from latentsim.physics.kernels.core import GRADIENT, INLINE, JIT, SCATTER, scatter, scatter_gradient, svd3
+from latentsim.physics.kernels.core import INLINE, JIT, SCATTER, as_lanes, energy_gradient_lanes, lane_count, scatter, svd3
 from latentsim.physics.kernels.tets import _tet_F, projected_from_eigensystem
 
 LOG4 = math.log(4.0)
 
 
 @njit(**INLINE)
-def _cofactor(F, C):
-    """C (3, 3) = cof F = dJ/dF (columns f1 x f2, f2 x f0, f0 x f1 of the columns f_j of F); returns J."""
+def _cofactor(F, C, J, L):
+    """C (3, 3, L) = cof F = dJ/dF (columns f1 x f2, f2 x f0, f0 x f1 of the columns f_j of F) and
+    J (L,) = det F, in each lane of F (3, 3, L)."""
     for j in range(3):
         a, b = (j + 1) % 3, (j + 2) % 3
-        C[0, j] = F[1, a] * F[2, b] - F[2, a] * F[1, b]
-        C[1, j] = F[2, a] * F[0, b] - F[0, a] * F[2, b]
-        C[2, j] = F[0, a] * F[1, b] - F[1, a] * F[0, b]
-    return F[0, 0] * C[0, 0] + F[1, 0] * C[1, 0] + F[2, 0] * C[2, 0]
+        for s in range(L):
+            C[0, j, s] = F[1, a, s] * F[2, b, s] - F[2, a, s] * F[1, b, s]
+            C[1, j, s] = F[2, a, s] * F[0, b, s] - F[0, a, s] * F[2, b, s]
+            C[2, j, s] = F[0, a, s] * F[1, b, s] - F[1, a, s] * F[0, b, s]
+    for s in range(L):
+        J[s] = F[0, 0, s] * C[0, 0, s] + F[1, 0, s] * C[1, 0, s] + F[2, 0, s] * C[2, 0, s]
+
+
+@njit(**INLINE)
+def _squared_norm(F, Ic, L):
+    """Ic (L,) = ||F||_F^2 in each lane of F (3, 3, L)."""
+    for s in range(L):
+        acc = 0.0
+        for i in range(3):
+            for j in range(3):
+                acc += F[i, j, s] * F[i, j, s]
+        Ic[s] = acc
 
 
 @njit(**INLINE)
@@ -62,42 +77,63 @@ def _density(Ic, J, m_, l_):
 
 @njit(**JIT)
 def snh_energy(x, st, order, D, vol, mu, lam):
-    """sum_e W_e (Psi(F_e) - Psi(I))."""
-    F, C = np.empty((3, 3)), np.empty((3, 3))
-    total = 0.0
+    """sum_e W_e (Psi(F_e) - Psi(I)) in each lane of x (n, 3) or (n, 3, L): (L,)."""
+    L = lane_count(x)
+    xl = as_lanes(x)
+    F, C = np.empty((3, 3, L)), np.empty((3, 3, L))
+    J, Ic = np.empty(L), np.empty(L)
+    total = np.zeros(L)
     for ii in range(order.shape[0]):
         e = order[ii]
-        _tet_F(e, x, st, D, F)
-        J = _cofactor(F, C)
-        Ic = 0.0
-        for i in range(3):
-            for j in range(3):
-                Ic += F[i, j] * F[i, j]
-        total += vol[e] * _density(Ic, J, mu[e], lam[e])
+        _tet_F(e, xl, st, D, F, L)
+        _cofactor(F, C, J, L)
+        _squared_norm(F, Ic, L)
+        W, m_, l_ = vol[e], mu[e], lam[e]
+        for s in range(L):
+            total[s] += W * _density(Ic[s], J[s], m_, l_)
     return total
 
 
 @njit(**INLINE)
-def _snh_energy_gradient(e, x, st, D, vol, mu, lam, g, F, C, P, inv):
-    """Energy (returned) and gradient g (12,) = W D P^T of tet e; leaves F, C = cof F and
-    inv = (I_C, J, s, p)."""
-    _tet_F(e, x, st, D, F)
+def _snh_scratch(L):
+    """The lanes of ``_snh_energy_gradient``: g (12, L), F, C, P (3, 3, L), inv (4, L)."""
+    return np.empty((12, L)), np.empty((3, 3, L)), np.empty((3, 3, L)), np.empty((3, 3, L)), np.empty((4, L))
+
+
+@njit(**INLINE)
+def _snh_energy_gradient(e, x, st, args, work, total, L):
+    """Energy (added into total (L,)) and gradient g (12, L) = W D P^T of tet e in each lane of
+    x (n, 3, L); leaves F, C = cof F (3, 3, L) and inv (4, L) = (I_C, J, s, p) in ``work``
+    (``_snh_scratch``)."""
+    D, vol, mu, lam = args
+    g, F, C, P, inv = work
+    _tet_F(e, x, st, D, F, L)
     W, m_, l_ = vol[e], mu[e], lam[e]
-    J = _cofactor(F, C)
-    Ic = 0.0
+    _cofactor(F, C, inv[1], L)
+    _squared_norm(F, inv[0], L)
+    alpha = 1.0 + 0.75 * (m_ / l_ if l_ != 0.0 else 0.0)
+    for s in range(L):
+        Ic = inv[0, s]
+        inv[2, s] = m_ * Ic / (Ic + 1.0)
+        inv[3, s] = l_ * (inv[1, s] - alpha)
     for i in range(3):
         for j in range(3):
-            Ic += F[i, j] * F[i, j]
-    s = m_ * Ic / (Ic + 1.0)
-    p = l_ * (J - (1.0 + 0.75 * (m_ / l_ if l_ != 0.0 else 0.0)))
-    inv[0], inv[1], inv[2], inv[3] = Ic, J, s, p
-    for i in range(3):
-        for j in range(3):
-            P[i, j] = s * F[i, j] + p * C[i, j]
+            for s in range(L):
+                P[i, j, s] = inv[2, s] * F[i, j, s] + inv[3, s] * C[i, j, s]
     for a in range(4):
+        d0, d1, d2 = D[e, a, 0], D[e, a, 1], D[e, a, 2]
         for i in range(3):
-            g[3 * a + i] = W * (P[i, 0] * D[e, a, 0] + P[i, 1] * D[e, a, 1] + P[i, 2] * D[e, a, 2])
-    return W * _density(Ic, J, m_, l_)
+            for s in range(L):
+                g[3 * a + i, s] = W * (P[i, 0, s] * d0 + P[i, 1, s] * d1 + P[i, 2, s] * d2)
+    for s in range(L):
+        total[s] += W * _density(inv[0, s], inv[1, s], m_, l_)
+
+
+@njit(**JIT)
+def snh_energy_gradient(x, st, order, D, vol, mu, lam, grad):
+    """Energies (returned, (L,)) and gradients (added into grad, x's shape) in each lane of
+    x (n, 3) or (n, 3, L)."""
+    return energy_gradient_lanes(_snh_energy_gradient, _snh_scratch, x, st, order, (D, vol, mu, lam), grad, 4)
 
 
 @njit(**INLINE)
@@ -160,6 +196,9 @@ def _snh_projected_hessian(e, D, vol, mu, lam, F, inv, H, S, P, DV, U, V, Lf, A,
 
 @njit(**JIT)
 def snh_run(x, st, order, D, vol, mu, lam, project, grad, data, slots, g_out, H_out, mode):
+    """Per tet the gradient and the (exact or projected) Hessian, scattered (SCATTER) or stored
+    (STORE); returns the energy, the sum of ``snh_energy_gradient``'s, to the bit."""
+    xl, args = as_lanes(x), (D, vol, mu, lam)
     F, C, P, S = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     U, V, Lf, A, b = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     q, c = np.empty((4, 3)), np.empty((4, 3))
@@ -167,13 +206,11 @@ def snh_run(x, st, order, D, vol, mu, lam, project, grad, data, slots, g_out, H_
     N = np.empty((9, 12))
     g = np.empty(12)
     H = np.empty((12, 12))
-    total = 0.0
+    work = g.reshape((12, 1)), F.reshape((3, 3, 1)), C.reshape((3, 3, 1)), P.reshape((3, 3, 1)), inv.reshape((4, 1))
+    total = np.zeros(1)
     for ii in range(order.shape[0]):
         e = order[ii]
-        total += _snh_energy_gradient(e, x, st, D, vol, mu, lam, g, F, C, P, inv)
-        if mode == GRADIENT:
-            scatter_gradient(e, st, g, grad, 4)
-            continue
+        _snh_energy_gradient(e, xl, st, args, work, total, 1)
         if project:
             _snh_projected_hessian(e, D, vol, mu, lam, F, inv, H, S, P, q, U, V, Lf, A, b, sig, w3, N)
         else:
@@ -186,4 +223,4 @@ def snh_run(x, st, order, D, vol, mu, lam, project, grad, data, slots, g_out, H_
                 for j in range(i, 12):
                     H_out[e, i, j] = H[i, j]
                     H_out[e, j, i] = H[i, j]
-    return total
+    return total[0]

@@ -10,8 +10,8 @@ r"""Compiled rod stretching and bending (``physics.rods``): energy, gradient, He
   eigenvalues of its translation-free block (``core.project_psd``) in the
   stencil frame, where in-plane and out-of-plane motions decouple.
 
-The ``*_energy`` and ``*_run`` kernels follow the calling convention of
-``dispatch.TermKernel``.
+The ``*_energy``, ``*_energy_gradient`` (one state or many, ``core.as_lanes``) and ``*_run``
+kernels follow the calling convention of ``dispatch.TermKernel``.
 """
 
 from __future__ import annotations
@@ -21,44 +21,75 @@ import math
 import numpy as np
 from numba import njit
 
-from latentsim.physics.kernels.core import GRADIENT, INLINE, JIT, SCATTER, emit, project_psd, scatter_gradient
+from latentsim.physics.kernels.core import INLINE, JIT, SCATTER, as_lanes, emit, energy_gradient_lanes, lane_count, project_psd, scatter_gradient
 
 
 @njit(**JIT)
 def stretch_energy(x, st, order, rest_length, ks):
-    """sum_e 1/2 ks (|e|/|ebar| - 1)^2 |ebar|."""
-    total = 0.0
+    """sum_e 1/2 ks (|e|/|ebar| - 1)^2 |ebar| in each lane of x (n, 3) or (n, 3, L): (L,)."""
+    L = lane_count(x)
+    xl = as_lanes(x)
+    total = np.zeros(L)
     for ii in range(order.shape[0]):
         e = order[ii]
         i0, i1 = st[e, 0], st[e, 1]
-        d0, d1, d2 = x[i1, 0] - x[i0, 0], x[i1, 1] - x[i0, 1], x[i1, 2] - x[i0, 2]
-        lb = rest_length[e]
-        r = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2) / lb - 1.0
-        total += 0.5 * ks[e] * r * r * lb
+        lb, k_ = rest_length[e], ks[e]
+        for s in range(L):
+            d0, d1, d2 = xl[i1, 0, s] - xl[i0, 0, s], xl[i1, 1, s] - xl[i0, 1, s], xl[i1, 2, s] - xl[i0, 2, s]
+            r = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2) / lb - 1.0
+            total[s] += 0.5 * k_ * r * r * lb
     return total
 
 
 @njit(**INLINE)
-def _stretch_local(e, x, st, rest_length, ks, project, u, g):
-    """Energy of stretching stencil e and its gradient g (6,); u (3,) left holding the unit edge.
-    Returns (energy, s, c): the Hessian is [[K, -K], [-K, K]], K = s (1 - c) u u^T + s c I
-    (c clamped at 0 when projecting)."""
+def _stretch_scratch(L):
+    """The lanes of ``_stretch_energy_gradient``: g (6, L), u (3, L), |e| (L,)."""
+    return np.empty((6, L)), np.empty((3, L)), np.empty(L)
+
+
+@njit(**INLINE)
+def _stretch_energy_gradient(e, x, st, args, work, total, L):
+    """Energy (added into total (L,)) and gradient g (6, L) of stretching stencil e in each lane of
+    x (n, 3, L), in ``work`` (``_stretch_scratch``); u (3, L) left holding the unit edge, ln (L,)
+    its length."""
+    rest_length, ks = args
+    g, u, ln = work
     i0, i1 = st[e, 0], st[e, 1]
-    ln = 0.0
-    for i in range(3):
-        u[i] = x[i1, i] - x[i0, i]
-        ln += u[i] * u[i]
-    ln = math.sqrt(ln)
+    lb, k_ = rest_length[e], ks[e]
+    for s in range(L):
+        acc = 0.0
+        for i in range(3):
+            u[i, s] = x[i1, i, s] - x[i0, i, s]
+            acc += u[i, s] * u[i, s]
+        le = math.sqrt(acc)
+        f = k_ * (le / lb - 1.0)
+        for i in range(3):
+            u[i, s] /= le
+            g[i, s] = -f * u[i, s]
+            g[3 + i, s] = f * u[i, s]
+        total[s] += 0.5 * f * (le / lb - 1.0) * lb
+        ln[s] = le
+
+
+@njit(**JIT)
+def stretch_energy_gradient(x, st, order, rest_length, ks, grad):
+    """Energies (returned, (L,)) and gradients (added into grad, x's shape) in each lane of
+    x (n, 3) or (n, 3, L)."""
+    return energy_gradient_lanes(_stretch_energy_gradient, _stretch_scratch, x, st, order, (rest_length, ks), grad, 2)
+
+
+@njit(**INLINE)
+def _stretch_local(e, x, st, args, work, total, project):
+    """``_stretch_energy_gradient`` of one state x (n, 3, 1) (``work`` and total (1,) one lane);
+    returns (s, c): the Hessian is [[K, -K], [-K, K]], K = s (1 - c) u u^T + s c I (c clamped
+    at 0 when projecting)."""
+    _stretch_energy_gradient(e, x, st, args, work, total, 1)
+    rest_length, ks = args
     lb = rest_length[e]
-    f = ks[e] * (ln / lb - 1.0)
-    c = 1.0 - lb / ln
+    c = 1.0 - lb / work[2][0]
     if project and c < 0.0:
         c = 0.0
-    for i in range(3):
-        u[i] /= ln
-        g[i] = -f * u[i]
-        g[3 + i] = f * u[i]
-    return 0.5 * f * (ln / lb - 1.0) * lb, ks[e] / lb, c
+    return ks[e] / lb, c
 
 
 @njit(**JIT)
@@ -66,14 +97,15 @@ def _stretch_scatter(x, st, order, rest_length, ks, project, grad, data, slots):
     """``stretch_run`` for SCATTER: the upper triangle of each [[K, -K], [-K, K]] straight into
     the matrix, without the (6, 6) H that ``scatter`` reads back (half the time of the pass; the
     same sums; a separate function: inside ``stretch_run`` the same loop ran 1.5x slower)."""
-    total = 0.0
+    xl, args = as_lanes(x), (rest_length, ks)
     g = np.empty(6)
     K = np.empty((3, 3))
     u = np.empty(3)
+    work = g.reshape((6, 1)), u.reshape((3, 1)), np.empty(1)
+    total = np.zeros(1)
     for ii in range(order.shape[0]):
         e = order[ii]
-        en, s, c = _stretch_local(e, x, st, rest_length, ks, project, u, g)
-        total += en
+        s, c = _stretch_local(e, xl, st, args, work, total, project)
         scatter_gradient(e, st, g, grad, 2)
         for i in range(3):
             for j in range(3):
@@ -84,24 +116,24 @@ def _stretch_scatter(x, st, order, rest_length, ks, project, grad, data, slots):
                     sl = slots[e, 6 * p - (p * (p - 1)) // 2 + q - p]
                     if sl >= 0:
                         data[sl] += -K[p % 3, q % 3] if (p < 3) != (q < 3) else K[p % 3, q % 3]
-    return total
+    return total[0]
 
 
 @njit(**JIT)
 def stretch_run(x, st, order, rest_length, ks, project, grad, data, slots, g_out, H_out, mode):
+    """Per edge the gradient and the (exact or projected) Hessian, scattered (SCATTER) or stored
+    (STORE); returns the energy, the sum of ``stretch_energy_gradient``'s, to the bit."""
     if mode == SCATTER:
         return _stretch_scatter(x, st, order, rest_length, ks, project, grad, data, slots)
-    total = 0.0
+    xl, args = as_lanes(x), (rest_length, ks)
     g = np.empty(6)
     H = np.empty((6, 6))
     u = np.empty(3)
+    work = g.reshape((6, 1)), u.reshape((3, 1)), np.empty(1)
+    total = np.zeros(1)
     for ii in range(order.shape[0]):
         e = order[ii]
-        en, s, c = _stretch_local(e, x, st, rest_length, ks, project, u, g)
-        total += en
-        if mode == GRADIENT:
-            scatter_gradient(e, st, g, grad, 2)
-            continue
+        s, c = _stretch_local(e, xl, st, args, work, total, project)
         for i in range(3):
             for j in range(3):
                 K = s * (1.0 - c) * u[i] * u[j] + (s * c if i == j else 0.0)
@@ -110,21 +142,26 @@ def stretch_run(x, st, order, rest_length, ks, project, grad, data, slots, g_out
                 H[i, 3 + j] = -K
                 H[3 + i, j] = -K
         emit(e, st, g, H, grad, data, slots, g_out, H_out, mode, 2)
-    return total
+    return total[0]
 
 
 @njit(**JIT)
 def bend_energy(x, st, order, alpha, c0):
-    """sum_e alpha |a x b|^2 / (c0 + a.b)^2, a = x1 - x0, b = x2 - x1."""
-    total = 0.0
+    """sum_e alpha |a x b|^2 / (c0 + a.b)^2, a = x1 - x0, b = x2 - x1, in each lane of x (n, 3)
+    or (n, 3, L): (L,)."""
+    L = lane_count(x)
+    xl = as_lanes(x)
+    total = np.zeros(L)
     for ii in range(order.shape[0]):
         e = order[ii]
         i0, i1, i2 = st[e, 0], st[e, 1], st[e, 2]
-        a0, a1, a2 = x[i1, 0] - x[i0, 0], x[i1, 1] - x[i0, 1], x[i1, 2] - x[i0, 2]
-        b0, b1, b2 = x[i2, 0] - x[i1, 0], x[i2, 1] - x[i1, 1], x[i2, 2] - x[i1, 2]
-        w0, w1, w2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
-        tau = c0[e] + a0 * b0 + a1 * b1 + a2 * b2
-        total += alpha[e] * (w0 * w0 + w1 * w1 + w2 * w2) / (tau * tau)
+        al, ce = alpha[e], c0[e]
+        for s in range(L):
+            a0, a1, a2 = xl[i1, 0, s] - xl[i0, 0, s], xl[i1, 1, s] - xl[i0, 1, s], xl[i1, 2, s] - xl[i0, 2, s]
+            b0, b1, b2 = xl[i2, 0, s] - xl[i1, 0, s], xl[i2, 1, s] - xl[i1, 1, s], xl[i2, 2, s] - xl[i1, 2, s]
+            w0, w1, w2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+            tau = ce + a0 * b0 + a1 * b1 + a2 * b2
+            total[s] += al * (w0 * w0 + w1 * w1 + w2 * w2) / (tau * tau)
     return total
 
 
@@ -158,35 +195,56 @@ def _rod_frame(a, b, frame):
 
 
 @njit(**INLINE)
-def _bend_gradient(e, x, st, alpha, c0, a, b, w, g):
-    """Energy of bending stencil e and its gradient g (9,); a, b, w scratch (3,), left holding
-    x1 - x0, x2 - x1 and a x b.  Returns (energy, A, B, C, f, it2, it3, tau) for ``_bend_h6``."""
+def _bend_scratch(L):
+    """The lanes of ``_bend_energy_gradient``: g (9, L), a, b, w (3, L), aux (7, L)."""
+    return np.empty((9, L)), np.empty((3, L)), np.empty((3, L)), np.empty((3, L)), np.empty((7, L))
+
+
+@njit(**INLINE)
+def _bend_energy_gradient(e, x, st, args, work, total, L):
+    """Energy (added into total (L,)) and gradient g (9, L) of bending stencil e in each lane of
+    x (n, 3, L), in ``work`` (``_bend_scratch``); a, b, w (3, L) left holding x1 - x0, x2 - x1 and
+    a x b, aux (7, L) holding (A, B, C, f, it2, it3, tau) for ``_bend_h6``."""
+    alpha, c0 = args
+    g, a, b, w, aux = work
     i0, i1, i2 = st[e, 0], st[e, 1], st[e, 2]
-    for i in range(3):
-        a[i] = x[i1, i] - x[i0, i]
-        b[i] = x[i2, i] - x[i1, i]
-    A_ = a[0] * a[0] + a[1] * a[1] + a[2] * a[2]
-    B_ = b[0] * b[0] + b[1] * b[1] + b[2] * b[2]
-    C_ = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-    w[0], w[1], w[2] = a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]
-    f = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]  # A B - C^2 without cancellation
-    tau = c0[e] + C_
-    it2 = alpha[e] / (tau * tau)
-    it3 = it2 / tau
-    # dE/da = 2 it2 b x w - 2 f it3 b,  dE/db = 2 it2 w x a - 2 f it3 a;  g = (-dE/da, dE/da - dE/db, dE/db)
-    for i in range(3):
-        i1_, i2_ = (i + 1) % 3, (i + 2) % 3
-        ga = 2.0 * it2 * (b[i1_] * w[i2_] - b[i2_] * w[i1_]) - 2.0 * f * it3 * b[i]
-        gb = 2.0 * it2 * (w[i1_] * a[i2_] - w[i2_] * a[i1_]) - 2.0 * f * it3 * a[i]
-        g[i] = -ga
-        g[3 + i] = ga - gb
-        g[6 + i] = gb
-    return it2 * f, A_, B_, C_, f, it2, it3, tau
+    al, ce = alpha[e], c0[e]
+    for s in range(L):
+        for i in range(3):
+            a[i, s] = x[i1, i, s] - x[i0, i, s]
+            b[i, s] = x[i2, i, s] - x[i1, i, s]
+        A_ = a[0, s] * a[0, s] + a[1, s] * a[1, s] + a[2, s] * a[2, s]
+        B_ = b[0, s] * b[0, s] + b[1, s] * b[1, s] + b[2, s] * b[2, s]
+        C_ = a[0, s] * b[0, s] + a[1, s] * b[1, s] + a[2, s] * b[2, s]
+        w[0, s] = a[1, s] * b[2, s] - a[2, s] * b[1, s]
+        w[1, s] = a[2, s] * b[0, s] - a[0, s] * b[2, s]
+        w[2, s] = a[0, s] * b[1, s] - a[1, s] * b[0, s]
+        f = w[0, s] * w[0, s] + w[1, s] * w[1, s] + w[2, s] * w[2, s]  # A B - C^2 without cancellation
+        tau = ce + C_
+        it2 = al / (tau * tau)
+        it3 = it2 / tau
+        # dE/da = 2 it2 b x w - 2 f it3 b,  dE/db = 2 it2 w x a - 2 f it3 a;  g = (-dE/da, dE/da - dE/db, dE/db)
+        for i in range(3):
+            i1_, i2_ = (i + 1) % 3, (i + 2) % 3
+            ga = 2.0 * it2 * (b[i1_, s] * w[i2_, s] - b[i2_, s] * w[i1_, s]) - 2.0 * f * it3 * b[i, s]
+            gb = 2.0 * it2 * (w[i1_, s] * a[i2_, s] - w[i2_, s] * a[i1_, s]) - 2.0 * f * it3 * a[i, s]
+            g[i, s] = -ga
+            g[3 + i, s] = ga - gb
+            g[6 + i, s] = gb
+        aux[0, s], aux[1, s], aux[2, s], aux[3, s], aux[4, s], aux[5, s], aux[6, s] = A_, B_, C_, f, it2, it3, tau
+        total[s] += it2 * f
+
+
+@njit(**JIT)
+def bend_energy_gradient(x, st, order, alpha, c0, grad):
+    """Energies (returned, (L,)) and gradients (added into grad, x's shape) in each lane of
+    x (n, 3) or (n, 3, L)."""
+    return energy_gradient_lanes(_bend_energy_gradient, _bend_scratch, x, st, order, (alpha, c0), grad, 3)
 
 
 @njit(**INLINE)
 def _bend_h6(a, b, A_, B_, C_, f, it2, it3, tau, H6):
-    """The bending Hessian H6 (6, 6) with respect to (a, b) (see ``_bend_gradient``).
+    """The bending Hessian H6 (6, 6) with respect to (a, b) (see ``_bend_energy_gradient``).
 
     H6 = sum_lm Phi_lm grad(A, B, C)_l grad(A, B, C)_m^T + the second derivatives of (A, B, C),
     with grad A = (2a, 0), grad B = (0, 2b), grad C = (b, a) and Phi_00 = Phi_11 = 0, block by block.
@@ -215,15 +273,16 @@ def _bend_scatter_exact(x, st, order, alpha, c0, grad, data, slots):
     """``bend_run`` for SCATTER of the exact Hessian: the upper triangle of H9 = D^T H6 D goes
     straight into the matrix, block (I, J) by block, without a (9, 9) H (a separate function:
     inside ``bend_run`` the same loop ran a third slower).  The same sums as ``scatter``'s."""
-    total = 0.0
+    xl, args = as_lanes(x), (alpha, c0)
+    total = np.zeros(1)
     g = np.empty(9)
     H6 = np.empty((6, 6))
-    a, b, w = np.empty(3), np.empty(3), np.empty(3)
+    a, b, w, aux = np.empty(3), np.empty(3), np.empty(3), np.empty(7)
+    work = g.reshape((9, 1)), a.reshape((3, 1)), b.reshape((3, 1)), w.reshape((3, 1)), aux.reshape((7, 1))
     for ii in range(order.shape[0]):
         e = order[ii]
-        en, A_, B_, C_, f, it2, it3, tau = _bend_gradient(e, x, st, alpha, c0, a, b, w, g)
-        total += en
-        _bend_h6(a, b, A_, B_, C_, f, it2, it3, tau, H6)
+        _bend_energy_gradient(e, xl, st, args, work, total, 1)
+        _bend_h6(a, b, aux[0], aux[1], aux[2], aux[3], aux[4], aux[5], aux[6], H6)
         scatter_gradient(e, st, g, grad, 3)
         for i in range(3):
             for jj in range(3):
@@ -236,30 +295,30 @@ def _bend_scatter_exact(x, st, order, alpha, c0, grad, data, slots):
                         sl = slots[e, 9 * p - (p * (p - 1)) // 2 + q - p]
                         if sl >= 0:
                             data[sl] += v
-    return total
+    return total[0]
 
 
 @njit(**JIT)
 def bend_run(x, st, order, alpha, c0, project, B, grad, data, slots, g_out, H_out, mode):
+    """Per stencil the gradient and the (exact or projected) Hessian, scattered (SCATTER) or
+    stored (STORE); returns the energy, the sum of ``bend_energy_gradient``'s, to the bit."""
     if mode == SCATTER and not project:
         return _bend_scatter_exact(x, st, order, alpha, c0, grad, data, slots)
-    total = 0.0
+    xl, args = as_lanes(x), (alpha, c0)
+    total = np.zeros(1)
     g = np.empty(9)
     H = np.empty((9, 9))
     H6 = np.empty((6, 6))
-    a, b, w = np.empty(3), np.empty(3), np.empty(3)
+    a, b, w, aux = np.empty(3), np.empty(3), np.empty(3), np.empty(7)
+    work = g.reshape((9, 1)), a.reshape((3, 1)), b.reshape((3, 1)), w.reshape((3, 1)), aux.reshape((7, 1))
     M, V, BV = np.empty((6, 6)), np.empty((6, 6)), np.empty((9, 6))
     BH = np.empty((9, 6))
     wv = np.empty(6)
     frame = np.empty((3, 3))
     for ii in range(order.shape[0]):
         e = order[ii]
-        en, A_, B_, C_, f, it2, it3, tau = _bend_gradient(e, x, st, alpha, c0, a, b, w, g)
-        total += en
-        if mode == GRADIENT:
-            scatter_gradient(e, st, g, grad, 3)
-            continue
-        _bend_h6(a, b, A_, B_, C_, f, it2, it3, tau, H6)
+        _bend_energy_gradient(e, xl, st, args, work, total, 1)
+        _bend_h6(a, b, aux[0], aux[1], aux[2], aux[3], aux[4], aux[5], aux[6], H6)
         # H9 = D^T H6 D for (a, b) = (x1 - x0, x2 - x1)
         for i in range(3):
             for jj in range(3):
@@ -278,5 +337,5 @@ def bend_run(x, st, order, alpha, c0, project, B, grad, data, slots, g_out, H_ou
             _rod_frame(a, b, frame)
             project_psd(H, B, M, BH, V, wv, BV, frame, True)
         emit(e, st, g, H, grad, data, slots, g_out, H_out, mode, 3)
-    return total
+    return total[0]
 

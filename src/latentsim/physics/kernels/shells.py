@@ -11,8 +11,9 @@ r"""Compiled shell membranes and hinges (``physics.shells``): energy, gradient, 
   of theta from d(N/|N|^2) = (I - 2 n n^T)/|N|^2 dN.
 
 Both projections clamp the eigenvalues of the translation-free block
-(``core.project_psd`` with ``core.translation_free_basis``).  The ``*_energy``
-and ``*_run`` kernels follow the calling convention of ``dispatch.TermKernel``.
+(``core.project_psd`` with ``core.translation_free_basis``).  The ``*_energy``,
+``*_energy_gradient`` (one state or many, ``core.as_lanes``) and ``*_run`` kernels follow the
+calling convention of ``dispatch.TermKernel``.
 """
 
 from __future__ import annotations
@@ -22,30 +23,80 @@ import math
 import numpy as np
 from numba import njit
 
-from latentsim.physics.kernels.core import GRADIENT, INLINE, JIT, NO_FRAME, emit, matmul3, project_psd, scatter_gradient, skew
+from latentsim.physics.kernels.core import INLINE, JIT, NO_FRAME, as_lanes, emit, energy_gradient_lanes, lane_count, matmul3, project_psd, skew
+from latentsim.physics.kernels.tets import stvk_stress
+
+
+@njit(**INLINE)
+def _membrane_F(e, x, st, G, F, L):
+    """F (3, 2, L) = sum_a x_a G_a^T of triangle e in each lane of x (n, 3, L)."""
+    v0, v1, v2 = st[e, 0], st[e, 1], st[e, 2]
+    for i in range(3):
+        for r in range(2):
+            g0, g1, g2 = G[e, 0, r], G[e, 1, r], G[e, 2, r]
+            for s in range(L):
+                F[i, r, s] = x[v0, i, s] * g0 + x[v1, i, s] * g1 + x[v2, i, s] * g2
 
 
 @njit(**JIT)
 def membrane_energy(x, st, order, G, K, mu, lam):
-    """sum_t Abar h (mu ||E||^2 + lam/2 tr(E)^2), F = sum_a x_a G_a^T (3, 2)."""
-    F = np.empty((3, 2))
-    total = 0.0
+    """sum_t Abar h (mu ||E||^2 + lam/2 tr(E)^2), F = sum_a x_a G_a^T (3, 2), in each lane of
+    x (n, 3) or (n, 3, L): (L,)."""
+    L = lane_count(x)
+    xl = as_lanes(x)
+    F = np.empty((3, 2, L))
+    total = np.zeros(L)
     for ii in range(order.shape[0]):
         e = order[ii]
-        for i in range(3):
-            for q in range(2):
-                F[i, q] = x[st[e, 0], i] * G[e, 0, q] + x[st[e, 1], i] * G[e, 1, q] + x[st[e, 2], i] * G[e, 2, q]
-        e00 = 0.5 * (F[0, 0] ** 2 + F[1, 0] ** 2 + F[2, 0] ** 2 - 1.0)
-        e11 = 0.5 * (F[0, 1] ** 2 + F[1, 1] ** 2 + F[2, 1] ** 2 - 1.0)
-        e01 = 0.5 * (F[0, 0] * F[0, 1] + F[1, 0] * F[1, 1] + F[2, 0] * F[2, 1])
-        tr = e00 + e11
-        total += K[e] * (mu[e] * (e00 * e00 + e11 * e11 + 2.0 * e01 * e01) + 0.5 * lam[e] * tr * tr)
+        _membrane_F(e, xl, st, G, F, L)
+        Ke, m_, l_ = K[e], mu[e], lam[e]
+        for s in range(L):
+            e00 = 0.5 * (F[0, 0, s] ** 2 + F[1, 0, s] ** 2 + F[2, 0, s] ** 2 - 1.0)
+            e11 = 0.5 * (F[0, 1, s] ** 2 + F[1, 1, s] ** 2 + F[2, 1, s] ** 2 - 1.0)
+            e01 = 0.5 * (F[0, 0, s] * F[0, 1, s] + F[1, 0, s] * F[1, 1, s] + F[2, 0, s] * F[2, 1, s])
+            tr = e00 + e11
+            total[s] += Ke * (m_ * (e00 * e00 + e11 * e11 + 2.0 * e01 * e01) + 0.5 * l_ * tr * tr)
     return total
+
+
+@njit(**INLINE)
+def _membrane_scratch(L):
+    """The lanes of ``_membrane_energy_gradient``: g (9, L), F (3, 2, L), S (2, 2, L), tr, nE2 (L,)."""
+    return np.empty((9, L)), np.empty((3, 2, L)), np.empty((2, 2, L)), np.empty(L), np.empty(L)
+
+
+@njit(**INLINE)
+def _membrane_energy_gradient(e, x, st, args, work, total, L):
+    """Energy (added into total (L,)) and gradient g (9, L) = K P G^T of triangle e in each lane
+    of x (n, 3, L); leaves F (3, 2, L) and S = 2 mu E + lam tr(E) I (2, 2, L) in ``work``
+    (``_membrane_scratch``)."""
+    G, K, mu, lam = args
+    g, F, S, tr, nE2 = work
+    _membrane_F(e, x, st, G, F, L)
+    Ke = K[e]
+    stvk_stress(F, S, tr, nE2, mu[e], lam[e], Ke, total, 2, L)
+    for a in range(3):
+        ga0, ga1 = G[e, a, 0], G[e, a, 1]
+        for i in range(3):
+            for s in range(L):
+                acc = 0.0
+                acc += (F[i, 0, s] * S[0, 0, s] + F[i, 1, s] * S[1, 0, s]) * ga0
+                acc += (F[i, 0, s] * S[0, 1, s] + F[i, 1, s] * S[1, 1, s]) * ga1
+                g[3 * a + i, s] = Ke * acc
+
+
+@njit(**JIT)
+def membrane_energy_gradient(x, st, order, G, K, mu, lam, grad):
+    """Energies (returned, (L,)) and gradients (added into grad, x's shape) in each lane of
+    x (n, 3) or (n, 3, L)."""
+    return energy_gradient_lanes(_membrane_energy_gradient, _membrane_scratch, x, st, order, (G, K, mu, lam), grad, 3)
 
 
 @njit(**JIT)
 def membrane_run(x, st, order, G, K, mu, lam, project, B, grad, data, slots, g_out, H_out, mode):
-    total = 0.0
+    """Per triangle the gradient and the (exact or projected) Hessian, scattered (SCATTER) or
+    stored (STORE); returns the energy, the sum of ``membrane_energy_gradient``'s, to the bit."""
+    xl, args = as_lanes(x), (G, K, mu, lam)
     F = np.empty((3, 2))
     S = np.empty((2, 2))
     q = np.empty((3, 3))
@@ -54,33 +105,15 @@ def membrane_run(x, st, order, G, K, mu, lam, project, B, grad, data, slots, g_o
     H = np.empty((9, 9))
     M, V, BV, BH = np.empty((6, 6)), np.empty((6, 6)), np.empty((9, 6)), np.empty((9, 6))
     wv = np.empty(6)
+    work = g.reshape((9, 1)), F.reshape((3, 2, 1)), S.reshape((2, 2, 1)), np.empty(1), np.empty(1)
+    total = np.zeros(1)
     for ii in range(order.shape[0]):
         e = order[ii]
-        for i in range(3):
-            for r in range(2):
-                F[i, r] = x[st[e, 0], i] * G[e, 0, r] + x[st[e, 1], i] * G[e, 1, r] + x[st[e, 2], i] * G[e, 2, r]
+        _membrane_energy_gradient(e, xl, st, args, work, total, 1)
         m_, l_, Ke = mu[e], lam[e], K[e]
-        for r in range(2):
-            for s in range(2):
-                S[r, s] = F[0, r] * F[0, s] + F[1, r] * F[1, s] + F[2, r] * F[2, s]
-        tr = 0.5 * (S[0, 0] + S[1, 1] - 2.0)
-        nE2 = 0.0
-        for r in range(2):
-            for s in range(2):
-                Ers = 0.5 * (S[r, s] - (1.0 if r == s else 0.0))
-                nE2 += Ers * Ers
-                S[r, s] = 2.0 * m_ * Ers + (l_ * tr if r == s else 0.0)
-        total += Ke * (m_ * nE2 + 0.5 * l_ * tr * tr)
         for a in range(3):
             for i in range(3):
-                acc = 0.0
-                for r in range(2):
-                    acc += (F[i, 0] * S[0, r] + F[i, 1] * S[1, r]) * G[e, a, r]
-                g[3 * a + i] = Ke * acc
                 q[a, i] = F[i, 0] * G[e, a, 0] + F[i, 1] * G[e, a, 1]
-        if mode == GRADIENT:
-            scatter_gradient(e, st, g, grad, 3)
-            continue
         for i in range(3):
             for jj in range(3):
                 FF[i, jj] = m_ * (F[i, 0] * F[jj, 0] + F[i, 1] * F[jj, 1])
@@ -101,8 +134,7 @@ def membrane_run(x, st, order, G, K, mu, lam, project, B, grad, data, slots, g_o
         if project:
             project_psd(H, B, M, BH, V, wv, BV, NO_FRAME, False)
         emit(e, st, g, H, grad, data, slots, g_out, H_out, mode, 3)
-    return total
-
+    return total[0]
 
 
 @njit(**INLINE)
@@ -116,62 +148,95 @@ def _wrap(d):
 
 
 @njit(**INLINE)
-def _hinge_theta(e, x, st, ev, da, db, N1, N2):
-    """Fills e, d_a, d_b, N1 = e x d_a, N2 = d_b x e; returns theta."""
-    i0 = st[e, 0]
+def _hinge_theta(e, x, st, ev, da, db, N1, N2, theta, L):
+    """Fills e, d_a, d_b, N1 = e x d_a, N2 = d_b x e (3, L) and theta (L,) of hinge e in each lane
+    of x (n, 3, L) (theta first holds sin theta |N1| |N2|)."""
+    i0, i1, i2, i3 = st[e, 0], st[e, 1], st[e, 2], st[e, 3]
     for i in range(3):
-        ev[i] = x[st[e, 1], i] - x[i0, i]
-        da[i] = x[st[e, 2], i] - x[i0, i]
-        db[i] = x[st[e, 3], i] - x[i0, i]
-    N1[0], N1[1], N1[2] = ev[1] * da[2] - ev[2] * da[1], ev[2] * da[0] - ev[0] * da[2], ev[0] * da[1] - ev[1] * da[0]
-    N2[0], N2[1], N2[2] = db[1] * ev[2] - db[2] * ev[1], db[2] * ev[0] - db[0] * ev[2], db[0] * ev[1] - db[1] * ev[0]
-    L = math.sqrt(ev[0] ** 2 + ev[1] ** 2 + ev[2] ** 2)
-    c0 = N1[1] * N2[2] - N1[2] * N2[1]
-    c1 = N1[2] * N2[0] - N1[0] * N2[2]
-    c2 = N1[0] * N2[1] - N1[1] * N2[0]
-    s = (c0 * ev[0] + c1 * ev[1] + c2 * ev[2]) / L
-    c = N1[0] * N2[0] + N1[1] * N2[1] + N1[2] * N2[2]
-    return math.atan2(s, c)
+        for s in range(L):
+            ev[i, s] = x[i1, i, s] - x[i0, i, s]
+            da[i, s] = x[i2, i, s] - x[i0, i, s]
+            db[i, s] = x[i3, i, s] - x[i0, i, s]
+    for s in range(L):
+        N1[0, s] = ev[1, s] * da[2, s] - ev[2, s] * da[1, s]
+        N1[1, s] = ev[2, s] * da[0, s] - ev[0, s] * da[2, s]
+        N1[2, s] = ev[0, s] * da[1, s] - ev[1, s] * da[0, s]
+        N2[0, s] = db[1, s] * ev[2, s] - db[2, s] * ev[1, s]
+        N2[1, s] = db[2, s] * ev[0, s] - db[0, s] * ev[2, s]
+        N2[2, s] = db[0, s] * ev[1, s] - db[1, s] * ev[0, s]
+        Le = math.sqrt(ev[0, s] ** 2 + ev[1, s] ** 2 + ev[2, s] ** 2)
+        c0 = N1[1, s] * N2[2, s] - N1[2, s] * N2[1, s]
+        c1 = N1[2, s] * N2[0, s] - N1[0, s] * N2[2, s]
+        c2 = N1[0, s] * N2[1, s] - N1[1, s] * N2[0, s]
+        theta[s] = (c0 * ev[0, s] + c1 * ev[1, s] + c2 * ev[2, s]) / Le
+    for s in range(L):  # atan2 alone: the loops above stay vectorised
+        theta[s] = math.atan2(theta[s], N1[0, s] * N2[0, s] + N1[1, s] * N2[1, s] + N1[2, s] * N2[2, s])
 
 
 @njit(**JIT)
 def hinge_energy(x, st, order, k, rest_angle):
-    """sum_h k (theta - thetabar)^2, the difference wrapped to (-pi, pi]."""
-    ev, da, db, N1, N2 = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
-    total = 0.0
+    """sum_h k (theta - thetabar)^2, the difference wrapped to (-pi, pi], in each lane of
+    x (n, 3) or (n, 3, L): (L,)."""
+    L = lane_count(x)
+    xl = as_lanes(x)
+    ev, da, db, N1, N2 = np.empty((3, L)), np.empty((3, L)), np.empty((3, L)), np.empty((3, L)), np.empty((3, L))
+    theta = np.empty(L)
+    total = np.zeros(L)
     for ii in range(order.shape[0]):
         e = order[ii]
-        d = _wrap(_hinge_theta(e, x, st, ev, da, db, N1, N2) - rest_angle[e])
-        total += k[e] * d * d
+        _hinge_theta(e, xl, st, ev, da, db, N1, N2, theta, L)
+        ke, ra = k[e], rest_angle[e]
+        for s in range(L):
+            d = _wrap(theta[s] - ra)
+            total[s] += ke * d * d
     return total
 
 
+@njit(**INLINE)
+def _hinge_scratch(L):
+    """The lanes of ``_hinge_energy_gradient``: g (12, L), e, d_a, d_b, N1, N2 (3, L),
+    grad theta (4, 3, L), aux (7, L)."""
+    return (np.empty((12, L)), np.empty((3, L)), np.empty((3, L)), np.empty((3, L)), np.empty((3, L)), np.empty((3, L)),
+            np.empty((4, 3, L)), np.empty((7, L)))  # fmt: skip
 
 
 @njit(**INLINE)
-def _hinge_gradient(e, x, st, kk, rest_angle, ev, da, db, N1, N2, gr, g):
-    """Energy of hinge e, grad theta gr (4, 3) and the gradient g (12,) = 2 k d grad theta.
+def _hinge_energy_gradient(e, x, st, args, work, total, L):
+    """Energy (added into total (L,)), grad theta gr (4, 3, L) and the gradient g (12, L) =
+    2 k d grad theta of hinge e in each lane of x (n, 3, L), in ``work`` (``_hinge_scratch``).
 
-    Leaves e, d_a, d_b, N1, N2 in ev, da, db, N1, N2; returns (energy, d, L2, L, q1, q2, t_a, t_b)
-    for ``_hinge_theta_hessian``."""
-    theta = _hinge_theta(e, x, st, ev, da, db, N1, N2)
-    d = _wrap(theta - rest_angle[e])
-    L2 = ev[0] ** 2 + ev[1] ** 2 + ev[2] ** 2
-    L = math.sqrt(L2)
-    q1 = N1[0] ** 2 + N1[1] ** 2 + N1[2] ** 2
-    q2 = N2[0] ** 2 + N2[1] ** 2 + N2[2] ** 2
-    ta = (da[0] * ev[0] + da[1] * ev[1] + da[2] * ev[2]) / L2
-    tb = (db[0] * ev[0] + db[1] * ev[1] + db[2] * ev[2]) / L2
-    for i in range(3):
-        gr[2, i] = -L / q1 * N1[i]
-        gr[3, i] = -L / q2 * N2[i]
-        gr[1, i] = -ta * gr[2, i] - tb * gr[3, i]
-        gr[0, i] = -(gr[1, i] + gr[2, i] + gr[3, i])
-    k2 = 2.0 * kk[e]
-    for r in range(4):
+    Leaves e, d_a, d_b, N1, N2 (3, L) in ev, da, db, N1, N2 and, for ``_hinge_theta_hessian``,
+    aux (7, L) = (d, |e|^2, |e|, |N1|^2, |N2|^2, t_a, t_b); aux[0] first holds theta."""
+    kk, rest_angle = args
+    g, ev, da, db, N1, N2, gr, aux = work
+    _hinge_theta(e, x, st, ev, da, db, N1, N2, aux[0], L)
+    ra, ke = rest_angle[e], kk[e]
+    k2 = 2.0 * ke
+    for s in range(L):
+        d = _wrap(aux[0, s] - ra)
+        L2 = ev[0, s] ** 2 + ev[1, s] ** 2 + ev[2, s] ** 2
+        Le = math.sqrt(L2)
+        q1 = N1[0, s] ** 2 + N1[1, s] ** 2 + N1[2, s] ** 2
+        q2 = N2[0, s] ** 2 + N2[1, s] ** 2 + N2[2, s] ** 2
+        ta = (da[0, s] * ev[0, s] + da[1, s] * ev[1, s] + da[2, s] * ev[2, s]) / L2
+        tb = (db[0, s] * ev[0, s] + db[1, s] * ev[1, s] + db[2, s] * ev[2, s]) / L2
+        aux[0, s], aux[1, s], aux[2, s], aux[3, s], aux[4, s], aux[5, s], aux[6, s] = d, L2, Le, q1, q2, ta, tb
         for i in range(3):
-            g[3 * r + i] = k2 * d * gr[r, i]
-    return kk[e] * d * d, d, L2, L, q1, q2, ta, tb
+            gr[2, i, s] = -Le / q1 * N1[i, s]
+            gr[3, i, s] = -Le / q2 * N2[i, s]
+            gr[1, i, s] = -ta * gr[2, i, s] - tb * gr[3, i, s]
+            gr[0, i, s] = -(gr[1, i, s] + gr[2, i, s] + gr[3, i, s])
+        for r in range(4):
+            for i in range(3):
+                g[3 * r + i, s] = k2 * d * gr[r, i, s]
+        total[s] += ke * d * d
+
+
+@njit(**JIT)
+def hinge_energy_gradient(x, st, order, kk, rest_angle, grad):
+    """Energies (returned, (L,)) and gradients (added into grad, x's shape) in each lane of
+    x (n, 3) or (n, 3, L)."""
+    return energy_gradient_lanes(_hinge_energy_gradient, _hinge_scratch, x, st, order, (kk, rest_angle), grad, 4)
 
 
 @njit(**INLINE)
@@ -226,10 +291,16 @@ def _hinge_theta_hessian(ev, da, db, N1, N2, gr, L2, L, q1, q2, ta, tb, M1, M2, 
 
 @njit(**JIT)
 def hinge_run(x, st, order, kk, rest_angle, project, B, grad, data, slots, g_out, H_out, mode):
-    total = 0.0
+    """Per hinge the gradient and the (exact or projected) Hessian, scattered (SCATTER) or stored
+    (STORE); returns the energy, the sum of ``hinge_energy_gradient``'s, to the bit."""
+    xl, args = as_lanes(x), (kk, rest_angle)
     ev, da, db, N1, N2 = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
     gr = np.empty((4, 3))  # grad theta per vertex
+    aux = np.empty(7)
     g = np.empty(12)
+    work = (g.reshape((12, 1)), ev.reshape((3, 1)), da.reshape((3, 1)), db.reshape((3, 1)), N1.reshape((3, 1)),
+            N2.reshape((3, 1)), gr.reshape((4, 3, 1)), aux.reshape((7, 1)))  # fmt: skip
+    total = np.zeros(1)
     H = np.empty((12, 12))
     M1, M2, Sk, T1, T2 = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     Ja = np.zeros((4, 3, 3))  # d ga / d x_c
@@ -241,12 +312,9 @@ def hinge_run(x, st, order, kk, rest_angle, project, B, grad, data, slots, g_out
     wv = np.empty(9)
     for ii in range(order.shape[0]):
         e = order[ii]
-        en, d, L2, L, q1, q2, ta, tb = _hinge_gradient(e, x, st, kk, rest_angle, ev, da, db, N1, N2, gr, g)
-        total += en
-        if mode == GRADIENT:
-            scatter_gradient(e, st, g, grad, 4)
-            continue
-        _hinge_theta_hessian(ev, da, db, N1, N2, gr, L2, L, q1, q2, ta, tb, M1, M2, Sk, T1, T2, Ja, Jb, Ta, Tb, J)
+        _hinge_energy_gradient(e, xl, st, args, work, total, 1)
+        d, L2, Le, q1, q2, ta, tb = aux[0], aux[1], aux[2], aux[3], aux[4], aux[5], aux[6]
+        _hinge_theta_hessian(ev, da, db, N1, N2, gr, L2, Le, q1, q2, ta, tb, M1, M2, Sk, T1, T2, Ja, Jb, Ta, Tb, J)
         k2 = 2.0 * kk[e]
         # H = 2k (grad grad^T + d sym(Hess theta))
         for r in range(4):
@@ -264,4 +332,4 @@ def hinge_run(x, st, order, kk, rest_angle, project, B, grad, data, slots, g_out
         if project:
             project_psd(H, B, M, BH, V, wv, BV, NO_FRAME, False)
         emit(e, st, g, H, grad, data, slots, g_out, H_out, mode, 4)
-    return total
+    return total[0]

@@ -11,8 +11,8 @@ E = (F^T F - I)/2, S = 2 mu E + lam tr(E) I, q_a = F D_a and W the rest volume:
 the projection clamps the analytic eigensystem of dP/dF in the principal-stretch
 frame of the rotation-variant SVD (Teran et al. 2005; Smith et al. 2019; the
 ``physics.tets`` module docstring): W sum_k max(lambda_k, 0) g_k g_k^T.
-``tet_energy`` and ``tet_run`` follow the calling convention of
-``dispatch.TermKernel``.
+``tet_energy``, ``tet_energy_gradient`` (one state or many, ``core.as_lanes``) and
+``tet_run`` follow the calling convention of ``dispatch.TermKernel``.
 """
 
 from __future__ import annotations
@@ -22,69 +22,112 @@ import math
 import numpy as np
 from numba import njit
 
-from latentsim.physics.kernels.core import GRADIENT, INLINE, JIT, SCATTER, jacobi_eigh, scatter, scatter_gradient, svd3
+from latentsim.physics.kernels.core import INLINE, JIT, SCATTER, as_lanes, energy_gradient_lanes, jacobi_eigh, lane_count, scatter, svd3
 
 
 @njit(**INLINE)
-def _tet_F(e, x, st, D, F):
-    """F (3, 3) = sum_a x_a D_a^T of tet e."""
+def _tet_F(e, x, st, D, F, L):
+    """F (3, 3, L) = sum_a x_a D_a^T of tet e in each lane of x (n, 3, L)."""
+    v0, v1, v2, v3 = st[e, 0], st[e, 1], st[e, 2], st[e, 3]
     for i in range(3):
         for j in range(3):
-            acc = 0.0
-            for a in range(4):
-                acc += x[st[e, a], i] * D[e, a, j]
-            F[i, j] = acc
+            d0, d1, d2, d3 = D[e, 0, j], D[e, 1, j], D[e, 2, j], D[e, 3, j]
+            for s in range(L):
+                acc = 0.0
+                acc += x[v0, i, s] * d0
+                acc += x[v1, i, s] * d1
+                acc += x[v2, i, s] * d2
+                acc += x[v3, i, s] * d3
+                F[i, j, s] = acc
 
 
 @njit(**JIT)
 def tet_energy(x, st, order, D, vol, mu, lam):
-    """sum_e W_e (mu ||E||^2 + lam/2 tr(E)^2)."""
-    F = np.empty((3, 3))
-    total = 0.0
+    """sum_e W_e (mu ||E||^2 + lam/2 tr(E)^2) in each lane of x (n, 3) or (n, 3, L): (L,)."""
+    L = lane_count(x)
+    xl = as_lanes(x)
+    F = np.empty((3, 3, L))
+    total = np.zeros(L)
     for ii in range(order.shape[0]):
         e = order[ii]
-        _tet_F(e, x, st, D, F)
-        nE2 = 0.0
-        tr = 0.0
-        for i in range(3):
-            for j in range(3):
-                c = F[0, i] * F[0, j] + F[1, i] * F[1, j] + F[2, i] * F[2, j]
-                Eij = 0.5 * (c - (1.0 if i == j else 0.0))
-                nE2 += Eij * Eij
-                if i == j:
-                    tr += Eij
-        total += vol[e] * (mu[e] * nE2 + 0.5 * lam[e] * tr * tr)
+        _tet_F(e, xl, st, D, F, L)
+        W, m_, l_ = vol[e], mu[e], lam[e]
+        for s in range(L):
+            nE2 = 0.0
+            tr = 0.0
+            for i in range(3):
+                for j in range(3):
+                    c = F[0, i, s] * F[0, j, s] + F[1, i, s] * F[1, j, s] + F[2, i, s] * F[2, j, s]
+                    Eij = 0.5 * (c - (1.0 if i == j else 0.0))
+                    nE2 += Eij * Eij
+                    if i == j:
+                        tr += Eij
+            total[s] += W * (m_ * nE2 + 0.5 * l_ * tr * tr)
     return total
 
 
+@njit(**INLINE)
+def stvk_stress(F, S, tr, nE2, m_, l_, W, total, c, L):
+    """S (c, c, L) = 2 mu E + lam tr(E) I with E = (F^T F - I)/2 of F (3, c, L), and total (L,) +=
+    W (mu ||E||^2 + lam/2 tr(E)^2), lane by lane: tets (c = 3) and shell membranes (c = 2,
+    ``kernels.shells``); tr, nE2 (L,) scratch."""
+    for i in range(c):
+        for j in range(c):
+            for s in range(L):
+                S[i, j, s] = F[0, i, s] * F[0, j, s] + F[1, i, s] * F[1, j, s] + F[2, i, s] * F[2, j, s]
+    for s in range(L):
+        t = 0.0
+        for i in range(c):
+            t += S[i, i, s]
+        tr[s] = 0.5 * (t - c)
+        nE2[s] = 0.0
+    for i in range(c):
+        for j in range(c):
+            if i == j:
+                for s in range(L):
+                    Eij = 0.5 * (S[i, j, s] - 1.0)
+                    nE2[s] += Eij * Eij
+                    S[i, j, s] = 2.0 * m_ * Eij + l_ * tr[s]
+            else:
+                for s in range(L):
+                    Eij = 0.5 * (S[i, j, s] - 0.0)
+                    nE2[s] += Eij * Eij
+                    S[i, j, s] = 2.0 * m_ * Eij + 0.0
+    for s in range(L):
+        total[s] += W * (m_ * nE2[s] + 0.5 * l_ * tr[s] * tr[s])
 
 
 @njit(**INLINE)
-def _tet_energy_gradient(e, x, st, D, vol, mu, lam, g, F, S, P):
-    """Energy (returned) and gradient g (12,) = W D P^T of tet e; leaves F and S = 2 mu E + lam tr(E) I."""
-    _tet_F(e, x, st, D, F)
-    W, m_, l_ = vol[e], mu[e], lam[e]
-    # S = 2 mu E + lam tr(E) I, with E = (F^T F - I)/2
-    tr = 0.0
-    for i in range(3):
-        for j in range(3):
-            S[i, j] = F[0, i] * F[0, j] + F[1, i] * F[1, j] + F[2, i] * F[2, j]
-        tr += S[i, i]
-    tr = 0.5 * (tr - 3.0)
-    nE2 = 0.0
-    for i in range(3):
-        for j in range(3):
-            Eij = 0.5 * (S[i, j] - (1.0 if i == j else 0.0))
-            nE2 += Eij * Eij
-            S[i, j] = 2.0 * m_ * Eij + (l_ * tr if i == j else 0.0)
-    energy = W * (m_ * nE2 + 0.5 * l_ * tr * tr)
+def _tet_scratch(L):
+    """The lanes of ``_tet_energy_gradient``: g (12, L), F, S, P (3, 3, L), tr, nE2 (L,)."""
+    return np.empty((12, L)), np.empty((3, 3, L)), np.empty((3, 3, L)), np.empty((3, 3, L)), np.empty(L), np.empty(L)
+
+
+@njit(**INLINE)
+def _tet_energy_gradient(e, x, st, args, work, total, L):
+    """Energy (added into total (L,)) and gradient g (12, L) = W D P^T of tet e in each lane of
+    x (n, 3, L); leaves F and S = 2 mu E + lam tr(E) I (3, 3, L) in ``work`` (``_tet_scratch``)."""
+    D, vol, mu, lam = args
+    g, F, S, P, tr, nE2 = work
+    _tet_F(e, x, st, D, F, L)
+    W = vol[e]
+    stvk_stress(F, S, tr, nE2, mu[e], lam[e], W, total, 3, L)
     for i in range(3):  # P = F S
         for j in range(3):
-            P[i, j] = F[i, 0] * S[0, j] + F[i, 1] * S[1, j] + F[i, 2] * S[2, j]
+            for s in range(L):
+                P[i, j, s] = F[i, 0, s] * S[0, j, s] + F[i, 1, s] * S[1, j, s] + F[i, 2, s] * S[2, j, s]
     for a in range(4):
+        d0, d1, d2 = D[e, a, 0], D[e, a, 1], D[e, a, 2]
         for i in range(3):
-            g[3 * a + i] = W * (P[i, 0] * D[e, a, 0] + P[i, 1] * D[e, a, 1] + P[i, 2] * D[e, a, 2])
-    return energy
+            for s in range(L):
+                g[3 * a + i, s] = W * (P[i, 0, s] * d0 + P[i, 1, s] * d1 + P[i, 2, s] * d2)
+
+
+@njit(**JIT)
+def tet_energy_gradient(x, st, order, D, vol, mu, lam, grad):
+    """Energies (returned, (L,)) and gradients (added into grad, x's shape) in each lane of
+    x (n, 3) or (n, 3, L)."""
+    return energy_gradient_lanes(_tet_energy_gradient, _tet_scratch, x, st, order, (D, vol, mu, lam), grad, 4)
 
 
 @njit(**INLINE)
@@ -182,6 +225,9 @@ def _tet_projected_hessian(e, D, vol, mu, lam, F, H, S, P, DV, U, V, Lf, A, b, s
 
 @njit(**JIT)
 def tet_run(x, st, order, D, vol, mu, lam, project, grad, data, slots, g_out, H_out, mode):
+    """Per tet the gradient and the (exact or projected) Hessian, scattered (SCATTER) or stored
+    (STORE); returns the energy, the sum of ``tet_energy_gradient``'s, to the bit."""
+    xl, args = as_lanes(x), (D, vol, mu, lam)
     F, S, P, FF = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     U, V, Lf, A, b = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     q = np.empty((4, 3))
@@ -189,13 +235,11 @@ def tet_run(x, st, order, D, vol, mu, lam, project, grad, data, slots, g_out, H_
     N = np.empty((9, 12))
     g = np.empty(12)
     H = np.empty((12, 12))
-    total = 0.0
+    work = g.reshape((12, 1)), F.reshape((3, 3, 1)), S.reshape((3, 3, 1)), P.reshape((3, 3, 1)), np.empty(1), np.empty(1)
+    total = np.zeros(1)
     for ii in range(order.shape[0]):
         e = order[ii]
-        total += _tet_energy_gradient(e, x, st, D, vol, mu, lam, g, F, S, P)
-        if mode == GRADIENT:
-            scatter_gradient(e, st, g, grad, 4)
-            continue
+        _tet_energy_gradient(e, xl, st, args, work, total, 1)
         if project:
             _tet_projected_hessian(e, D, vol, mu, lam, F, H, S, P, q, U, V, Lf, A, b, sig, w3, N)
         else:
@@ -208,5 +252,4 @@ def tet_run(x, st, order, D, vol, mu, lam, project, grad, data, slots, g_out, H_
                 for j in range(i, 12):
                     H_out[e, i, j] = H[i, j]
                     H_out[e, j, i] = H[i, j]
-    return total
-
+    return total[0]
