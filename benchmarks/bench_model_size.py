@@ -25,7 +25,7 @@ import torch  # noqa: E402
 
 from latentsim import runtime  # noqa: E402
 from latentsim.config import integrator_settings, load_config, scene_seeds  # noqa: E402
-from latentsim.latent.sweep import measure_point, train_point  # noqa: E402
+from latentsim.stages.sweep import measure_point, train_point  # noqa: E402
 from latentsim.latent.timing import time_full_space  # noqa: E402
 
 

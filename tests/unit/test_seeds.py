@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from latentsim.config import ConfigError, scene_seeds, validate_config
-from latentsim.latent.sweep import choose, sweep_chart
+from latentsim.stages.sweep import choose, sweep_chart
 from latentsim.report.plots import speed_accuracy_chart, stability_heatmap
 from latentsim.report.tables import (
     claims,
@@ -158,7 +158,7 @@ def test_pruning_a_points_later_seeds_leaves_the_choice_as_it_is_with_every_seed
     """Seeds run in order: a point that failed a seed (pass_fraction 1), or two of three (pass_fraction 1/3 needs
     one pass), trains no further seed; the choice over the pruned rows is the one over every seed trained, for
     every pass_fraction, and the chart says so."""
-    from latentsim.latent.sweep import prune_reason, pruned_row
+    from latentsim.stages.sweep import prune_reason, pruned_row
 
     full = _sweep_rows({(2, 100): {0: 0.030, 1: 0.020, 2: 0.007}, (4, 200): {0: 0.006, 1: 0.007, 2: 0.009},
                         (8, 300): {0: 0.004, 1: 0.020, 2: 0.003}})  # fmt: skip

@@ -5,7 +5,7 @@ import warnings
 import pandas as pd
 import pytest
 
-from latentsim.latent.sweep import choose, chosen_label, parse_label, point_label, recorded_choice_note
+from latentsim.stages.sweep import choose, chosen_label, parse_label, point_label, recorded_choice_note
 
 
 def _rows(points):
@@ -127,7 +127,7 @@ def test_linear_and_single_width_points_survive_a_csv_round_trip(tmp_path):
     """A linear autoencoder's point ("linear") and a one-layer one ("16", which a CSV reads back as a number)
     keep their own rows through the CSV the stage writes; the linear one, smallest and within the tolerance,
     is chosen."""
-    from latentsim.latent.sweep import widths_label
+    from latentsim.stages.sweep import widths_label
 
     assert widths_label([]) == "linear" and widths_label([32, 32]) == "32 32"
     df = _rows([(2, "32 32", 900, [0.001], False), (2, "16", 300, [0.003], False), (2, widths_label([]), 60, [0.008], False)])

@@ -484,7 +484,7 @@ def test_a_sweep_point_that_is_the_scenes_model_measures_it_instead_of_training_
 
     from latentsim.config import sweep_point_settings
     from latentsim.latent.serialization import load_autoencoder, load_extra, load_integrator
-    from latentsim.latent.sweep import train_point
+    from latentsim.stages.sweep import train_point
 
     work = tiny_run[0]
     cfg = validate_config(yaml.safe_load(TINY.read_text()))
@@ -513,7 +513,7 @@ def test_a_sweep_trains_a_points_second_seed_only_where_its_first_leaves_it_a_ch
 
     import pandas as pd
 
-    from latentsim.latent.sweep import _normalised, _per_seed
+    from latentsim.stages.sweep import _normalised, _per_seed
 
     work = tmp_path / "latentsim"
     shutil.copytree(tiny_run[0], work, symlinks=True)

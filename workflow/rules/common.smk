@@ -8,7 +8,7 @@ from snakemake.exceptions import WorkflowError
 from latentsim.stages import neural_modes as nm_pipeline
 from latentsim.stages.baselines import BASELINES, SEEDED_BASELINES
 from latentsim.report.tables import layers_text
-from latentsim.latent.sweep import parse_label, point_label
+from latentsim.stages.sweep import parse_label, point_label
 from latentsim.mesh import MeshError
 from latentsim.mesh.sources import check_user_mesh, user_mesh_path
 from latentsim.config import (

@@ -1,5 +1,5 @@
-"""Stage: one sizing-sweep point (see latentsim.latent.sweep.sweep_point)."""
-from latentsim.latent.sweep import sweep_point
+"""Stage: one sizing-sweep point (see latentsim.stages.sweep.sweep_point)."""
+from latentsim.stages.sweep import sweep_point
 from latentsim.utils import run_stage
 
 

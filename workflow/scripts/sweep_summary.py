@@ -1,4 +1,4 @@
-"""Stage: the sizing sweep's choice and chart (see latentsim.latent.sweep.choose), and the choice against the config's
+"""Stage: the sizing sweep's choice and chart (see latentsim.stages.sweep.choose), and the choice against the config's
 record of it (a warning in the log when they differ)."""
 import logging
 
@@ -6,7 +6,7 @@ import pandas as pd
 
 from latentsim.io import read_csv
 from latentsim.report.tables import write_table
-from latentsim.latent.sweep import choose, chosen_label, recorded_choice_note, sweep_chart
+from latentsim.stages.sweep import choose, chosen_label, recorded_choice_note, sweep_chart
 from latentsim.utils import run_stage
 
 

@@ -18,9 +18,9 @@ Latent Space Dynamics" (sections 3.2-3.3).
    detection).
 
 Beside them: :mod:`~latentsim.latent.timing` (same-run timings), :mod:`~latentsim.latent.stability`
-(stress conditions), :mod:`~latentsim.latent.sweep` (sizing sweep) and :mod:`~latentsim.latent.subspaces` (the PCA,
-linear-modes and autoencoder subspaces of the reduced baselines, whose stage is
-:mod:`~latentsim.stages.baselines`), imported by name.
+(stress conditions) and :mod:`~latentsim.latent.subspaces` (the PCA, linear-modes and autoencoder subspaces of the
+reduced baselines, whose stage is :mod:`~latentsim.stages.baselines`), imported by name; the sizing sweep, which
+trains and measures whole models, is a stage (:mod:`~latentsim.stages.sweep`).
 
 Physics is never re-implemented here: every energy comes from an
 :class:`latentsim.physics.incremental_potential.IncrementalPotential`.  Networks run in
