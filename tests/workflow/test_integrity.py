@@ -57,3 +57,40 @@ def test_a_truncated_trajectories_file_stops_its_reader_and_the_next_run_rewrite
         after = f["sequences/test_mid/positions"][()]
     scale = np.abs(before).max()
     np.testing.assert_allclose(after, before, rtol=0, atol=1e-9 * scale)
+
+
+def test_a_damaged_runtime_or_table_is_named_moved_aside_and_planned_again_by_all(tiny_run, tmp_path):
+    """What a user loads and what the summary reads: a runtime.pt with a flipped weight byte and a metrics table with
+    a row removed are named and moved aside by their readers; `all` then plans the jobs that write them again."""
+    import pandas as pd
+    import pytest
+
+    from latentsim import runtime
+    from latentsim.checksum import ArtefactError
+    from latentsim.io import read_csv
+
+    work = copy_of_run(tiny_run[0], tmp_path)
+    folder = work / "results/rollout/tiny_rods/self_supervised/seed0"
+    program = folder / "runtime.pt"
+    data = bytearray(program.read_bytes())
+    with open(program, "rb") as f:
+        import torch
+
+        weights = [t for t in torch.export.load(f).state_dict.values() if t.numel() >= 8]
+    at = data.find(weights[0].detach().numpy().tobytes()[:32])
+    data[at + 1] ^= 0x40
+    program.write_bytes(bytes(data))
+    with pytest.raises(ArtefactError, match="runtime.pt: corrupt artefact"):
+        runtime.load_program(program)
+    (folder / "runtime.npz").rename(folder / "runtime.npz.corrupt")  # as runtime.load moves a damaged one aside
+    table = work / "results/evaluation/tiny_cloth/metrics.csv"
+    text = table.read_text().splitlines()
+    table.write_text("\n".join(text[:-1]) + "\n")
+    with pytest.raises(ArtefactError, match="metrics.csv: corrupt artefact"):
+        read_csv(table)
+    assert not program.exists() and not table.exists()
+    plan = run("snakemake -n all --configfile config/tiny.yaml", work)
+    assert plan.returncode == 0, plan.stderr[-3000:]
+    out = plan.stdout
+    assert "results/rollout/tiny_rods/self_supervised/seed0/runtime.pt" in out and "results/evaluation/tiny_cloth/metrics.csv" in out
+    assert isinstance(pd.read_csv(work / "results/evaluation/summary.csv"), pd.DataFrame)
