@@ -74,7 +74,7 @@ from latentsim.solve.reduced import (
     reduced_rollout,
 )
 from latentsim.scene import BC_DIM, bc_parameters, build_potential, dirichlet_trajectory
-from latentsim.stages.simulate import read_mesh_arrays
+from latentsim.io import read_mesh_arrays
 
 ROOT = Path(__file__).resolve().parents[1]
 

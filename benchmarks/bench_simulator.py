@@ -47,7 +47,7 @@ import torch
 from latentsim.config import load_config
 from latentsim.stages.mesh import prepare_mesh
 from latentsim.scene import bc_parameters, build_potential, dirichlet_trajectory
-from latentsim.stages.simulate import read_mesh_arrays
+from latentsim.io import read_mesh_arrays
 from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings
 from latentsim.solve.sparse import BandedUpper
 

@@ -47,6 +47,7 @@ __all__ = [
     "open_artefact",
     "read_config_attr",
     "read_csv",
+    "read_mesh_arrays",
     "read_tree",
     "require",
     "write_csv",
@@ -214,6 +215,15 @@ def write_provenance(h5obj, config=None, seed=-1):
     h5obj.attrs["config"] = json.dumps(config if config is not None else {}, sort_keys=True)
     h5obj.attrs["seed"] = int(seed)
     h5obj.attrs[ENVIRONMENT] = json.dumps(environment(), sort_keys=True)
+
+
+def read_mesh_arrays(path) -> dict:
+    """A mesh artefact's arrays (``results/mesh/<scene>/mesh.h5``: rest positions, elements, Dirichlet set, ...) and
+    its ``model``, read checked (:func:`open_artefact`)."""
+    with open_artefact(path) as f:
+        arrays = {k: f[k][()] for k in f.keys()}
+        arrays["model"] = str(f.attrs["model"])
+    return arrays
 
 
 def read_config_attr(h5obj) -> dict:

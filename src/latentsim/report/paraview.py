@@ -25,7 +25,16 @@ from latentsim.io import ArtefactError, atomic_path, open_artefact, require
 from latentsim.report.motion import load_motion, model_of
 from latentsim.utils import working_directory
 
-__all__ = ["single_block_xdmf", "write_xdmf_series"]
+__all__ = ["cells_for", "single_block_xdmf", "write_xdmf_series"]
+
+
+def cells_for(model: str, arrays: dict):
+    """meshio cell blocks of a model's elements (a mesh artefact's ``edges``, ``triangles`` or ``tets``)."""
+    if model == "rods":
+        return [("line", np.asarray(arrays["edges"]))]
+    if model == "shell":
+        return [("triangle", np.asarray(arrays["triangles"]))]
+    return [("tetra", np.asarray(arrays["tets"]))]
 
 
 def single_block_xdmf(path) -> int:

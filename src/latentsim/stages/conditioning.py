@@ -1,5 +1,6 @@
 """Stages of the conditioned integrator (workflow/rules/conditioning.smk; beyond Li et al. 2025,
-:mod:`latentsim.latent.conditioning`): a scene simulated at each condition, the conditioned
+:mod:`latentsim.latent.conditioning`): a scene's config at each condition (:func:`condition_sim_config`, which
+the rule's script gives to the simulate stage), the conditioned
 integrator and the per-condition references evaluated at the held-out conditions, and the summary
 over seeds (table and figure).
 
@@ -31,7 +32,6 @@ from latentsim.report.metrics import bbox_diagonal, rollout_metrics, vertex_erro
 from latentsim.report.plots import save_figure
 from latentsim.report.tables import markdown, write_table
 from latentsim.scene import potential_from_artefact
-from latentsim.stages.simulate import simulate_scene
 
 log = logging.getLogger(__name__)
 
@@ -65,12 +65,6 @@ def condition_sim_config(sim: dict, condition: dict) -> dict:
         seqs.append(q)
     material = {**sim["material"], "youngs_modulus": float(condition["youngs_modulus"])}
     return {**sim, "dt": float(condition["time_step"]), "material": material, "sequences": seqs}
-
-
-def simulate_condition(scene: str, condition_name: str, mesh_h5, sim: dict, condition: dict, out_h5, paraview_dir=None, progress=False) -> None:
-    """Simulate a scene's sequences at one condition (:func:`condition_sim_config`) into ``out_h5``,
-    in the layout of ``results/sim/<scene>/trajectories.h5``."""
-    simulate_scene(f"{scene} at {condition_name}", mesh_h5, condition_sim_config(sim, condition), out_h5, paraview_dir=paraview_dir, progress=progress)
 
 
 def _scene_at(path, ae_path) -> dict:

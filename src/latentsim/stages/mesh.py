@@ -16,6 +16,7 @@ import pandas as pd
 from latentsim.io import atomic_h5, atomic_path, open_artefact, write_csv, write_dataset
 from latentsim.mesh import scene_mesh
 from latentsim.mesh.build import quality_gate
+from latentsim.report.paraview import cells_for
 
 #: the mesh quality table's columns after ``scene`` and ``model``: :func:`latentsim.mesh.check_mesh`'s
 #: statistics (empty where a mesh has no such element) and the gate the mesh passed
@@ -65,15 +66,6 @@ def write_quality_table(meshes: dict, out_csv) -> pd.DataFrame:
     df = pd.DataFrame(rows, columns=["scene", "model", *QUALITY_COLUMNS])
     write_csv(df, out_csv, index=False)
     return df
-
-
-def cells_for(model: str, arrays: dict):
-    """meshio cell blocks of a model's elements."""
-    if model == "rods":
-        return [("line", np.asarray(arrays["edges"]))]
-    if model == "shell":
-        return [("triangle", np.asarray(arrays["triangles"]))]
-    return [("tetra", np.asarray(arrays["tets"]))]
 
 
 def write_vtu(path, model, arrays, positions, point_data=None):

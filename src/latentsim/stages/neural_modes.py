@@ -34,7 +34,7 @@ import torch
 
 from latentsim import neural_modes as nm
 from latentsim.config import scene_seeds, with_defaults
-from latentsim.io import ArtefactError, atomic_h5, atomic_path, open_artefact, read_tree, require, write_dataset, write_tree
+from latentsim.io import ArtefactError, atomic_h5, atomic_path, open_artefact, read_mesh_arrays, read_tree, require, write_dataset, write_tree
 from latentsim.latent import save_module
 from latentsim.neural_modes import aspect as nm_aspect
 from latentsim.neural_modes import dynamics as nm_dynamics
@@ -48,7 +48,6 @@ from latentsim.report.paraview import write_xdmf_series
 from latentsim.report.tables import write_table
 from latentsim.latent.timing import time_full_space
 from latentsim.scene import build_elastic, energy_description, material_model
-from latentsim.stages.simulate import read_mesh_arrays
 
 log = logging.getLogger(__name__)
 

@@ -26,10 +26,9 @@ import numpy as np
 import torch
 
 from latentsim.config import ConfigError, check_d_hat
-from latentsim.io import atomic_h5, atomic_path, open_artefact, write_dataset
+from latentsim.io import atomic_h5, atomic_path, open_artefact, read_mesh_arrays, write_dataset
 from latentsim.mesh.geometry import tet_volumes
-from latentsim.report.paraview import single_block_xdmf
-from latentsim.stages.mesh import cells_for
+from latentsim.report.paraview import cells_for, single_block_xdmf
 from latentsim.scene import (CONTACT_ATTR, MATERIAL_MODEL_ATTR, bc_parameters, build_potential, dirichlet_trajectory,
                              initial_velocity, previous_positions)
 from latentsim.solve.implicit_euler import ImplicitEuler, NewtonFailed, NewtonSettings, StepInfo
@@ -40,13 +39,6 @@ log = logging.getLogger(__name__)
 
 class SimulationError(RuntimeError):
     """A frame failed to converge (the message names scene, sequence and frame), or the scene cannot be built."""
-
-
-def read_mesh_arrays(path) -> dict:
-    with open_artefact(path) as f:
-        arrays = {k: f[k][()] for k in f.keys()}
-        arrays["model"] = str(f.attrs["model"])
-    return arrays
 
 
 def volume_ratios(positions: np.ndarray, rest: np.ndarray, tets: np.ndarray):
