@@ -48,24 +48,41 @@ def nearest_neighbour_order(z: np.ndarray) -> np.ndarray:
     return order
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def subset_arguments(ap: argparse.ArgumentParser, samples: int) -> None:
+    """The command line of a ground-truth subset: scene, --study, --set, --samples, --config, --results."""
     ap.add_argument("scene")
     ap.add_argument("--study", default="energy")
     ap.add_argument("--set", default="train")
-    ap.add_argument("--samples", type=int, default=200)
+    ap.add_argument("--samples", type=int, default=samples)
     ap.add_argument("--config", default=str(ROOT / "config" / "config.yaml"))
     ap.add_argument("--results", default=str(ROOT / "results"))
+
+
+def study_subset(args) -> dict:
+    """The first ``args.samples`` samples of one set of a study's ground truth, as rule ``nm_ground_truth``
+    draws them: {params (the rule's), potential, arrays (the mesh's), basis (linear modes), z (N, m)}."""
+    p = nm_pipeline.ground_truth_params(load_config(args.config), args.scene, args.study)
+    results = Path(args.results)
+    pot, arrays = nm_pipeline.scene_potential(results / "mesh" / args.scene / "mesh.h5", p["model"], p["material"])
+    basis = nm_pipeline.read_linear_modes(results / "neural_modes" / args.scene / "linear_modes.h5")
+    sets = nm_pipeline.study_sets(args.study, basis["modes"].shape[1], float(p["neural_modes"]["box"]), p["sets"], p["seed"])
+    return {"params": p, "potential": pot, "arrays": arrays, "basis": basis, "z": sets[args.set][: args.samples]}
+
+
+def solution_gap(xa: np.ndarray, xb: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Per sample, the largest vertex distance between two solutions (N, n, 3) over the largest displacement of the first from X."""
+    X = np.asarray(X).reshape(1, -1, 3)
+    return np.linalg.norm(xa - xb, axis=-1).max(axis=1) / np.linalg.norm(xa - X, axis=-1).max(axis=1)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    subset_arguments(ap, 200)
     args = ap.parse_args()
     torch.set_num_threads(1)
-    cfg = load_config(args.config)
-    p = nm_pipeline.ground_truth_params(cfg, args.scene, args.study)
-    results = Path(args.results)
-    pot, _ = nm_pipeline.scene_potential(results / "mesh" / args.scene / "mesh.h5", p["model"], p["material"])
-    basis = nm_pipeline.read_linear_modes(results / "neural_modes" / args.scene / "linear_modes.h5")
+    sub = study_subset(args)
+    p, pot, basis, z = sub["params"], sub["potential"], sub["basis"], sub["z"]
     nmc = p["neural_modes"]
-    sets = nm_pipeline.study_sets(args.study, basis["modes"].shape[1], float(nmc["box"]), p["sets"], p["seed"])
-    z = sets[args.set][: args.samples]
     solved = {}
     for order, visit in (("given", None), ("nearest", nearest_neighbour_order(z))):
         t0 = time.perf_counter()
@@ -78,9 +95,7 @@ def main():
         print(f"{order:8s} {len(z)} samples: {seconds:.1f} s, iterations total {its.sum()}, median {np.median(its):g}, largest {its.max()}, "
               f"largest KKT residual {res.max():.2e}")  # fmt: skip
     (xa, ea), (xb, eb) = solved["given"], solved["nearest"]
-    X = basis["X"].reshape(1, -1, 3)
-    scale = np.linalg.norm(xa - X, axis=-1).max(axis=1)
-    gap = np.linalg.norm(xa - xb, axis=-1).max(axis=1) / scale
+    gap = solution_gap(xa, xb, basis["X"])
     print(f"solutions apart: largest vertex distance / largest displacement: median {np.median(gap):.2e}, largest {gap.max():.2e}; "
           f"energies: largest relative difference {np.max(np.abs(ea - eb) / np.abs(ea)):.2e}")  # fmt: skip
 
