@@ -65,6 +65,9 @@ def _tetgen_call(vertices: np.ndarray, triangles: np.ndarray, switches: str):
 
 
 def _child(conn, call, args) -> None:
+    import faulthandler
+
+    faulthandler.disable()  # a crash here is reported by the parent (in_child_process), not by a dump of every thread
     try:
         conn.send(("ok", call(*args)))
     except BaseException as exc:  # noqa: BLE001 (sent to the parent, which raises it)
