@@ -28,6 +28,7 @@ NOT_RUN = {
     "snakemake --cores 2 all --configfile config/my_part.yaml": "the same run as the example's, in test_example_scene.py",
     "snakemake --workflow-profile profiles/slurm all": "needs a SLURM cluster; test_workflow dry-runs the profile",
     "python -m pytest -q tests": "the test command itself",
+    "python tools/run_record.py FOLDER": "needs a run's folder; tests/unit/test_run_record.py runs it on a made-up two-part run",
     "snakemake --cores 2 results/evaluation/cloth_paper/metrics.csv results/evaluation/cantilever_paper/metrics.csv":
         "the Fig. 8 scenes over five seeds take 24 min; the tiny run's two-seed scene checks the same rules, tables and claims",
     'python -m pytest -q -m "not slow" tests': "a part of the test command itself",

@@ -130,18 +130,19 @@ def test_the_sizing_sweeps_are_a_target_of_their_own_and_all_shows_those_that_ra
 
 
 def test_a_second_configs_all_is_refused_before_any_job_where_another_configs_summary_is(tmp_path):
-    """The summary (and so the report) of one config's run is not replaced by another config's `all` in the same
-    folder: refused while the DAG is built, naming both configs (a dry run warns); the same config's run goes on."""
+    """The summary (and so the report) of one config's run is not replaced by a run whose config lacks its scenes (another
+    config's `all` in the same folder): refused while the DAG is built, naming the scenes (a dry run warns); a config
+    that holds them (the same, an edited copy, one more scene) goes on."""
     owner = tmp_path / "results/evaluation/summary_config.json"
     owner.parent.mkdir(parents=True)
-    owner.write_text(json.dumps({"config_files": ["config/examples/ring.yaml"], "scenes": ["ring"]}))
+    owner.write_text(json.dumps({"scenes": ["ring"]}))
     out = snakemake("--cores", "1", "all", "--configfile", str(TINY), "--directory", str(tmp_path), check=False)
     said = out.stdout + out.stderr
-    assert out.returncode != 0 and "written by the run of config/examples/ring.yaml (scenes ring)" in said
-    assert "this run, of config/tiny.yaml, would replace them" in said and not (tmp_path / "results/mesh").exists()
+    assert out.returncode != 0 and "hold scenes this config lacks (ring)" in said and "this run would replace them" in said
+    assert not (tmp_path / "results/mesh").exists()
     dry = snakemake("-n", "all", "--configfile", str(TINY), "--directory", str(tmp_path))
-    assert "Warning: results/evaluation/summary.* and the report were written by the run of config/examples/ring.yaml" in dry.stdout + dry.stderr
-    owner.write_text(json.dumps({"config_files": ["config/tiny.yaml"], "scenes": ["tiny_rods"]}))
+    assert "Warning: results/evaluation/summary.* and the report hold scenes this config lacks (ring)" in dry.stdout + dry.stderr
+    owner.write_text(json.dumps({"scenes": ["tiny_rods"]}))
     same = snakemake("-n", "all", "--configfile", str(TINY), "--directory", str(tmp_path))
     assert "Warning: results/evaluation/summary" not in same.stdout + same.stderr
 
@@ -878,10 +879,11 @@ def test_editing_a_variant_reruns_only_that_methods_jobs(tiny_run, tmp_path):
 
 
 def test_a_rollout_that_diverges_at_frame_0_is_scored_as_failed_and_the_scene_still_evaluated(tiny_run, tmp_path):
-    """``rollout.max_extent: 0.1`` (legal, and below the rest shape's own extent) on tiny_cloth, in a copy of
-    the tiny run: its self-supervised rollout and every stress condition diverge at frame 0.  The scene's
-    evaluation keeps its four baselines' metrics as they were; the diverged method's row says diverged at
-    frame 0 with infinite errors, and it is off every front (glance, grid), named in Table 1."""
+    """tiny_cloth's self-supervised rollout made one that diverged at frame 0 (non-finite from its first frame, every
+    stress condition survived for 0 frames, checksummed as the stage writes it; a config can no longer ask for it:
+    ``rollout.max_extent`` at or below 1 is refused), in a copy of the tiny run.  The scene's evaluation keeps its
+    four baselines' metrics as they were; the diverged method's row says diverged at frame 0 with infinite errors,
+    and it is off every front (glance, grid), named in Table 1."""
     import shutil
 
     import pandas as pd
@@ -891,13 +893,17 @@ def test_a_rollout_that_diverges_at_frame_0_is_scored_as_failed_and_the_scene_st
     shared = ROOT.parent / "shared"
     if shared.is_dir():  # the tiny config's meshes, relative to the copy, as in the tiny run
         (tmp_path / "shared").symlink_to(shared.resolve(), target_is_directory=True)
-    cfg = yaml.safe_load(TINY.read_text())
-    cfg["scenes"]["tiny_cloth"]["rollout"] = {"max_extent": 0.1}
-    edited = tmp_path / "edited.yaml"
-    edited.write_text(yaml.safe_dump(cfg))
-    snakemake("--cores", "2", "all", "--configfile", str(edited), "--directory", str(work))
-    with h5py.File(work / "results/rollout/tiny_cloth/self_supervised/seed0/rollout.h5") as f:
-        assert f["sequences/line"].attrs["diverged_frame"] == 0
+    from latentsim.checksum import KEY
+    from latentsim.io import h5_checksum
+
+    with h5py.File(work / "results/rollout/tiny_cloth/self_supervised/seed0/rollout.h5", "r+") as f:
+        line = f["sequences/line"]
+        line["positions"][...] = np.nan
+        line.attrs["diverged_frame"] = 0
+        for condition in f["stability"].values():
+            condition.attrs["survived"] = 0
+        f.attrs[KEY] = h5_checksum(f)
+    snakemake("--cores", "2", "all", "--configfile", str(TINY), "--directory", str(work))
     before = pd.read_csv(tiny_run[0] / "results/evaluation/tiny_cloth/metrics.csv").set_index("method")
     after = pd.read_csv(work / "results/evaluation/tiny_cloth/metrics.csv").set_index("method")
     assert sorted(after.index) == sorted(before.index)

@@ -269,35 +269,25 @@ def sweep_choices():
     }
 
 
-def config_files():
-    """The config file(s) this run reads (``--configfile``, else the default), relative to the checkout where inside it."""
-    files = [os.path.realpath(f) for f in workflow.configfiles] or [
-        os.path.realpath(os.path.join(workflow.basedir, "config/config.yaml"))
-    ]
-    base = os.path.realpath(workflow.basedir)
-    return [
-        os.path.relpath(f, base) if f.startswith(base + os.sep) else f for f in files
-    ]
-
-
 SUMMARY_OWNER = "results/evaluation/summary_config.json"
 
 
 def summary_owner(wildcards):
     """Input function of the summary (it adds no input): refuses, while the DAG is built and so before any job, to
-    replace the summary (and so the report) that another config's run wrote in this folder; a dry run warns.
-    """
+    replace a summary (and so the report) whose scenes this run's config lacks (another config's run in this
+    folder: the summary would show only this config's scenes); a dry run warns."""
     if not os.path.exists(SUMMARY_OWNER):
         return []
     with open(SUMMARY_OWNER) as f:
         owner = json.load(f)
-    if owner.get("config_files") == config_files():
+    lost = sorted(set(owner.get("scenes", [])) - set(SCENES))
+    if not lost:
         return []
     message = (
-        f"results/evaluation/summary.* and the report were written by the run of {', '.join(owner.get('config_files', ['?']))} "
-        f"(scenes {', '.join(owner.get('scenes', []))}); this run, of {', '.join(config_files())}, would replace them. "
-        "Run this config in a folder of its own (a copy of the checkout), or delete results/evaluation/summary* "
-        "to let it replace them (each scene's own results stay under its name either way)."
+        f"results/evaluation/summary.* and the report hold scenes this config lacks ({', '.join(lost)}): they were "
+        f"written by the run of another config (scenes {', '.join(owner.get('scenes', []))}), and this run would "
+        "replace them. Run this config in a folder of its own (a copy of the checkout), or delete "
+        "results/evaluation/summary* to let it replace them (each scene's own results stay under its name either way)."
     )
     if workflow.dryrun:
         print(f"Warning: {message}", file=sys.stderr)

@@ -140,7 +140,6 @@ rule summary:
     params:
         sizes=model_sizes(),
         sweep_choices=reported_sweep_choices(),
-        config_files=config_files(),
         scenes=SCENES,
     script:
         "../scripts/summary.py"

@@ -1,5 +1,5 @@
-"""Stage: summary tables and charts across scenes (see latentsim.stages.evaluate.summarise), and the record of which
-config's run wrote them (so that another config's run in the same folder is refused instead of replacing them)."""
+"""Stage: summary tables and charts across scenes (see latentsim.stages.evaluate.summarise), and the record of the
+scenes they hold (so that another config's run in the same folder is refused instead of replacing them)."""
 import json
 
 from latentsim.io import atomic_path
@@ -28,7 +28,7 @@ def main(smk):
         claims_path=out.claims,
     )
     with atomic_path(out.owner) as tmp:
-        tmp.write_text(json.dumps({"config_files": list(smk.params.config_files), "scenes": list(smk.params.scenes)}, indent=1) + "\n")
+        tmp.write_text(json.dumps({"scenes": list(smk.params.scenes)}, indent=1) + "\n")
 
 
 run_stage(snakemake, main)  # noqa: F821 (injected by Snakemake)
