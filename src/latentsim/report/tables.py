@@ -58,8 +58,7 @@ __all__ = [
 
 
 def write_table(df: pd.DataFrame, path):
-    """Write ``df`` as CSV atomically (no index, floats to 6 significant digits), with its checksum beside it
-    (:func:`latentsim.io.write_csv`; :func:`latentsim.io.read_csv` checks it)."""
+    """Write ``df`` as CSV atomically (no index, 6 significant digits), its checksum beside it (:func:`latentsim.io.write_csv`)."""
     write_csv(df, path, index=False, float_format="%.6g")
 
 
@@ -149,9 +148,8 @@ def table1(df: pd.DataFrame, sized=()) -> pd.DataFrame:
     With several seeds (column ``seed``) each timing is the median over seeds of the seed's mean, and
     ``total_ms`` and ``speedup`` have their least and largest over seeds beside them (``_min``, ``_max``).
     ``floor_ms`` (where the rollouts timed it): one bare pass of the model's output layer over every DoF,
-    and ``step_over_floor`` (median, ``_max``) the step's time over it.  ``total_ms`` is integrate + decode plus, where
-    the scene projects its frames out of its colliders, ``projection_ms`` (a frame's share of it); ``full_ms`` is
-    the scene's one full-space time (rule ``time_full_space``) wherever the evaluation had it.
+    and ``step_over_floor`` (median, ``_max``) the step's time over it.  ``total_ms``: integrate + decode (+ the
+    contact projection's share, ``projection_ms``); ``full_ms``: the scene's one full-space time (``time_full_space``).
 
     sized : variants that are whole models of another size (their own autoencoder); each gets a row of
         its own below its scene's, so the table shows the speed of the model a scene needs beside the
