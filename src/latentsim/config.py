@@ -189,7 +189,8 @@ def conditioned_integrator_settings(config: dict, scene: str, model: str = "cond
 
 def _check_conditioning(config: dict) -> None:
     """A conditioned scene's box (two values each, lo <= hi), its test conditions inside it and none
-    a training condition, a material linear in the modulus, and the self-supervised loss alone."""
+    a training condition, a material linear in the modulus, and its integrators' training features
+    (:func:`check_training_features`: the self-supervised loss alone, no rigid frame)."""
     for name, scene in config.get("scenes", {}).items():
         c = scene.get("conditioning") or {}
         key = f"scenes.{name}.conditioning"
@@ -204,14 +205,9 @@ def _check_conditioning(config: dict) -> None:
         if scene.get("material", {}).get("bending_stiffness") is not None:
             raise ConfigError(f"config key 'scenes.{name}.material.bending_stiffness': a conditioned scene scales every elastic term with the "
                               "modulus; a bending stiffness given apart from it does not scale")  # fmt: skip
+        rigid = bool(conditioned_autoencoder_settings(config, name).get("rigid_frame"))
         for model in ("conditioned", "reference"):
-            settings = conditioned_integrator_settings(config, name, model)
-            if settings.get("mode", "self_supervised") != "self_supervised" or float(settings.get("supervised_weight", 0.0)) > 0:
-                raise ConfigError(f"config key '{key}.integrator' (or '.conditioned'): a conditioned integrator and its references train on "
-                                  "the incremental potential alone (mode self_supervised, supervised_weight 0)")  # fmt: skip
-        if conditioned_autoencoder_settings(config, name).get("rigid_frame"):
-            raise ConfigError(f"config key 'scenes.{name}.autoencoder.rigid_frame': not for a conditioned scene "
-                              "(its timing and own rollouts step the program in the world's frame)")  # fmt: skip
+            check_training_features(conditioned_integrator_settings(config, name, model), _conditioned_key(name), conditioned=True, rigid_frame=rigid)
         (h0, h1), (e0, e1) = c["time_step"], c["youngs_modulus"]
         train = {condition_name(q["time_step"], q["youngs_modulus"]) for q in c.get("train") or []}
         for i, q in enumerate(c.get("train") or []):
@@ -229,6 +225,52 @@ def _check_conditioning(config: dict) -> None:
                 raise ConfigError(f"config key '{key}.test.{i}': {q} is listed twice")
             seen.add(n)
 
+
+
+def _conditioned_key(scene: str):
+    """The names of a conditioned scene's settings in :func:`check_training_features`' messages:
+    an autoencoder's key under the scene, the integrators' block under its ``conditioning``."""
+    return lambda k: f"config key 'scenes.{scene}.{k}'" if k.startswith("autoencoder") else f"config key 'scenes.{scene}.conditioning.{k}' (or '.conditioned')"
+
+
+def check_training_features(settings: dict, key, conditioned: bool = False, rigid_frame: bool = False) -> None:
+    """The one check of an integrator's training features against each other (the conditioning,
+    own rollouts and their speeds, the origin input, the loss's mode and supervision), for the
+    config (:func:`_check_conditioning`) and for ``latent.training.fit_integrator``.
+
+    Parameters
+    ----------
+    settings : the integrator's settings (the schema's ``integrator``; keys absent take its defaults).
+    key : names a setting in messages: ``key("integrator")`` the settings, ``key("integrator.<name>")``
+        one of them, ``key("autoencoder.rigid_frame")`` the autoencoder's.
+    conditioned : whether the integrator trains over a box of conditions (or at one: a reference).
+    rigid_frame : whether its autoencoder has a rigid frame.
+
+    Raises
+    ------
+    ConfigError : naming the setting, where a feature is not for another in use.
+    """
+    mode, weight = settings.get("mode", "self_supervised"), float(settings.get("supervised_weight", 0.0))
+    speeds, own = settings.get("own_rollouts_speeds"), int(settings.get("own_rollouts_every", 0))
+    if conditioned and (mode != "self_supervised" or weight > 0):
+        raise ConfigError(f"{key('integrator')}: a conditioned integrator and its references train on "
+                          "the incremental potential alone (mode self_supervised, supervised_weight 0)")  # fmt: skip
+    if conditioned and rigid_frame:
+        raise ConfigError(f"{key('autoencoder.rigid_frame')}: not for a conditioned scene (its timing and own rollouts step the program in the world's frame)")
+    if conditioned and settings.get("origin_input"):
+        raise ConfigError(f"{key('integrator')}: origin_input is not for a conditioned integrator (its own rollouts step the program at other time steps)")
+    if own > 0 and mode != "self_supervised":
+        raise ConfigError(f"{key('integrator')}: own_rollouts_every needs a self-supervised training")
+    if speeds is None:
+        return
+    what = key("integrator.own_rollouts_speeds")
+    if own <= 0:
+        raise ConfigError(f"{what} scales the own rollouts' programs, but there are none (own_rollouts_every is 0)")
+    if conditioned:
+        raise ConfigError(f"{what} is not for a conditioned integrator (its own rollouts are drawn at conditions of its box)")
+    if weight > 0:
+        raise ConfigError(f"{what} is not for a training with a supervised term (supervised_weight {settings['supervised_weight']}): "
+                          "ground truth exists only at the recorded speeds")  # fmt: skip
 
 def _check_finite(value, path: str = "") -> None:
     """Every number in ``value`` (nested dicts and lists) must be finite: YAML reads ``.nan`` and

@@ -11,6 +11,7 @@ import torch
 
 from latentsim.config import ConfigError, condition_name, conditioned_autoencoder_settings, conditions, validate_config
 from latentsim.latent.autoencoder import Autoencoder, decode_latents
+from latentsim.latent.batch import Triplets
 from latentsim.latent.conditioning import AtCondition, Conditioning, scaled_sequence, with_condition
 from latentsim.latent.coordinates import RelativeCoordinates
 from latentsim.latent.data import build_triplets
@@ -217,7 +218,7 @@ def test_conditioned_own_rollouts_run_and_score_each_sequence_at_one_drawn_condi
     drawn from the box, its Dirichlet targets the program's at that time step, and its rows' loss taken
     at that condition (the ground truth's rows draw theirs); the rows travel with the checkpoint."""
     from latentsim.latent.data import triplet_rows
-    from latentsim.latent.training import _at_sampled_conditions, _with_own_rows, own_rollout_triplets_at_conditions
+    from latentsim.latent.features import at_sampled_conditions, own_rollout_triplets_at_conditions
 
     ch = Chain()
     seqs = [_six(ch.simulate(a, f)) for a, f in [(0.5, 1.0), (-0.8, 0.7), (1.0, 1.5)]]
@@ -231,6 +232,8 @@ def test_conditioned_own_rollouts_run_and_score_each_sequence_at_one_drawn_condi
     tr = build_triplets(ae, coords, seqs)
     lengths = triplet_rows(seqs)
     own = own_rollout_triplets_at_conditions(integ, tr, lengths, tr["z"].mean(0), math.inf, box, torch.Generator().manual_seed(1))
+    joined = Triplets.of(tr).cat(own)
+    own = own.fields()
     assert own["z"].shape == tr["z"].shape and own["condition"].shape == (sum(lengths), 2)
     start, drawn = 0, []
     for seq, n in zip(seqs, lengths):
@@ -253,8 +256,7 @@ def test_conditioned_own_rollouts_run_and_score_each_sequence_at_one_drawn_condi
         start += n
     assert len(set(drawn)) == len(seqs)
     # in a minibatch the rolled-out rows keep their condition, the ground truth's draw theirs in the box
-    both = _with_own_rows(tr, own)
-    batch = _at_sampled_conditions(both, box, torch.Generator().manual_seed(2))
+    batch = at_sampled_conditions(joined, box, torch.Generator().manual_seed(2)).fields()
     m = tr["z"].shape[0]
     assert torch.equal(batch["dt"][m:], own["condition"][:, 0]) and "condition" not in batch
     assert not torch.equal(batch["dt"][:m], tr["z"].new_full((m,), float(ch.pot.dt), dtype=torch.float64))
@@ -262,7 +264,7 @@ def test_conditioned_own_rollouts_run_and_score_each_sequence_at_one_drawn_condi
     # each row's loss weight follows its own time step, to the box's power
     assert torch.allclose(batch["scale"], (batch["dt"] / ch.pot.dt) ** 2)
     flat = Conditioning(box.time_step, box.youngs_modulus, box.base_time_step, box.base_modulus, time_step_weight_power=0.0)
-    assert torch.equal(_at_sampled_conditions(both, flat, torch.Generator().manual_seed(2))["scale"], torch.ones_like(batch["scale"]))
+    assert torch.equal(at_sampled_conditions(joined, flat, torch.Generator().manual_seed(2)).scale, torch.ones_like(batch["scale"]))
     # a training on them, resumed between two rollouts, equals the uninterrupted one to the bit
     cfg = dict(widths=[16], epochs=5, lr=1e-3, batch_size=40, own_rollouts_every=2, own_rollouts_start=1)
     full, hf = fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=3, conditioning=box)

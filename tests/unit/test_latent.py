@@ -481,14 +481,14 @@ def test_own_rollouts_chain_the_integrators_own_predictions_sequence_by_sequence
     row's inputs are the two latents before it in that rollout, its boundary conditions and targets
     the frame's own; a rollout that leaves the range stops there."""
     from latentsim.latent.data import triplet_rows
-    from latentsim.latent.training import own_rollout_triplets
+    from latentsim.latent.features import own_rollout_triplets
 
     ch, seqs, coords, ae = chain_setup
     integ, tr = _untrained(chain_setup)
     lengths = triplet_rows(seqs)
     assert sum(lengths) == tr["z"].shape[0]  # build_triplets' rows, sequence by sequence
     centre = tr["z"].mean(0)
-    own = own_rollout_triplets(integ, tr, lengths, centre, math.inf)
+    own = own_rollout_triplets(integ, tr, lengths, centre, math.inf).fields()
     assert own["z"].shape == tr["z"].shape
     for key in ("z", "p", "p_prev", "p_prev2", "xD", "xD_prev", "xD_prev2"):
         assert torch.equal(own[key], tr[key])
@@ -506,7 +506,7 @@ def test_own_rollouts_chain_the_integrators_own_predictions_sequence_by_sequence
     assert not torch.allclose(own["z_prev"], tr["z_prev"], atol=1e-3)
     # a range it leaves at once: each sequence keeps the rows up to its first prediction outside
     short = own_rollout_triplets(integ, tr, lengths, centre, 0.0)
-    assert short["z"].shape[0] == len(lengths)
+    assert len(short) == len(lengths)
     with pytest.raises(ValueError, match="rows_per_sequence"):
         own_rollout_triplets(integ, tr, lengths[:-1], centre, math.inf)
 
@@ -543,7 +543,7 @@ def test_own_rollouts_at_speeds_roll_each_sequence_out_under_its_program_scaled(
     own chain from the recorded first two latents; a still sequence gives none; factor 1 is
     :func:`own_rollout_triplets` itself."""
     from latentsim.latent.data import triplet_rows
-    from latentsim.latent.training import _speed_programs, own_rollout_triplets, own_rollout_triplets_at_speeds
+    from latentsim.latent.features import own_rollout_triplets, own_rollout_triplets_at_speeds, speed_programs
 
     ch, seqs, coords, ae = chain_setup
     seqs = _programs6(seqs)
@@ -555,11 +555,10 @@ def test_own_rollouts_at_speeds_roll_each_sequence_out_under_its_program_scaled(
     integ.fit_normalization(*(tr[k] for k in ("z", "z_prev", "z_prev2", "p", "p_prev", "p_prev2")))
     integ.eval()
     lengths, centre = triplet_rows(seqs), tr["z"].mean(0)
-    cfg = {"own_rollouts_speeds": [2.0, 2.0], "own_rollouts_every": 1, "supervised_weight": 0.0}
-    programs = _speed_programs(seqs, cfg, None, "")
+    programs = speed_programs(seqs, [2.0, 2.0])
     assert programs[-1][0] is None and all(bc is not None for bc, _ in programs[:-1])
     dt = float(ch.pot.dt)
-    own = own_rollout_triplets_at_speeds(integ, tr, lengths, centre, math.inf, programs, (2.0, 2.0), torch.Generator().manual_seed(0), dt, False)
+    own = own_rollout_triplets_at_speeds(integ, tr, lengths, centre, math.inf, programs, (2.0, 2.0), torch.Generator().manual_seed(0), dt, False).fields()
     assert own["z"].shape[0] == sum(lengths[:-1])  # the still sequence: nothing to scale
     assert torch.all(own["speed"] == 2.0)
     with torch.no_grad():
@@ -576,11 +575,11 @@ def test_own_rollouts_at_speeds_roll_each_sequence_out_under_its_program_scaled(
         start += n
     same = own_rollout_triplets_at_speeds(integ, tr, lengths, centre, math.inf, programs, (1.0, 1.0), torch.Generator().manual_seed(0), dt, False)
     ref = own_rollout_triplets(integ, tr, lengths, centre, math.inf)
-    n = same["z"].shape[0]
+    n = len(same)
     for key in ("z_prev", "z_prev2", "p", "xD"):
-        assert torch.allclose(same[key], ref[key][:n], atol=1e-6), key
+        assert torch.allclose(getattr(same, key), getattr(ref, key)[:n], atol=1e-6), key
     drawn = own_rollout_triplets_at_speeds(integ, tr, lengths, centre, math.inf, programs, (0.5, 2.0), torch.Generator().manual_seed(0), dt, False)
-    factors = torch.unique(drawn["speed"])
+    factors = torch.unique(drawn.speed)
     assert len(factors) == 3 and torch.all((factors >= 0.5) & (factors <= 2.0))
 
 
@@ -616,16 +615,19 @@ def test_own_rollouts_at_faster_programs_teach_the_integrator_faster_motion(chai
 
 def test_own_rollouts_at_speeds_refuse_what_they_cannot_scale(chain_setup):
     """The setting names itself where it cannot apply: no own rollouts, a conditioned integrator, a
-    program that is not (velocity, angular velocity), nothing that moves, a range upside down, a
-    supervised term (whose targets exist only at the recorded speeds)."""
+    supervised term (whose targets exist only at the recorded speeds) (the combinations, checked by
+    ``config.check_training_features``), a program that is not (velocity, angular velocity),
+    nothing that moves, a range upside down (the data's and the range's, :func:`speed_programs`)."""
+    from latentsim.config import with_defaults
     from latentsim.latent.conditioning import Conditioning
-    from latentsim.latent.training import _speed_programs
+    from latentsim.latent.features import speed_programs, training_features
 
     ch, seqs, coords, ae = chain_setup
     seqs6 = _programs6(seqs)
     ok = {"own_rollouts_speeds": [0.5, 2.0], "own_rollouts_every": 1, "supervised_weight": 0.0}
-    assert len(_speed_programs(seqs6, ok, None, "")) == 3
-    assert _speed_programs(seqs6, {**ok, "own_rollouts_speeds": None}, None, "") is None
+    assert len(speed_programs(seqs6, ok["own_rollouts_speeds"])) == 3
+    assert speed_programs(seqs6, None) is None
+    assert len(training_features(with_defaults("integrator", ok, "test"), seqs6, coords, ch.pot.dt, None, "scene x").own.programs) == 3
     box = Conditioning((0.02, 0.04), (1e5, 2e5), 1.0 / 30.0, 1e5)
     for cfg, sq, cond, match in [
         ({**ok, "own_rollouts_every": 0}, seqs6, None, "own_rollouts_every is 0"),
@@ -636,7 +638,7 @@ def test_own_rollouts_at_speeds_refuse_what_they_cannot_scale(chain_setup):
         ({**ok, "supervised_weight": 1.0}, seqs6, None, "supervised term"),
     ]:
         with pytest.raises(ValueError, match=rf"scene x: integrator.own_rollouts_speeds.*{match}"):
-            _speed_programs(sq, cfg, cond, "scene x")
+            training_features(with_defaults("integrator", cfg, "test"), sq, coords, ch.pot.dt, cond, "scene x")
 
 
 @pytest.mark.parametrize(
@@ -1106,5 +1108,5 @@ def test_an_integrator_trained_with_the_origin_takes_it_in_training_the_file_and
                        conditioning=Conditioning((ch.pot.dt, ch.pot.dt), (1.0, 1.0), ch.pot.dt, 1.0))  # fmt: skip
     turning = copy.copy(coords)
     turning.rigid = True  # an autoencoder with rigid_frame: refused the same way
-    with pytest.raises(ValueError, match="rigid_frame is not for a conditioned integrator"):
+    with pytest.raises(ValueError, match="rigid_frame: not for a conditioned scene"):
         fit_integrator(ae, turning, ch.pot, seqs, INTEG_CFG, conditioning=Conditioning((ch.pot.dt, ch.pot.dt), (1.0, 1.0), ch.pot.dt, 1.0))

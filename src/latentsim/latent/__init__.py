@@ -12,8 +12,9 @@ Latent Space Dynamics" (sections 3.2-3.3).
 4. :mod:`~latentsim.latent.loss` - :func:`integrator_loss`, the incremental potential of the
    decoded prediction (Eq. 4) with training noise (Eq. 5) and data balancing (Eq. 6); or the
    supervised L2 baseline.
-5. :mod:`~latentsim.latent.data` (sequences, triplets), :mod:`~latentsim.latent.training`
-   (:func:`fit_integrator`, with checkpoint/resume), :mod:`~latentsim.latent.serialization`
+5. :mod:`~latentsim.latent.data` (sequences, triplets; as records, :mod:`~latentsim.latent.batch`),
+   :mod:`~latentsim.latent.training` (:func:`fit_integrator`, with checkpoint/resume; the features
+   beyond the paper as pieces, :mod:`~latentsim.latent.features`), :mod:`~latentsim.latent.serialization`
    (save/load), :mod:`~latentsim.latent.rollout` (autoregressive inference with divergence
    detection).
 

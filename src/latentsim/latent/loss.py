@@ -2,6 +2,27 @@
 decoded prediction (Eq. 4), with training noise on the input latents (Eq. 5) and data
 balancing by the previous step's mean velocity (Eq. 6); or the supervised L2 baseline.
 
+:func:`integrator_loss`'s terms, for a minibatch (:class:`~latentsim.latent.batch.Batch`):
+
+- Self-supervised (Eq. 4): the predicted latent is decoded (with the frame-t Dirichlet positions)
+  and the loss is the incremental potential ``potential(x_t, x_{t-1}, x_{t-2}, targets=xD_t,
+  penalty=use_penalty)``, x_{t-1}, x_{t-2} the *decoded* input latents (at each sample's time step
+  ``dt`` and elastic factor ``stiffness`` where the batch gives them).  Supervised: the squared L2
+  distance ``|z_pred - z_t|^2`` to the ground-truth latent.
+- Training noise (Eq. 5, ``noise_scale > 0``): the batch is doubled with copies whose z_{t-1},
+  z_{t-2} carry uniform noise in ``[-a, a]``, ``a = noise_scale * std`` (per latent dimension,
+  over this batch, separately for z_{t-1} and z_{t-2}); BCs, Dirichlet targets (and the target
+  z_t) unchanged (:func:`with_training_noise`).
+- Data balancing (Eq. 6, ``balancing=True``): each sample's loss is multiplied by
+  :func:`balancing_weights` of its decoded x_{t-1}, x_{t-2} (the perturbed ones for perturbed
+  samples), or by the batch's ``balance`` computed beforehand; and by its ``scale``, if any.
+- Supervision (``supervised_weight`` w > 0, self-supervised mode only; not in the paper): the loss
+  gains ``w * mean_b |(z_pred_b - z_b) / sigma|^2`` over the unperturbed samples, sigma the
+  integrator's output scale ``out_std`` (the spread of the training increments; 1 for a callable
+  without one).  The incremental potential minimised in a small latent space is not the full-space
+  dynamics projected into it; the term pulls the integrator towards the latter where the training
+  data show it.
+
 Physics is never re-implemented here: the energy is the scene's
 :class:`latentsim.physics.incremental_potential.IncrementalPotential`, evaluated in float64 on
 positions the autoencoder decodes.
@@ -14,6 +35,7 @@ from typing import Callable
 import torch
 
 from latentsim.latent.autoencoder import Autoencoder, decode_latents
+from latentsim.latent.batch import Batch, Triplets
 from latentsim.latent.coordinates import RelativeCoordinates
 
 
@@ -33,81 +55,50 @@ def balancing_weights(x_prev: torch.Tensor, x_prev2: torch.Tensor, dt: float, ep
 
 
 @torch.no_grad()
-def fixed_balancing_weights(ae: Autoencoder, coords: RelativeCoordinates, data: dict, dt: float, eps: float = 1e-2, chunk: int = 256) -> torch.Tensor:
-    """:func:`balancing_weights` of every triplet of ``data`` (its decoded ``z_prev``, ``z_prev2``), once.
+def fixed_balancing_weights(ae: Autoencoder, coords: RelativeCoordinates, data, dt: float, eps: float = 1e-2, chunk: int = 256) -> torch.Tensor:
+    """:func:`balancing_weights` of every triplet of ``data`` (a :class:`~latentsim.latent.batch.Triplets`
+    or a dict of its fields; its decoded ``z_prev``, ``z_prev2``), once.
 
     For a training whose inputs carry no noise and whose triplets do not change (the supervised baselines) the
     weights are the same every epoch; :func:`integrator_loss` takes them as the batch's ``balance`` instead of
     decoding two latents per sample in every minibatch.  Decoded ``chunk`` rows at a time (a decode's rows do not
     depend on each other)."""
+    data = Triplets.of(data)
     out = []
-    for a in range(0, data["z_prev"].shape[0], chunk):
+    for a in range(0, data.z_prev.shape[0], chunk):
         rows = slice(a, a + chunk)
-        x1 = decode_latents(ae, coords, data["z_prev"][rows], data["xD_prev"][rows])
-        x2 = decode_latents(ae, coords, data["z_prev2"][rows], data["xD_prev2"][rows])
+        x1 = decode_latents(ae, coords, data.z_prev[rows], data.xD_prev[rows])
+        x2 = decode_latents(ae, coords, data.z_prev2[rows], data.xD_prev2[rows])
         out.append(balancing_weights(x1, x2, dt, eps))
     return torch.cat(out)
 
 
-def integrator_loss(
-    integrator: Callable,
-    ae: Autoencoder,
-    coords: RelativeCoordinates,
-    potential,
-    batch: dict,
-    mode: str = "self_supervised",
-    noise_scale: float = 0.1,
-    balancing: bool = True,
-    use_penalty: bool | None = None,
-    balancing_eps: float = 1e-2,
-    generator: torch.Generator | None = None,
-    supervised_weight: float = 0.0,
-):
-    """Loss of one minibatch of triplets.
-
-    Self-supervised (paper Eq. 4): the predicted latent is decoded (with the
-    frame-t Dirichlet positions) and the loss is the incremental potential
-    ``potential(x_t, x_{t-1}, x_{t-2}, targets=xD_t, penalty=use_penalty)``
-    where x_{t-1}, x_{t-2} are the *decoded* input latents.  Supervised: the
-    squared L2 distance ``|z_pred - z_t|^2`` to the ground-truth latent.
-
-    Training noise (Eq. 5, ``noise_scale > 0``): the batch is doubled with
-    copies whose z_{t-1}, z_{t-2} carry uniform noise in ``[-a, a]``,
-    ``a = noise_scale * std`` (per latent dimension, over this batch, separately
-    for z_{t-1} and z_{t-2}); BCs, Dirichlet targets (and, in supervised mode,
-    the target z_t) unchanged.
-
-    Data balancing (Eq. 6, ``balancing=True``): each sample's loss is
-    multiplied by :func:`balancing_weights` of its decoded x_{t-1}, x_{t-2}
-    (the perturbed ones for perturbed samples).
-
-    Supervision (``supervised_weight`` w > 0, self-supervised mode only; not in
-    the paper): the loss gains ``w * mean_b |(z_pred_b - z_b) / sigma|^2`` over
-    the unperturbed samples, sigma the integrator's output scale ``out_std``
-    (the spread of the training increments; 1 for a callable without one).
-    The incremental potential minimised in a small latent space is not the
-    full-space dynamics projected into it; the term pulls the integrator
-    towards the latter where the training data show it.
+def integrator_loss(integrator: Callable, ae: Autoencoder, coords: RelativeCoordinates, potential, batch: Batch | dict, mode: str = "self_supervised",
+                    noise_scale: float = 0.1, balancing: bool = True, use_penalty: bool | None = None, balancing_eps: float = 1e-2,
+                    generator: torch.Generator | None = None, supervised_weight: float = 0.0):  # fmt: skip
+    """Loss of one minibatch of triplets (the terms are described in the module's docstring).
 
     Parameters
     ----------
     integrator : maps (z_prev, z_prev2, p, p_prev, p_prev2) -> z (B, r).
-    ae : autoencoder (frozen, eval mode expected); coords : RelativeCoordinates.
-    potential : IncrementalPotential (its ``dt`` is used for balancing).
-    batch : dict of tensors, B rows each: ``z_prev, z_prev2`` (B, r),
-        ``p, p_prev, p_prev2`` (B, k), ``xD, xD_prev, xD_prev2`` (B, m, 3),
-        and ``z`` (B, r) ground truth (needed for ``mode="supervised"``); optionally each
-        sample's condition (:mod:`latentsim.latent.conditioning`): ``dt`` (B,) its time step,
-        ``stiffness`` (B,) the factor on the elastic energy and ``scale`` (B,) a factor on its
-        weight; and ``balance`` (B,), the samples' balancing weights computed beforehand
-        (:func:`fixed_balancing_weights`; only without training noise, which would perturb the inputs).
+    ae, coords : the autoencoder (frozen, eval mode expected) and its RelativeCoordinates.
+    potential : IncrementalPotential (its ``dt`` is used for balancing where the batch has none).
+    batch : :class:`~latentsim.latent.batch.Batch` of B rows (or a dict of its fields); its ``z``, the ground truth, is used
+        by ``mode="supervised"`` and the supervision term; its optional ``dt``, ``stiffness`` and ``scale`` give each
+        sample's condition, its ``balance`` the balancing weights computed beforehand (:func:`fixed_balancing_weights`;
+        not with training noise, which would perturb the inputs).
+    mode : 'self_supervised' (Eq. 4) or 'supervised' (L2 to the ground-truth latent).
+    noise_scale : a of Eq. 5 in units of the batch's spread (0: no training noise).
+    balancing : Eq. 6's weights; balancing_eps : their floor on the speed.
     use_penalty : Dirichlet penalty in the potential; ``None`` -> on unless
         ``coords.hard_dirichlet`` (rods: roots re-applied exactly on decode).
     generator : CPU generator for the noise.
+    supervised_weight : w >= 0 of the supervision term (self-supervised mode only).
 
     Returns
     -------
-    loss : scalar, mean over the (possibly doubled) batch of weight * per-sample loss.
+    loss : scalar, mean over the (possibly doubled) batch of weight * per-sample loss (+ the
+        supervision term).
     info : dict with ``per_sample`` (unweighted per-sample losses, (B',)),
         ``weights`` (B',), ``count`` B', ``prediction`` (B', r) (all detached).
     """
@@ -117,58 +108,61 @@ def integrator_loss(
         raise ValueError(f"supervised_weight must be >= 0 and is for the self-supervised loss; got {supervised_weight} with mode {mode!r}")
     if use_penalty is None:
         use_penalty = not coords.hard_dirichlet
-    clean = batch["z_prev"].shape[0]
-    fixed = batch.get("balance") if balancing else None
+    batch = Batch.of(batch)
+    clean = len(batch)
+    fixed = batch.balance if balancing else None
     if noise_scale and noise_scale > 0:
         if fixed is not None:
             raise ValueError("balancing weights computed beforehand (batch['balance']) do not hold for inputs with training noise")
         batch = with_training_noise(batch, noise_scale, generator)
-    z1, z2 = batch["z_prev"], batch["z_prev2"]
-    p, p1, p2 = batch["p"], batch["p_prev"], batch["p_prev2"]
-    xD, xD1, xD2 = batch["xD"], batch["xD_prev"], batch["xD_prev2"]
-    zt = batch.get("z")
-    count = z1.shape[0]
-    pred = integrator(z1, z2, p, p1, p2)
-
-    need_prev = mode == "self_supervised" or (balancing and fixed is None)
-    if need_prev:
+    pred = integrator(batch.z_prev, batch.z_prev2, batch.p, batch.p_prev, batch.p_prev2)
+    x1 = x2 = None
+    if mode == "self_supervised" or (balancing and fixed is None):
         with torch.no_grad():  # constants w.r.t. the integrator weights
-            x1 = decode_latents(ae, coords, z1, xD1)
-            x2 = decode_latents(ae, coords, z2, xD2)
+            x1 = decode_latents(ae, coords, batch.z_prev, batch.xD_prev)
+            x2 = decode_latents(ae, coords, batch.z_prev2, batch.xD_prev2)
     if mode == "self_supervised":
-        x = decode_latents(ae, coords, pred, xD)
-        per = potential(x, x1, x2, targets=xD.to(torch.float64), penalty=bool(use_penalty), dt=batch.get("dt"), stiffness=batch.get("stiffness"))
+        x = decode_latents(ae, coords, pred, batch.xD)
+        per = potential(x, x1, x2, targets=batch.xD.to(torch.float64), penalty=bool(use_penalty), dt=batch.dt, stiffness=batch.stiffness)
     else:
-        if zt is None:
+        if batch.z is None:
             raise ValueError("supervised loss needs the ground-truth latents batch['z']")
-        per = ((pred - zt.to(pred)) ** 2).sum(-1).to(torch.float64)
-    if fixed is not None:
-        w = fixed.to(per)
-    elif balancing:
-        dt = batch.get("dt")
-        w = balancing_weights(x1, x2, float(potential.dt) if dt is None else dt.to(x1), balancing_eps).to(per)
-    else:
-        w = torch.ones_like(per)
-    if "scale" in batch:
-        w = w * batch["scale"].to(w)
+        per = ((pred - batch.z.to(pred)) ** 2).sum(-1).to(torch.float64)
+    w = _sample_weights(batch, per, fixed, x1, x2, float(potential.dt), balancing_eps) if balancing else torch.ones_like(per)
+    if batch.scale is not None:
+        w = w * batch.scale.to(w)
     loss = (w * per).mean()
     if supervised_weight > 0:
-        if zt is None:
-            raise ValueError("supervised_weight needs the ground-truth latents batch['z']")
-        scale = getattr(integrator, "out_std", None)
-        scale = torch.ones_like(pred[0]) if scale is None else scale.to(pred)
-        sup = (((pred[:clean] - zt[:clean].to(pred)) / scale) ** 2).sum(-1).mean()
-        loss = loss + float(supervised_weight) * sup.to(loss)
-    info = {"per_sample": per.detach(), "weights": w.detach(), "count": count, "prediction": pred.detach()}
+        loss = loss + float(supervised_weight) * _supervision(integrator, pred, batch.z, clean).to(loss)
+    info = {"per_sample": per.detach(), "weights": w.detach(), "count": len(batch), "prediction": pred.detach()}
     return loss, info
 
 
-def with_training_noise(batch: dict, noise_scale: float, generator: torch.Generator | None = None) -> dict:
+def _sample_weights(batch: Batch, per: torch.Tensor, fixed, x1, x2, dt: float, eps: float) -> torch.Tensor:
+    """Eq. 6's weights of the samples, as ``per``'s dtype: those computed beforehand (``fixed``), or
+    :func:`balancing_weights` of the decoded inputs ``x1``, ``x2`` at each sample's time step (the
+    batch's ``dt``, else ``dt``)."""
+    if fixed is not None:
+        return fixed.to(per)
+    return balancing_weights(x1, x2, dt if batch.dt is None else batch.dt.to(x1), eps).to(per)
+
+
+def _supervision(integrator: Callable, pred: torch.Tensor, z, clean: int) -> torch.Tensor:
+    """The supervision term's mean |(z_pred - z) / sigma|^2 over the first ``clean`` (unperturbed)
+    samples, sigma the integrator's ``out_std`` (1 for a callable without one)."""
+    if z is None:
+        raise ValueError("supervised_weight needs the ground-truth latents batch['z']")
+    scale = getattr(integrator, "out_std", None)
+    scale = torch.ones_like(pred[0]) if scale is None else scale.to(pred)
+    return (((pred[:clean] - z[:clean].to(pred)) / scale) ** 2).sum(-1).mean()
+
+
+def with_training_noise(batch: Batch | dict, noise_scale: float, generator: torch.Generator | None = None) -> Batch:
     """The batch doubled with perturbed copies (paper Eq. 5): the copies' ``z_prev``, ``z_prev2``
     carry uniform noise in ``[-a, a]``, ``a = noise_scale * std`` (per latent dimension, over this
-    batch, separately for each); every other entry (BCs, Dirichlet targets, ``z``) is repeated.
+    batch, separately for each); every other field (BCs, Dirichlet targets, ``z``, a condition) is repeated.
 
-    batch : tensors of B rows each (:data:`latentsim.latent.data.BATCH_KEYS`) -> 2B rows each.
+    batch : :class:`~latentsim.latent.batch.Batch` of B rows (or a dict of its fields) -> 2B rows.
     generator : CPU generator of the noise (z_prev's first, then z_prev2's).
     """
 
@@ -177,7 +171,6 @@ def with_training_noise(batch: dict, noise_scale: float, generator: torch.Genera
         r = torch.rand(z.shape, generator=generator, dtype=z.dtype).to(z.device)
         return z + (2.0 * r - 1.0) * a
 
-    z1n, z2n = noisy(batch["z_prev"]), noisy(batch["z_prev2"])
-    out = {k: torch.cat([v, v]) for k, v in batch.items() if k not in ("z_prev", "z_prev2")}
-    out["z_prev"], out["z_prev2"] = torch.cat([batch["z_prev"], z1n]), torch.cat([batch["z_prev2"], z2n])
-    return out
+    batch = Batch.of(batch)
+    z1n, z2n = noisy(batch.z_prev), noisy(batch.z_prev2)
+    return batch.map(lambda v: torch.cat([v, v])).replace(z_prev=torch.cat([batch.z_prev, z1n]), z_prev2=torch.cat([batch.z_prev2, z2n]))
