@@ -27,7 +27,7 @@ import torch
 
 from latentsim.config import check_training_features
 from latentsim.latent.batch import Batch, Triplets
-from latentsim.latent.conditioning import AtCondition, Conditioning, with_condition
+from latentsim.latent.conditioning import CONDITION_DIM, AtCondition, Conditioning, with_condition
 from latentsim.latent.coordinates import RelativeCoordinates
 from latentsim.latent.data import triplet_rows
 from latentsim.latent.integrator import LatentIntegrator, boundary_inputs
@@ -91,6 +91,20 @@ class TrainingFeatures:
     own: OwnRollouts | None = None
     fixed_balance: bool = False
     balancing_eps: float = 1e-2
+
+    @property
+    def extra_inputs(self) -> int:
+        """The entries the pieces append to each boundary-condition vector: a conditioned integrator's normalised condition."""
+        return CONDITION_DIM if self.conditioning is not None and self.conditioning.conditioned else 0
+
+    def normalisation_rows(self, stats: dict[str, torch.Tensor], seed: int) -> dict[str, torch.Tensor]:
+        """The rows ``stats`` (``z``, ``z_prev``, ``z_prev2``, ``p``, ``p_prev``, ``p_prev2``) the integrator's
+        normalisation is fitted on, with the inputs the pieces append: a conditioned integrator's
+        conditions, one draw from its box per row by a generator seeded by ``seed``."""
+        if not self.extra_inputs:
+            return stats
+        c = self.conditioning.normalise(*self.conditioning.sample(stats["z"].shape[0], torch.Generator().manual_seed(seed)))
+        return {key: with_condition(val, c) if key in ("p", "p_prev", "p_prev2") else val for key, val in stats.items()}
 
     def prepared(self, data: Triplets, ae, coords: RelativeCoordinates, dt: float) -> Triplets:
         """The ground truth's triplets with what the pieces compute once: their balancing weights."""

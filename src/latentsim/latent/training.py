@@ -61,7 +61,7 @@ from latentsim.config import with_defaults
 from latentsim.latent.autoencoder import Autoencoder
 from latentsim.latent.base import LossHealth, TrainingDiverged, minibatches, potential_on, resolve_device
 from latentsim.latent.batch import Triplets
-from latentsim.latent.conditioning import CONDITION_DIM, Conditioning, with_condition
+from latentsim.latent.conditioning import Conditioning
 from latentsim.latent.coordinates import RelativeCoordinates
 from latentsim.latent.data import build_triplets
 from latentsim.latent.features import TrainingFeatures, training_features
@@ -184,7 +184,7 @@ def _new_training(ae: Autoencoder, coords: RelativeCoordinates, potential, seque
     empty history."""
     features = training_features(cfg, sequences, coords, float(potential.dt), conditioning, label)
     ae_f, pot, data = _training_setup(ae, coords, potential, sequences, device, compiled, cfg)
-    integ = _new_integrator(data, cfg, seed, device, conditioning)
+    integ = _new_integrator(data, cfg, seed, device, features)
     opt = torch.optim.Adam(integ.parameters(), lr=float(cfg["lr"]))
     gen = torch.Generator().manual_seed(seed)
     health = LossHealth(cfg["divergence_factor"], cfg["max_loss"], key="integrator")
@@ -228,22 +228,17 @@ def _training_setup(ae: Autoencoder, coords: RelativeCoordinates, potential, seq
     return ae_f, pot, Triplets.of(build_triplets(ae_f, coords, sequences, origin=bool(cfg["origin_input"])))
 
 
-def _new_integrator(data: Triplets, cfg: dict, seed: int, device: torch.device, conditioning: Conditioning | None = None) -> LatentIntegrator:
-    """An untrained integrator of settings ``cfg`` (weights seeded by ``seed``), normalised by the
-    statistics of the triplets ``data`` (a conditioned one's conditions by those of one draw from
-    its box per triplet), on ``device``."""
-    conditioned = conditioning is not None and conditioning.conditioned
-    r, k = data.z.shape[1], data.p.shape[1] + (CONDITION_DIM if conditioned else 0)
+def _new_integrator(data: Triplets, cfg: dict, seed: int, device: torch.device, features: TrainingFeatures) -> LatentIntegrator:
+    """An untrained integrator of settings ``cfg`` (weights seeded by ``seed``) that takes the
+    features' inputs, normalised by the statistics of the triplets ``data`` with those inputs
+    (:meth:`~latentsim.latent.features.TrainingFeatures.normalisation_rows`), on ``device``."""
+    r, k = data.z.shape[1], data.p.shape[1] + features.extra_inputs
     fork = [device.index or 0] if device.type == "cuda" else []
     with torch.random.fork_rng(devices=fork):
         torch.manual_seed(seed)
         integ = LatentIntegrator(r, k, cfg["widths"], residual=bool(cfg["residual"]), origin=bool(cfg["origin_input"]))
     stats = {key: getattr(data, key).cpu() for key in ("z", "z_prev", "z_prev2", "p", "p_prev", "p_prev2")}
-    if conditioned:
-        c = conditioning.normalise(*conditioning.sample(stats["z"].shape[0], torch.Generator().manual_seed(seed)))
-        for key in ("p", "p_prev", "p_prev2"):
-            stats[key] = with_condition(stats[key], c)
-    integ.fit_normalization(*stats.values())
+    integ.fit_normalization(*features.normalisation_rows(stats, seed).values())
     return integ.to(device)
 
 
