@@ -226,7 +226,6 @@ def _check_conditioning(config: dict) -> None:
             seen.add(n)
 
 
-
 def _conditioned_key(scene: str):
     """The names of a conditioned scene's settings in :func:`check_training_features`' messages:
     an autoencoder's key under the scene, the integrators' block under its ``conditioning``."""
@@ -250,14 +249,15 @@ def check_training_features(settings: dict, key, conditioned: bool = False, rigi
     ------
     ConfigError : naming the setting, where a feature is not for another in use.
     """
-    mode, weight = settings.get("mode", "self_supervised"), float(settings.get("supervised_weight", 0.0))
-    speeds, own = settings.get("own_rollouts_speeds"), int(settings.get("own_rollouts_every", 0))
+    settings = {**schema_defaults("integrator"), **settings}
+    mode, weight = settings["mode"], float(settings["supervised_weight"])
+    speeds, own = settings["own_rollouts_speeds"], int(settings["own_rollouts_every"])
     if conditioned and (mode != "self_supervised" or weight > 0):
         raise ConfigError(f"{key('integrator')}: a conditioned integrator and its references train on "
                           "the incremental potential alone (mode self_supervised, supervised_weight 0)")  # fmt: skip
     if conditioned and rigid_frame:
         raise ConfigError(f"{key('autoencoder.rigid_frame')}: not for a conditioned scene (its timing and own rollouts step the program in the world's frame)")
-    if conditioned and settings.get("origin_input"):
+    if conditioned and settings["origin_input"]:
         raise ConfigError(f"{key('integrator')}: origin_input is not for a conditioned integrator (its own rollouts step the program at other time steps)")
     if own > 0 and mode != "self_supervised":
         raise ConfigError(f"{key('integrator')}: own_rollouts_every needs a self-supervised training")

@@ -150,6 +150,10 @@ def test_the_config_names_the_conditions_and_refuses_what_cannot_be_held_out():
         (dict(box, time_step=[1 / 15, 1 / 60], test=[{"time_step": 1 / 30, "youngs_modulus": 3e5}]), r"conditioning.time_step.*lo <= hi"),
         (dict(box), "conditioning.test"),
         (dict(box, test=[{"time_step": 1 / 30, "youngs_modulus": 3e5}], integrator={"mode": "supervised"}), "incremental potential alone"),
+        (dict(box, test=[{"time_step": 1 / 30, "youngs_modulus": 3e5}], integrator={"origin_input": True}),
+         r"'scenes\.s\.conditioning\.integrator' \(or '\.conditioned'\): origin_input is not for a conditioned integrator"),
+        (dict(box, test=[{"time_step": 1 / 30, "youngs_modulus": 3e5}], conditioned={"own_rollouts_every": 2, "own_rollouts_speeds": [1.0, 2.0]}),
+         r"'scenes\.s\.conditioning\.integrator\.own_rollouts_speeds'.*is not for a conditioned integrator"),
     ]:
         with pytest.raises(ConfigError, match=match):
             validate_config(_scene(**bad))
