@@ -18,7 +18,7 @@ import torch
 from latentsim.latent.data import BATCH_KEYS
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Triplets:
     """Rows of ground-truth or rolled-out triplets, N each.
 
@@ -91,7 +91,7 @@ class Triplets:
         return Triplets(**out)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Batch(Triplets):
     """A minibatch as :func:`~latentsim.latent.loss.integrator_loss` takes it: triplets (B rows)
     and, for a conditioned training (:mod:`latentsim.latent.conditioning`), each sample's
