@@ -1,11 +1,15 @@
 """The compiled assembly of the elastic energy, its gradient and its sparse Hessian.
 
 Every solver (:mod:`latentsim.solve.implicit_euler`, :mod:`latentsim.solve.constrained`,
-:mod:`latentsim.solve.modes`) evaluates the elastic terms of a potential through the compiled
-per-stencil kernels of :mod:`latentsim.physics.kernels`: E = sum_e E_e(x_e), its gradient
-sum_e P_e^T g_e and Hessian sum_e P_e^T H_e P_e (P_e the stencil's gather), with H_e exact or
-projected to positive semi-definite per stencil (Teran et al. 2005), added straight into the
-upper-triangular CSR data (or the banded storage) of a :class:`~latentsim.solve.sparse.HessianPattern`.
+:mod:`latentsim.solve.modes`) evaluates the elastic terms of a potential through their
+per-stencil derivatives: E = sum_e E_e(x_e), its gradient sum_e P_e^T g_e and Hessian
+sum_e P_e^T H_e P_e (P_e the stencil's gather), with H_e exact or projected to positive
+semi-definite per stencil (Teran et al. 2005), added straight into the upper-triangular CSR
+data (or the banded storage) of a :class:`~latentsim.solve.sparse.HessianPattern`.  A term with
+compiled kernels (``EnergyTerm.kernel_spec``, :mod:`latentsim.physics.kernels`) runs them; a
+term without runs its PyTorch ``local_energy`` through autograd (:class:`AutogradKernel`,
+``EnergyTerm.local_gradient_hessian``), scattered into the same gradient and pattern: the
+kernels are an optimisation, not a requirement.
 """
 
 from __future__ import annotations
@@ -17,18 +21,63 @@ import torch
 from latentsim.physics.kernels import add_at, split_stencils, term_kernel
 from latentsim.solve.sparse import BandedUpper, HessianPattern
 
-__all__ = ["CompiledAssembly"]
+__all__ = ["AutogradKernel", "CompiledAssembly"]
+
+
+class AutogradKernel:
+    """A term without compiled kernels, behind the interface of ``kernels.TermKernel`` that
+    :class:`CompiledAssembly` calls: its energy and gradient by PyTorch autograd of
+    ``local_energy``, its per-stencil gradient and (exact or projected) Hessian by
+    ``EnergyTerm.local_gradient_hessian`` (``base.autograd_gradient_hessian``), scattered
+    into the gradient and the Hessian data at the pattern's slots.  float64 on the CPU.
+    """
+
+    def __init__(self, term):
+        self.term, self.name = term, term.name
+        self.stencils = np.ascontiguousarray(term.stencils.cpu().numpy(), dtype=np.int64)
+        self.k = int(self.stencils.shape[1])
+        self.groups, self.threads = (np.arange(len(self.stencils)),), 1  # set by split_stencils, unused
+
+    def energy(self, x) -> float:
+        """The term's energy at x (n, 3)."""
+        with torch.no_grad():
+            return float(self.term.energy(torch.as_tensor(np.asarray(x, dtype=np.float64))))
+
+    def energy_gradient(self, x, grad) -> float:
+        """grad (3n,) += the gradient at x (n, 3); returns the energy."""
+        xt = torch.tensor(np.asarray(x, dtype=np.float64), requires_grad=True)
+        with torch.enable_grad():
+            e = self.term.energy(xt)
+            (g,) = torch.autograd.grad(e, xt)
+        grad += g.numpy().reshape(-1)
+        return float(e.detach())
+
+    def accumulate(self, x, grad, data, slots, project: bool) -> float:
+        """grad (3n,) += gradient; data[slots] += the upper triangles of the stencil Hessians
+        (slots as ``TermKernel.accumulate``'s, -1 for dropped entries); returns the energy."""
+        xt = torch.as_tensor(np.asarray(x, dtype=np.float64))
+        xe = self.term.gather(xt)
+        with torch.no_grad():
+            e = float(self.term.local_energy(xe).sum())
+        g, H = self.term.local_gradient_hessian(xe, project=bool(project))
+        g, H = g.cpu().numpy(), H.cpu().numpy()
+        rows = (3 * self.stencils[:, :, None] + np.arange(3)).reshape(len(self.stencils), -1)
+        np.add.at(grad, rows, g)
+        iu, ju = np.triu_indices(3 * self.k)
+        values, ok = H[:, iu, ju], slots >= 0
+        np.add.at(data, slots[ok], values[ok])
+        return e
 
 
 class CompiledAssembly:
-    """The compiled kernels of a potential's elastic terms (:mod:`latentsim.physics.kernels`), scattering each
-    stencil's gradient and Hessian straight into the gradient and into the data of a
-    ``HessianPattern``'s upper-triangular CSR (or, for ``banded=True``, the banded storage of
+    """The kernels of a potential's elastic terms (compiled, :mod:`latentsim.physics.kernels`, or
+    :class:`AutogradKernel`), scattering each stencil's gradient and Hessian straight into the
+    gradient and into the data of a ``HessianPattern``'s upper-triangular CSR (or, for ``banded=True``, the banded storage of
     ``sparse.BandedUpper``): no per-stencil blocks, no COO->CSR conversion.
 
     Parameters
     ----------
-    kernels : one ``TermKernel`` per term (``term_kernel``); their stencils are split for
+    kernels : one ``TermKernel`` (``term_kernel``) or ``AutogradKernel`` per term; their stencils are split for
         ``threads`` (``latentsim.physics.kernels.split_stencils``).
     pattern : the free-DoF Hessian pattern of those stencils.
     """
@@ -74,11 +123,8 @@ class CompiledAssembly:
 
     @classmethod
     def of(cls, terms, pattern: HessianPattern, n_vertices: int, banded: bool = False, threads: int = 1):
-        """For the terms' kernels (``term_kernel``); a term without one is named in a ValueError."""
-        ks = [term_kernel(t) for t in terms]
-        missing = [type(t).__name__ for t, k in zip(terms, ks) if k is None]
-        if missing:
-            raise ValueError(f"no compiled kernel for the term(s) {missing} (numba missing, or a term the kernels do not cover)")
+        """For the terms' compiled kernels (``term_kernel``), an ``AutogradKernel`` for a term without."""
+        ks = [term_kernel(t) or AutogradKernel(t) for t in terms]
         return cls(ks, pattern, n_vertices, banded, threads)
 
     def energy(self, x) -> float:
