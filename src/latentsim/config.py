@@ -122,6 +122,13 @@ def _normalise_seeds(config) -> None:
             scene["seeds"] = _seed_list(scene["seeds"])
 
 
+def _material_names(schema: dict) -> None:
+    """The schema's ``material.model`` takes the names of the registered materials (``physics.materials``)."""
+    from latentsim.physics.materials import material_names  # the terms import torch: only when validating
+
+    schema["$defs"]["material"]["properties"]["model"]["enum"] = list(material_names())
+
+
 def validate_config(config: dict, schema_path=SCHEMA) -> dict:
     """Validate ``config`` in place (filling defaults) and return it."""
     _check_finite(config)
@@ -131,6 +138,7 @@ def validate_config(config: dict, schema_path=SCHEMA) -> dict:
     _normalise_seeds(config)
     with open(schema_path) as fh:
         schema = yaml.safe_load(fh)
+    _material_names(schema)
     validator = _Validator(schema)
     errors = sorted(validator.iter_errors(config), key=lambda e: (len(list(e.absolute_path)), list(map(str, e.absolute_path))))
     if errors:

@@ -27,7 +27,8 @@ import json
 import numpy as np
 import torch
 
-from latentsim.physics import neohookean, rods, shells, stvk_nm, tets
+from latentsim.physics import rods, shells, tets
+from latentsim.physics.materials import MATERIALS, MODEL_STENCILS, materials_of
 from latentsim.physics.contact import Capsule, ContactBarrier, HalfSpace, Sphere, posed_colliders
 from latentsim.physics.incremental_potential import ElasticPotential, IncrementalPotential
 
@@ -131,14 +132,6 @@ def dirichlet_step(xD_prev: torch.Tensor, p: torch.Tensor, dt) -> torch.Tensor:
 # --- the physical model -------------------------------------------------------
 
 
-#: The tet energy of each ``material.model`` (``physics.tets``, ``physics.stvk_nm``, ``physics.neohookean``).
-TET_MATERIALS = {
-    "stvk": tets.StVKTets,
-    "stvk_nm": stvk_nm.TetsNM,
-    "neohookean": neohookean.StableNeoHookeanTets,
-}
-
-
 def build_elastic(model: str, arrays: dict, material: dict, free_only: bool = False) -> ElasticPotential:
     """ElasticPotential of a scene (its elastic terms, lumped masses, Dirichlet set) from its mesh
     arrays and material: the elastic energy alone, with no time step or gravity.
@@ -150,11 +143,12 @@ def build_elastic(model: str, arrays: dict, material: dict, free_only: bool = Fa
         element arrays of the model: 'edges' and 'triples' (rods), 'triangles'
         (shell), 'tets'.
     material : youngs_modulus [Pa], poisson_ratio, density [kg/m^3], and
-        radius [m] (rods) or thickness [m] (shell); optionally ``model``
-        ('stvk', the default; 'stvk_nm': the Neural Modes authors' membrane,
-        hinge and tets, ``physics.stvk_nm``; 'neohookean', tets only: stable
-        neo-Hookean, ``physics.neohookean``; see ``MATERIAL_MODELS``) and, for
-        stvk_nm shells, ``bending_stiffness`` kB [N m] (default D/2).
+        radius [m] (rods) or thickness [m] (shell); optionally ``model``, a
+        material of ``physics.materials`` ('stvk', the default; 'stvk_nm': the
+        Neural Modes authors' membrane, hinge and tets, ``physics.stvk_nm``;
+        'neohookean', tets only: stable neo-Hookean, ``physics.neohookean``;
+        see ``materials.materials_of``) and, for stvk_nm shells, ``bending_stiffness``
+        kB [N m] (default D/2).
     free_only : drop the elastic stencils whose vertices are all Dirichlet.
         Their energy is then a constant, so the full-space solver (which
         prescribes the Dirichlet vertices exactly) loses nothing; losses and
@@ -172,41 +166,9 @@ def build_elastic(model: str, arrays: dict, material: dict, free_only: bool = Fa
         keep = ~fixed[np.asarray(stencils)].all(axis=1)
         return stencils[torch.as_tensor(keep)]
 
-    Y = float(material["youngs_modulus"])
-    rho = float(material["density"])
     law = material_model(model, material)
-    if model == "rods":
-        edges = torch.as_tensor(np.asarray(arrays["edges"], dtype=np.int64))
-        triples = torch.as_tensor(np.asarray(arrays["triples"], dtype=np.int64))
-        r = float(material["radius"])
-        ks, kb = rods.rod_stiffness(Y, r)
-        terms = [rods.RodStretch(X, active(edges), ks), rods.RodBend(X, active(triples), kb)]  # law == "stvk"
-        masses = rods.lumped_masses_rods(X, edges, rho, r)
-    elif model == "shell":
-        tris = torch.as_tensor(np.asarray(arrays["triangles"], dtype=np.int64))
-        h = float(material["thickness"])
-        nu = float(material["poisson_ratio"])
-        hinges = shells.hinges_from_triangles(tris)
-        # Grinspun's hinge weight 3|e|^2/(A1+A2) with k_b = D converges to 6x the plate energy
-        # D/2 kappa^2 per area (measured in tests/physics/test_energy_shells.py); 1/6 calibrates it.
-        if law == "stvk_nm":
-            kb = material.get("bending_stiffness")
-            terms = [
-                stvk_nm.ShellMembraneNM(X, active(tris), Y, nu, h),
-                stvk_nm.neural_modes_hinge(X, active(hinges), Y, nu, h, None if kb is None else float(kb)),
-            ]
-        else:
-            terms = [
-                shells.ShellMembraneStVK(X, active(tris), Y, nu, h),
-                shells.ShellHinge(X, active(hinges), Y, nu, h, stiffness_scale=1.0 / 6.0),
-            ]
-        masses = shells.lumped_masses_shell(X, tris, rho, h)
-    elif model == "tets":
-        T = torch.as_tensor(np.asarray(arrays["tets"], dtype=np.int64))
-        terms = [TET_MATERIALS[law](X, active(T), Y, float(material["poisson_ratio"]))]
-        masses = tets.lumped_masses(X, T, rho)
-    else:
-        raise ValueError(f"model '{model}': use one of rods, shell, tets")
+    stencils, masses = _model_stencils(model, arrays, X, material)
+    terms = MATERIALS[law][model].terms(X, {k: active(v) for k, v in stencils.items()}, material)
     return ElasticPotential(
         terms=terms,
         masses=torch.as_tensor(masses, dtype=torch.float64),
@@ -214,37 +176,44 @@ def build_elastic(model: str, arrays: dict, material: dict, free_only: bool = Fa
     )
 
 
-MATERIAL_MODELS = {"rods": ("stvk",), "shell": ("stvk", "stvk_nm"), "tets": tuple(TET_MATERIALS)}
+def _model_stencils(model: str, arrays: dict, X: torch.Tensor, material: dict):
+    """The stencils of a model kind (``materials.MODEL_STENCILS``) from its element arrays, and its
+    lumped masses (from every element)."""
+    rho = float(material["density"])
+    if model == "rods":
+        edges = torch.as_tensor(np.asarray(arrays["edges"], dtype=np.int64))
+        triples = torch.as_tensor(np.asarray(arrays["triples"], dtype=np.int64))
+        return {"edges": edges, "triples": triples}, rods.lumped_masses_rods(X, edges, rho, float(material["radius"]))
+    if model == "shell":
+        tris = torch.as_tensor(np.asarray(arrays["triangles"], dtype=np.int64))
+        masses = shells.lumped_masses_shell(X, tris, rho, float(material["thickness"]))
+        return {"triangles": tris, "hinges": shells.hinges_from_triangles(tris)}, masses
+    T = torch.as_tensor(np.asarray(arrays["tets"], dtype=np.int64))
+    return {"tets": T}, tets.lumped_masses(X, T, rho)
 
 
 def material_model(model: str, material: dict) -> str:
-    """The scene's ``material.model`` (default 'stvk'), checked against those its ``model`` offers.
+    """The scene's ``material.model`` (default 'stvk'), checked against those its ``model`` offers,
+    and its optional keys (``materials.Material.options``) against those the material reads.
 
     Raises
     ------
-    ValueError naming the key and the value when the model has no such material.
+    ValueError naming the key and the value when the model has no such material, or the material
+    does not read an optional key the scene sets.
     """
+    if model not in MODEL_STENCILS:
+        raise ValueError(f"model '{model}': use one of {', '.join(MODEL_STENCILS)}")
     law = str(material.get("model", "stvk"))
-    offered = MATERIAL_MODELS.get(model, ("stvk",))
+    offered = materials_of(model)
     if law not in offered:
         raise ValueError(f"material.model '{law}' is not available for model '{model}': use one of {', '.join(offered)}")
-    if material.get("bending_stiffness") is not None and not (model == "shell" and law == "stvk_nm"):
-        raise ValueError(f"material.bending_stiffness applies to model 'shell' with material.model 'stvk_nm' only (got model '{model}', material.model '{law}')")
+    for name, kinds in MATERIALS.items():
+        for kind, entry in kinds.items():
+            for key in entry.options:
+                if material.get(key) is not None and key not in MATERIALS[law][model].options:
+                    raise ValueError(f"material.{key} applies to model '{kind}' with material.model '{name}' only "
+                                     f"(got model '{model}', material.model '{law}')")  # fmt: skip
     return law
-
-
-#: What the elastic energy of each (model, material.model) is, in words, for table notes and captions.
-MATERIAL_ENERGIES = {
-    ("rods", "stvk"): "the project's discrete rods (stretch and bend, physics.rods)",
-    ("shell", "stvk"): "the project's StVK shell (plane-stress membrane with lam/2 (tr E)^2, hinge kB = D/6; physics.shells)",
-    ("shell", "stvk_nm"): (
-        "stvk_nm, the Neural Modes authors' discrete shell (membrane h A (mu tr(E^2) + lam/2 (J - 1)^2) with the 3D Lame "
-        "constants and J the area ratio, hinge 3 kB |e|^2 / (A1 + A2) (theta - theta0)^2; physics.stvk_nm)"
-    ),
-    ("tets", "stvk"): "the project's StVK tets (V (mu ||E||^2 + lam/2 (tr E)^2); physics.tets)",
-    ("tets", "stvk_nm"): "stvk_nm, the Neural Modes authors' StVK tets (V (mu ||E||^2 + lam (det F - 1)^2); physics.stvk_nm)",
-    ("tets", "neohookean"): "stable neo-Hookean tets (Smith, de Goes and Kim 2018; physics.neohookean)",
-}
 
 
 def energy_description(model: str, material: dict) -> str:
@@ -264,7 +233,7 @@ def energy_description(model: str, material: dict) -> str:
             consts.append("kB = D/2 = E h^3 / (24 (1 - nu^2))")
     elif model == "rods":
         consts.append(f"radius {float(material['radius']):g} m")
-    return f"{MATERIAL_ENERGIES[(model, law)]}, {', '.join(consts)}"
+    return f"{MATERIALS[law][model].description}, {', '.join(consts)}"
 
 
 def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity, w_bc: float = 1e5, free_only: bool = False,

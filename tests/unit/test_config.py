@@ -231,3 +231,18 @@ def test_a_free_body_starts_with_a_velocity_and_only_a_free_body_does(tiny):
     tiny["scenes"]["tiny_cloth"]["sequences"][0]["initial_velocity"] = [0.0, 1.0, 0.0]
     with pytest.raises(ConfigError, match=r"scenes\.tiny_cloth\.sequences\.0\.initial_velocity.*only a free body"):
         validate_config(tiny)
+
+
+def test_material_names_come_from_the_registry(tiny, monkeypatch):
+    """material.model takes the names registered in physics.materials, read on load (not a copy in
+    the schema): an unknown name is refused with the registered ones listed; a newly registered
+    material validates."""
+    from latentsim.physics.materials import MATERIALS, material_names
+
+    assert "enum" not in yaml.safe_load(SCHEMA.read_text())["$defs"]["material"]["properties"]["model"]
+    bad = copy.deepcopy(tiny)
+    bad["scenes"]["tiny_rods"]["material"]["model"] = "springy"
+    with pytest.raises(ConfigError, match=r"scenes\.tiny_rods\.material\.model.*'springy'.*" + r".*".join(material_names())):
+        validate_config(bad)
+    monkeypatch.setitem(MATERIALS, "springy", dict(MATERIALS["stvk"]))
+    validate_config(copy.deepcopy(bad))

@@ -80,3 +80,22 @@ def test_elastic_potential_is_the_incremental_potentials_elastic_part(model, fre
     assert e > 0 and torch.equal(e, pot.elastic(x))
     assert torch.allclose(pot(x, X, X, penalty=False), e + 0.5 / 0.01**2 * (pot.masses * ((x - X) ** 2).sum(-1)).sum()
                           + 9.81 * (pot.masses * x[:, 1]).sum(), rtol=1e-12)  # fmt: skip
+
+
+def test_every_material_is_one_entry_of_the_registry():
+    """The materials each model offers, their energies in words and their optional keys come from
+    physics.materials alone."""
+    from latentsim.physics.materials import MATERIALS, materials_of
+    from latentsim.scene import energy_description, material_model
+
+    assert {m: materials_of(m) for m in ("rods", "shell", "tets")} == {
+        "rods": ("stvk",), "shell": ("stvk", "stvk_nm"), "tets": ("stvk", "stvk_nm", "neohookean")}  # fmt: skip
+    mat = {"youngs_modulus": 1e5, "poisson_ratio": 0.3, "thickness": 1e-3, "radius": 1e-3}
+    for name, kinds in MATERIALS.items():
+        for model, entry in kinds.items():
+            assert energy_description(model, {**mat, "model": name}).startswith(entry.description)
+    assert material_model("shell", {**mat, "model": "stvk_nm", "bending_stiffness": 1.0}) == "stvk_nm"
+    with pytest.raises(ValueError, match="material.bending_stiffness applies to model 'shell' with material.model 'stvk_nm' only"):
+        material_model("tets", {**mat, "model": "stvk_nm", "bending_stiffness": 1.0})
+    with pytest.raises(ValueError, match="model 'plates': use one of rods, shell, tets"):
+        material_model("plates", mat)
