@@ -80,6 +80,7 @@ __all__ = [
     "hinges_from_triangles",
     "lumped_masses_shell",
     "triangle_rest_frames",
+    "triangle_kernel_spec",
     "dihedral_angle",
     "ShellMembraneStVK",
     "ShellHinge",
@@ -352,10 +353,18 @@ class ShellMembraneStVK(EnergyTerm):
         The projection clamps the eigenvalues on the 6x6 translation-free
         block (exact eigenvalue clamp of the 9x9 Hessian).
         """
-        sel = torch.tensor([[-1.0, -1.0], [1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)
-        args = (float64_array(sel @ self.Dm_inv), float64_array(self.rest_area * self.thickness), float64_array(self.mu), float64_array(self.lam))
-        return KernelSpec(shell_kernels.membrane_energy, shell_kernels.membrane_energy_gradient, shell_kernels.membrane_run,
-                          args, 3, translation_free_basis(3))
+        return triangle_kernel_spec(self, shell_kernels.membrane_energy, shell_kernels.membrane_energy_gradient, shell_kernels.membrane_run)
+
+
+def triangle_kernel_spec(term, energy, energy_gradient, run) -> KernelSpec:
+    """The ``KernelSpec`` of a constant-strain triangle term (``ShellMembraneStVK``,
+    ``stvk_nm.ShellMembraneNM``: ``Dm_inv``, ``rest_area``, ``thickness``, ``mu``, ``lam``) with
+    the kernels ``energy``, ``energy_gradient``, ``run``: their rest data G (T, 3, 2) =
+    [[-1, -1], [1, 0], [0, 1]] Dm^{-1} (the barycentric gradients, F = sum_a x_a G_a^T),
+    K = Abar h, mu, lam, and the projection's translation-free basis."""
+    sel = torch.tensor([[-1.0, -1.0], [1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)
+    args = (float64_array(sel @ term.Dm_inv), float64_array(term.rest_area * term.thickness), float64_array(term.mu), float64_array(term.lam))
+    return KernelSpec(energy, energy_gradient, run, args, 3, translation_free_basis(3))
 
 
 # --------------------------------------------------------------------------

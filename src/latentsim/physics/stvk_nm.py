@@ -39,7 +39,7 @@ from latentsim.physics.base import EnergyTerm, subset_weights
 from latentsim.physics.kernels import stvk_nm as nm_kernels
 from latentsim.physics.kernels.core import translation_free_basis
 from latentsim.physics.kernels.dispatch import KernelSpec, float64_array
-from latentsim.physics.shells import ShellHinge, _as_long, _as_positions, _per_stencil, triangle_rest_frames
+from latentsim.physics.shells import ShellHinge, _as_long, _as_positions, _per_stencil, triangle_kernel_spec, triangle_rest_frames
 from latentsim.physics.tets import _edge_matrix, lame
 
 __all__ = ["ShellMembraneNM", "TetsNM", "neural_modes_hinge"]
@@ -131,11 +131,8 @@ class ShellMembraneNM(EnergyTerm):
         return torch.linalg.matrix_norm(self.first_piola(x))
 
     def kernel_spec(self) -> KernelSpec:
-        """The compiled kernels (``kernels.stvk_nm``), G (T, 3, 2) = [[-1, -1], [1, 0], [0, 1]] Dm^{-1}."""
-        sel = torch.tensor([[-1.0, -1.0], [1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)
-        args = (float64_array(sel @ self.Dm_inv), float64_array(self.rest_area * self.thickness), float64_array(self.mu), float64_array(self.lam))
-        return KernelSpec(nm_kernels.membrane_nm_energy, nm_kernels.membrane_nm_energy_gradient, nm_kernels.membrane_nm_run,
-                          args, 3, translation_free_basis(3))
+        """The compiled kernels (``kernels.stvk_nm``; rest data as ``shells.triangle_kernel_spec``)."""
+        return triangle_kernel_spec(self, nm_kernels.membrane_nm_energy, nm_kernels.membrane_nm_energy_gradient, nm_kernels.membrane_nm_run)
 
 
 class TetsNM(EnergyTerm):

@@ -20,7 +20,8 @@ r"""Shared pieces of the compiled per-stencil kernels (numba), written once.
   operations of a one-state pass, in the same order (no fast-math, no
   reassociation), so the bits do not depend on L.  For one state L is the
   constant 1 and the lane loops vanish at compile time.  ``energy_gradient_lanes``
-  is the loop of every energy + gradient kernel.
+  is the loop of every energy + gradient kernel, ``run_stencils`` that of a run kernel
+  (gradient and Hessian per stencil, scattered or stored: ``emit``, ``emit_upper``).
 
 Everything runs in float64 and is compiled once and cached on disk
 (``cache=True``); the kernels release the GIL (``nogil``).
@@ -134,6 +135,44 @@ def emit(e, st, g, H, grad, data, slots, g_out, H_out, mode, k):
     else:
         g_out[e] = g
         H_out[e] = H
+
+
+@njit(**INLINE)
+def emit_upper(e, st, g, H, grad, data, slots, g_out, H_out, mode, k):
+    """``emit`` of a Hessian H of which only the upper triangle is written (all that ``scatter``
+    reads): stored (STORE) mirrored into the lower one."""
+    if mode == SCATTER:
+        scatter(e, st, g, H, grad, data, slots, k)
+    else:
+        g_out[e] = g
+        n3 = 3 * k
+        for i in range(n3):
+            for j in range(i, n3):
+                H_out[e, i, j] = H[i, j]
+                H_out[e, j, i] = H[i, j]
+
+
+@njit(**INLINE)
+def run_stencils(local, hessian, scratch, out, x, st, order, args, project, grad, data, slots, g_out, H_out, mode, k):
+    """The body of a run kernel: per stencil e of ``order`` in the one state x (n, 3), its energy
+    (summed and returned), gradient g and (exact or projected) Hessian H, emitted by ``out``
+    (``emit``, or ``emit_upper`` for a Hessian written only in its upper triangle).
+
+    ``scratch()`` returns (g (3k,), H (3k, 3k), work, extra): ``work`` the one-lane scratch of
+    ``local`` (``energy_gradient_lanes``' per-stencil function), whose first entry is g as (3k, 1);
+    ``extra`` the scratch of ``hessian(e, args, work, extra, project, H)``, which writes H from
+    what ``local`` left in ``work``.  The energy is, to the bit, the sum of the energy + gradient
+    kernel's (the same ``local``).
+    """
+    xl = as_lanes(x)
+    g, H, work, extra = scratch()
+    total = np.zeros(1)
+    for ii in range(order.shape[0]):
+        e = order[ii]
+        local(e, xl, st, args, work, total, 1)
+        hessian(e, args, work, extra, project, H)
+        out(e, st, g, H, grad, data, slots, g_out, H_out, mode, k)
+    return total[0]
 
 
 @njit(**JIT)

@@ -35,7 +35,7 @@ import math
 import numpy as np
 from numba import njit
 
-from latentsim.physics.kernels.core import INLINE, JIT, SCATTER, as_lanes, energy_gradient_lanes, lane_count, scatter, svd3
+from latentsim.physics.kernels.core import INLINE, JIT, as_lanes, emit_upper, energy_gradient_lanes, lane_count, run_stencils, svd3
 from latentsim.physics.kernels.tets import _tet_F, projected_from_eigensystem
 
 LOG4 = math.log(4.0)
@@ -194,11 +194,10 @@ def _snh_projected_hessian(e, D, vol, mu, lam, F, inv, H, S, P, DV, U, V, Lf, A,
     projected_from_eigensystem(e, D, W, A, b, DV, U, V, Lf, w3, N, H)
 
 
-@njit(**JIT)
-def snh_run(x, st, order, D, vol, mu, lam, project, grad, data, slots, g_out, H_out, mode):
-    """Per tet the gradient and the (exact or projected) Hessian, scattered (SCATTER) or stored
-    (STORE); returns the energy, the sum of ``snh_energy_gradient``'s, to the bit."""
-    xl, args = as_lanes(x), (D, vol, mu, lam)
+@njit(**INLINE)
+def _snh_run_scratch():
+    """``core.run_stencils``' scratch: g (12,), H (12, 12), ``_snh_scratch(1)`` on g, F, C, P, inv
+    and the Hessians' (F, C, P, S, inv, q, c, U, V, Lf, A, b, w3, sig, N)."""
     F, C, P, S = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     U, V, Lf, A, b = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     q, c = np.empty((4, 3)), np.empty((4, 3))
@@ -207,20 +206,24 @@ def snh_run(x, st, order, D, vol, mu, lam, project, grad, data, slots, g_out, H_
     g = np.empty(12)
     H = np.empty((12, 12))
     work = g.reshape((12, 1)), F.reshape((3, 3, 1)), C.reshape((3, 3, 1)), P.reshape((3, 3, 1)), inv.reshape((4, 1))
-    total = np.zeros(1)
-    for ii in range(order.shape[0]):
-        e = order[ii]
-        _snh_energy_gradient(e, xl, st, args, work, total, 1)
-        if project:
-            _snh_projected_hessian(e, D, vol, mu, lam, F, inv, H, S, P, q, U, V, Lf, A, b, sig, w3, N)
-        else:
-            _snh_exact_hessian(e, D, vol, mu, lam, F, C, inv, q, c, H)
-        if mode == SCATTER:
-            scatter(e, st, g, H, grad, data, slots, 4)
-        else:
-            g_out[e] = g
-            for i in range(12):
-                for j in range(i, 12):
-                    H_out[e, i, j] = H[i, j]
-                    H_out[e, j, i] = H[i, j]
-    return total[0]
+    return g, H, work, (F, C, P, S, inv, q, c, U, V, Lf, A, b, w3, sig, N)
+
+
+@njit(**INLINE)
+def _snh_hessian(e, args, work, extra, project, H):
+    """The projected or the exact Hessian of tet e (its upper triangle at least) from F, cof F and
+    the invariants."""
+    D, vol, mu, lam = args
+    F, C, P, S, inv, q, c, U, V, Lf, A, b, w3, sig, N = extra
+    if project:
+        _snh_projected_hessian(e, D, vol, mu, lam, F, inv, H, S, P, q, U, V, Lf, A, b, sig, w3, N)
+    else:
+        _snh_exact_hessian(e, D, vol, mu, lam, F, C, inv, q, c, H)
+
+
+@njit(**JIT)
+def snh_run(x, st, order, D, vol, mu, lam, project, grad, data, slots, g_out, H_out, mode):
+    """Per tet the gradient and the (exact or projected) Hessian, scattered (SCATTER) or stored
+    (STORE); returns the energy, the sum of ``snh_energy_gradient``'s, to the bit."""
+    return run_stencils(_snh_energy_gradient, _snh_hessian, _snh_run_scratch, emit_upper,
+                        x, st, order, (D, vol, mu, lam), project, grad, data, slots, g_out, H_out, mode, 4)  # fmt: skip

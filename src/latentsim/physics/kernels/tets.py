@@ -22,7 +22,7 @@ import math
 import numpy as np
 from numba import njit
 
-from latentsim.physics.kernels.core import INLINE, JIT, SCATTER, as_lanes, energy_gradient_lanes, jacobi_eigh, lane_count, scatter, svd3
+from latentsim.physics.kernels.core import INLINE, JIT, as_lanes, emit_upper, energy_gradient_lanes, jacobi_eigh, lane_count, run_stencils, svd3
 
 
 @njit(**INLINE)
@@ -223,11 +223,10 @@ def _tet_projected_hessian(e, D, vol, mu, lam, F, H, S, P, DV, U, V, Lf, A, b, s
     projected_from_eigensystem(e, D, W, A, b, DV, U, V, Lf, w3, N, H)
 
 
-@njit(**JIT)
-def tet_run(x, st, order, D, vol, mu, lam, project, grad, data, slots, g_out, H_out, mode):
-    """Per tet the gradient and the (exact or projected) Hessian, scattered (SCATTER) or stored
-    (STORE); returns the energy, the sum of ``tet_energy_gradient``'s, to the bit."""
-    xl, args = as_lanes(x), (D, vol, mu, lam)
+@njit(**INLINE)
+def _tet_run_scratch():
+    """``core.run_stencils``' scratch: g (12,), H (12, 12), ``_tet_scratch(1)`` on g, F, S, P and
+    the Hessians' (F, S, P, FF, q, U, V, Lf, A, b, w3, sig, N)."""
     F, S, P, FF = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     U, V, Lf, A, b = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     q = np.empty((4, 3))
@@ -236,20 +235,23 @@ def tet_run(x, st, order, D, vol, mu, lam, project, grad, data, slots, g_out, H_
     g = np.empty(12)
     H = np.empty((12, 12))
     work = g.reshape((12, 1)), F.reshape((3, 3, 1)), S.reshape((3, 3, 1)), P.reshape((3, 3, 1)), np.empty(1), np.empty(1)
-    total = np.zeros(1)
-    for ii in range(order.shape[0]):
-        e = order[ii]
-        _tet_energy_gradient(e, xl, st, args, work, total, 1)
-        if project:
-            _tet_projected_hessian(e, D, vol, mu, lam, F, H, S, P, q, U, V, Lf, A, b, sig, w3, N)
-        else:
-            _tet_exact_hessian(e, D, vol, mu, lam, F, S, q, FF, H)
-        if mode == SCATTER:
-            scatter(e, st, g, H, grad, data, slots, 4)
-        else:
-            g_out[e] = g
-            for i in range(12):
-                for j in range(i, 12):
-                    H_out[e, i, j] = H[i, j]
-                    H_out[e, j, i] = H[i, j]
-    return total[0]
+    return g, H, work, (F, S, P, FF, q, U, V, Lf, A, b, w3, sig, N)
+
+
+@njit(**INLINE)
+def _tet_hessian(e, args, work, extra, project, H):
+    """The projected or the exact Hessian of tet e (its upper triangle at least) from F and S."""
+    D, vol, mu, lam = args
+    F, S, P, FF, q, U, V, Lf, A, b, w3, sig, N = extra
+    if project:
+        _tet_projected_hessian(e, D, vol, mu, lam, F, H, S, P, q, U, V, Lf, A, b, sig, w3, N)
+    else:
+        _tet_exact_hessian(e, D, vol, mu, lam, F, S, q, FF, H)
+
+
+@njit(**JIT)
+def tet_run(x, st, order, D, vol, mu, lam, project, grad, data, slots, g_out, H_out, mode):
+    """Per tet the gradient and the (exact or projected) Hessian, scattered (SCATTER) or stored
+    (STORE); returns the energy, the sum of ``tet_energy_gradient``'s, to the bit."""
+    return run_stencils(_tet_energy_gradient, _tet_hessian, _tet_run_scratch, emit_upper,
+                        x, st, order, (D, vol, mu, lam), project, grad, data, slots, g_out, H_out, mode, 4)  # fmt: skip
