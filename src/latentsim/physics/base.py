@@ -19,7 +19,9 @@ H (E, 3k, 3k)), the per-stencil gradient and Hessian, exact or positive
 semi-definite (projected, Teran et al. 2005), by the compiled kernels, or by
 autograd (``torch.func``) plus an eigenvalue clamp for a term without.  The
 autograd version, ``autograd_gradient_hessian``, is the oracle the tests
-compare the kernels against.
+compare the kernels against, and the path by which every solver runs a term
+without kernels (``solve.assembly.AutogradKernel``): ``local_energy`` is all a
+new term needs, the kernels are an optimisation.
 
 Everything here is float64 unless the caller passes float32 states.
 """
