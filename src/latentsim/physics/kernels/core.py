@@ -153,15 +153,16 @@ def emit_upper(e, st, g, H, grad, data, slots, g_out, H_out, mode, k):
 
 
 @njit(**INLINE)
-def run_stencils(local, hessian, scratch, out, x, st, order, args, project, grad, data, slots, g_out, H_out, mode, k):
+def run_stencils(local, hessian, scratch, out, x, st, order, args, project, basis, grad, data, slots, g_out, H_out, mode, k):
     """The body of a run kernel: per stencil e of ``order`` in the one state x (n, 3), its energy
     (summed and returned), gradient g and (exact or projected) Hessian H, emitted by ``out``
     (``emit``, or ``emit_upper`` for a Hessian written only in its upper triangle).
 
     ``scratch()`` returns (g (3k,), H (3k, 3k), work, extra): ``work`` the one-lane scratch of
     ``local`` (``energy_gradient_lanes``' per-stencil function), whose first entry is g as (3k, 1);
-    ``extra`` the scratch of ``hessian(e, args, work, extra, project, H)``, which writes H from
-    what ``local`` left in ``work``.  The energy is, to the bit, the sum of the energy + gradient
+    ``extra`` the scratch of ``hessian(e, args, work, extra, project, basis, H)``, which writes H
+    from what ``local`` left in ``work`` (``basis``: the projection's, ``project_psd``; ``NO_FRAME``
+    for a kernel that projects without one).  The energy is, to the bit, the sum of the energy + gradient
     kernel's (the same ``local``).
     """
     xl = as_lanes(x)
@@ -170,7 +171,7 @@ def run_stencils(local, hessian, scratch, out, x, st, order, args, project, grad
     for ii in range(order.shape[0]):
         e = order[ii]
         local(e, xl, st, args, work, total, 1)
-        hessian(e, args, work, extra, project, H)
+        hessian(e, args, work, extra, project, basis, H)
         out(e, st, g, H, grad, data, slots, g_out, H_out, mode, k)
     return total[0]
 

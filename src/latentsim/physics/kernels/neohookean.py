@@ -35,7 +35,7 @@ import math
 import numpy as np
 from numba import njit
 
-from latentsim.physics.kernels.core import INLINE, JIT, as_lanes, emit_upper, energy_gradient_lanes, lane_count, run_stencils, svd3
+from latentsim.physics.kernels.core import INLINE, JIT, NO_FRAME, as_lanes, emit_upper, energy_gradient_lanes, lane_count, run_stencils, svd3
 from latentsim.physics.kernels.tets import _tet_F, projected_from_eigensystem
 
 LOG4 = math.log(4.0)
@@ -210,7 +210,7 @@ def _snh_run_scratch():
 
 
 @njit(**INLINE)
-def _snh_hessian(e, args, work, extra, project, H):
+def _snh_hessian(e, args, work, extra, project, basis, H):
     """The projected or the exact Hessian of tet e (its upper triangle at least) from F, cof F and
     the invariants."""
     D, vol, mu, lam = args
@@ -226,4 +226,4 @@ def snh_run(x, st, order, D, vol, mu, lam, project, grad, data, slots, g_out, H_
     """Per tet the gradient and the (exact or projected) Hessian, scattered (SCATTER) or stored
     (STORE); returns the energy, the sum of ``snh_energy_gradient``'s, to the bit."""
     return run_stencils(_snh_energy_gradient, _snh_hessian, _snh_run_scratch, emit_upper,
-                        x, st, order, (D, vol, mu, lam), project, grad, data, slots, g_out, H_out, mode, 4)  # fmt: skip
+                        x, st, order, (D, vol, mu, lam), project, NO_FRAME, grad, data, slots, g_out, H_out, mode, 4)  # fmt: skip

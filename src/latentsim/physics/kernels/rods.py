@@ -21,7 +21,7 @@ import math
 import numpy as np
 from numba import njit
 
-from latentsim.physics.kernels.core import INLINE, JIT, SCATTER, as_lanes, emit, energy_gradient_lanes, lane_count, project_psd, scatter_gradient
+from latentsim.physics.kernels.core import INLINE, JIT, NO_FRAME, SCATTER, as_lanes, emit, energy_gradient_lanes, lane_count, project_psd, run_stencils, scatter_gradient
 
 
 @njit(**JIT)
@@ -79,11 +79,9 @@ def stretch_energy_gradient(x, st, order, rest_length, ks, grad):
 
 
 @njit(**INLINE)
-def _stretch_local(e, x, st, args, work, total, project):
-    """``_stretch_energy_gradient`` of one state x (n, 3, 1) (``work`` and total (1,) one lane);
-    returns (s, c): the Hessian is [[K, -K], [-K, K]], K = s (1 - c) u u^T + s c I (c clamped
-    at 0 when projecting)."""
-    _stretch_energy_gradient(e, x, st, args, work, total, 1)
+def _stretch_stiffness(e, args, work, project):
+    """(s, c) of edge e from ``_stretch_energy_gradient``'s one-lane ``work``: the Hessian is
+    [[K, -K], [-K, K]], K = s (1 - c) u u^T + s c I (c clamped at 0 when projecting)."""
     rest_length, ks = args
     lb = rest_length[e]
     c = 1.0 - lb / work[2][0]
@@ -105,7 +103,8 @@ def _stretch_scatter(x, st, order, rest_length, ks, project, grad, data, slots):
     total = np.zeros(1)
     for ii in range(order.shape[0]):
         e = order[ii]
-        s, c = _stretch_local(e, xl, st, args, work, total, project)
+        _stretch_energy_gradient(e, xl, st, args, work, total, 1)
+        s, c = _stretch_stiffness(e, args, work, project)
         scatter_gradient(e, st, g, grad, 2)
         for i in range(3):
             for j in range(3):
@@ -119,30 +118,35 @@ def _stretch_scatter(x, st, order, rest_length, ks, project, grad, data, slots):
     return total[0]
 
 
+@njit(**INLINE)
+def _stretch_run_scratch():
+    """``core.run_stencils``' scratch: g (6,), H (6, 6), ``_stretch_scratch(1)`` on g, u."""
+    g, H, u = np.empty(6), np.empty((6, 6)), np.empty(3)
+    return g, H, (g.reshape((6, 1)), u.reshape((3, 1)), np.empty(1)), (u,)
+
+
+@njit(**INLINE)
+def _stretch_hessian(e, args, work, extra, project, B, H):
+    """H = [[K, -K], [-K, K]] of edge e (``_stretch_stiffness``)."""
+    u = extra[0]
+    s, c = _stretch_stiffness(e, args, work, project)
+    for i in range(3):
+        for j in range(3):
+            K = s * (1.0 - c) * u[i] * u[j] + (s * c if i == j else 0.0)
+            H[i, j] = K
+            H[3 + i, 3 + j] = K
+            H[i, 3 + j] = -K
+            H[3 + i, j] = -K
+
+
 @njit(**JIT)
 def stretch_run(x, st, order, rest_length, ks, project, grad, data, slots, g_out, H_out, mode):
     """Per edge the gradient and the (exact or projected) Hessian, scattered (SCATTER) or stored
     (STORE); returns the energy, the sum of ``stretch_energy_gradient``'s, to the bit."""
     if mode == SCATTER:
         return _stretch_scatter(x, st, order, rest_length, ks, project, grad, data, slots)
-    xl, args = as_lanes(x), (rest_length, ks)
-    g = np.empty(6)
-    H = np.empty((6, 6))
-    u = np.empty(3)
-    work = g.reshape((6, 1)), u.reshape((3, 1)), np.empty(1)
-    total = np.zeros(1)
-    for ii in range(order.shape[0]):
-        e = order[ii]
-        s, c = _stretch_local(e, xl, st, args, work, total, project)
-        for i in range(3):
-            for j in range(3):
-                K = s * (1.0 - c) * u[i] * u[j] + (s * c if i == j else 0.0)
-                H[i, j] = K
-                H[3 + i, 3 + j] = K
-                H[i, 3 + j] = -K
-                H[3 + i, j] = -K
-        emit(e, st, g, H, grad, data, slots, g_out, H_out, mode, 2)
-    return total[0]
+    return run_stencils(_stretch_energy_gradient, _stretch_hessian, _stretch_run_scratch, emit,
+                        x, st, order, (rest_length, ks), project, NO_FRAME, grad, data, slots, g_out, H_out, mode, 2)  # fmt: skip
 
 
 @njit(**JIT)
@@ -298,44 +302,45 @@ def _bend_scatter_exact(x, st, order, alpha, c0, grad, data, slots):
     return total[0]
 
 
+@njit(**INLINE)
+def _bend_run_scratch():
+    """``core.run_stencils``' scratch: g (9,), H (9, 9), ``_bend_scratch(1)`` on g, a, b, w, aux
+    and the Hessian's (a, b, aux, H6, M, V, BV, BH, wv, frame)."""
+    g, H, H6 = np.empty(9), np.empty((9, 9)), np.empty((6, 6))
+    a, b, w, aux = np.empty(3), np.empty(3), np.empty(3), np.empty(7)
+    work = g.reshape((9, 1)), a.reshape((3, 1)), b.reshape((3, 1)), w.reshape((3, 1)), aux.reshape((7, 1))
+    M, V, BV, BH = np.empty((6, 6)), np.empty((6, 6)), np.empty((9, 6)), np.empty((9, 6))
+    return g, H, work, (a, b, aux, H6, M, V, BV, BH, np.empty(6), np.empty((3, 3)))
+
+
+@njit(**INLINE)
+def _bend_hessian(e, args, work, extra, project, B, H):
+    """H9 = D^T H6 D of stencil e for (a, b) = (x1 - x0, x2 - x1), projected in the stencil frame."""
+    a, b, aux, H6, M, V, BV, BH, wv, frame = extra
+    _bend_h6(a, b, aux[0], aux[1], aux[2], aux[3], aux[4], aux[5], aux[6], H6)
+    for i in range(3):
+        for jj in range(3):
+            haa, hab = H6[i, jj], H6[i, 3 + jj]
+            hba, hbb = H6[3 + i, jj], H6[3 + i, 3 + jj]
+            H[i, jj] = haa
+            H[i, 3 + jj] = hab - haa
+            H[i, 6 + jj] = -hab
+            H[3 + i, jj] = hba - haa
+            H[3 + i, 3 + jj] = haa + hbb - hab - hba
+            H[3 + i, 6 + jj] = hab - hbb
+            H[6 + i, jj] = -hba
+            H[6 + i, 3 + jj] = hba - hbb
+            H[6 + i, 6 + jj] = hbb
+    if project:
+        _rod_frame(a, b, frame)
+        project_psd(H, B, M, BH, V, wv, BV, frame, True)
+
+
 @njit(**JIT)
 def bend_run(x, st, order, alpha, c0, project, B, grad, data, slots, g_out, H_out, mode):
     """Per stencil the gradient and the (exact or projected) Hessian, scattered (SCATTER) or
     stored (STORE); returns the energy, the sum of ``bend_energy_gradient``'s, to the bit."""
     if mode == SCATTER and not project:
         return _bend_scatter_exact(x, st, order, alpha, c0, grad, data, slots)
-    xl, args = as_lanes(x), (alpha, c0)
-    total = np.zeros(1)
-    g = np.empty(9)
-    H = np.empty((9, 9))
-    H6 = np.empty((6, 6))
-    a, b, w, aux = np.empty(3), np.empty(3), np.empty(3), np.empty(7)
-    work = g.reshape((9, 1)), a.reshape((3, 1)), b.reshape((3, 1)), w.reshape((3, 1)), aux.reshape((7, 1))
-    M, V, BV = np.empty((6, 6)), np.empty((6, 6)), np.empty((9, 6))
-    BH = np.empty((9, 6))
-    wv = np.empty(6)
-    frame = np.empty((3, 3))
-    for ii in range(order.shape[0]):
-        e = order[ii]
-        _bend_energy_gradient(e, xl, st, args, work, total, 1)
-        _bend_h6(a, b, aux[0], aux[1], aux[2], aux[3], aux[4], aux[5], aux[6], H6)
-        # H9 = D^T H6 D for (a, b) = (x1 - x0, x2 - x1)
-        for i in range(3):
-            for jj in range(3):
-                haa, hab = H6[i, jj], H6[i, 3 + jj]
-                hba, hbb = H6[3 + i, jj], H6[3 + i, 3 + jj]
-                H[i, jj] = haa
-                H[i, 3 + jj] = hab - haa
-                H[i, 6 + jj] = -hab
-                H[3 + i, jj] = hba - haa
-                H[3 + i, 3 + jj] = haa + hbb - hab - hba
-                H[3 + i, 6 + jj] = hab - hbb
-                H[6 + i, jj] = -hba
-                H[6 + i, 3 + jj] = hba - hbb
-                H[6 + i, 6 + jj] = hbb
-        if project:
-            _rod_frame(a, b, frame)
-            project_psd(H, B, M, BH, V, wv, BV, frame, True)
-        emit(e, st, g, H, grad, data, slots, g_out, H_out, mode, 3)
-    return total[0]
-
+    return run_stencils(_bend_energy_gradient, _bend_hessian, _bend_run_scratch, emit,
+                        x, st, order, (alpha, c0), project, B, grad, data, slots, g_out, H_out, mode, 3)  # fmt: skip

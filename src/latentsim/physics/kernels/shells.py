@@ -23,7 +23,7 @@ import math
 import numpy as np
 from numba import njit
 
-from latentsim.physics.kernels.core import INLINE, JIT, NO_FRAME, as_lanes, emit, energy_gradient_lanes, lane_count, matmul3, project_psd, skew
+from latentsim.physics.kernels.core import INLINE, JIT, NO_FRAME, as_lanes, emit, energy_gradient_lanes, lane_count, matmul3, project_psd, run_stencils, skew
 from latentsim.physics.kernels.tets import stvk_stress
 
 
@@ -92,49 +92,53 @@ def membrane_energy_gradient(x, st, order, G, K, mu, lam, grad):
     return energy_gradient_lanes(_membrane_energy_gradient, _membrane_scratch, x, st, order, (G, K, mu, lam), grad, 3)
 
 
+@njit(**INLINE)
+def _membrane_run_scratch():
+    """``core.run_stencils``' scratch: g (9,), H (9, 9), ``_membrane_scratch(1)`` on g, F, S and
+    the Hessian's (F, S, q, FF, M, V, BV, BH, wv)."""
+    F, S, q, FF = np.empty((3, 2)), np.empty((2, 2)), np.empty((3, 3)), np.empty((3, 3))
+    g, H = np.empty(9), np.empty((9, 9))
+    M, V, BV, BH = np.empty((6, 6)), np.empty((6, 6)), np.empty((9, 6)), np.empty((9, 6))
+    work = g.reshape((9, 1)), F.reshape((3, 2, 1)), S.reshape((2, 2, 1)), np.empty(1), np.empty(1)
+    return g, H, work, (F, S, q, FF, M, V, BV, BH, np.empty(6))
+
+
+@njit(**INLINE)
+def _membrane_hessian(e, args, work, extra, project, B, H):
+    """The exact or projected Hessian H (9, 9) of triangle e from F and S."""
+    G, K, mu, lam = args
+    F, S, q, FF, M, V, BV, BH, wv = extra
+    m_, l_, Ke = mu[e], lam[e], K[e]
+    for a in range(3):
+        for i in range(3):
+            q[a, i] = F[i, 0] * G[e, a, 0] + F[i, 1] * G[e, a, 1]
+    for i in range(3):
+        for jj in range(3):
+            FF[i, jj] = m_ * (F[i, 0] * F[jj, 0] + F[i, 1] * F[jj, 1])
+    for a in range(3):
+        for b in range(a, 3):
+            gsg = 0.0
+            gg = G[e, a, 0] * G[e, b, 0] + G[e, a, 1] * G[e, b, 1]
+            for r in range(2):
+                for s in range(2):
+                    gsg += G[e, a, r] * S[r, s] * G[e, b, s]
+            for i in range(3):
+                for jj in range(3):
+                    h = m_ * q[b, i] * q[a, jj] + FF[i, jj] * gg + l_ * q[a, i] * q[b, jj]
+                    if i == jj:
+                        h += gsg
+                    H[3 * a + i, 3 * b + jj] = Ke * h
+                    H[3 * b + jj, 3 * a + i] = Ke * h
+    if project:
+        project_psd(H, B, M, BH, V, wv, BV, NO_FRAME, False)
+
+
 @njit(**JIT)
 def membrane_run(x, st, order, G, K, mu, lam, project, B, grad, data, slots, g_out, H_out, mode):
     """Per triangle the gradient and the (exact or projected) Hessian, scattered (SCATTER) or
     stored (STORE); returns the energy, the sum of ``membrane_energy_gradient``'s, to the bit."""
-    xl, args = as_lanes(x), (G, K, mu, lam)
-    F = np.empty((3, 2))
-    S = np.empty((2, 2))
-    q = np.empty((3, 3))
-    FF = np.empty((3, 3))
-    g = np.empty(9)
-    H = np.empty((9, 9))
-    M, V, BV, BH = np.empty((6, 6)), np.empty((6, 6)), np.empty((9, 6)), np.empty((9, 6))
-    wv = np.empty(6)
-    work = g.reshape((9, 1)), F.reshape((3, 2, 1)), S.reshape((2, 2, 1)), np.empty(1), np.empty(1)
-    total = np.zeros(1)
-    for ii in range(order.shape[0]):
-        e = order[ii]
-        _membrane_energy_gradient(e, xl, st, args, work, total, 1)
-        m_, l_, Ke = mu[e], lam[e], K[e]
-        for a in range(3):
-            for i in range(3):
-                q[a, i] = F[i, 0] * G[e, a, 0] + F[i, 1] * G[e, a, 1]
-        for i in range(3):
-            for jj in range(3):
-                FF[i, jj] = m_ * (F[i, 0] * F[jj, 0] + F[i, 1] * F[jj, 1])
-        for a in range(3):
-            for b in range(a, 3):
-                gsg = 0.0
-                gg = G[e, a, 0] * G[e, b, 0] + G[e, a, 1] * G[e, b, 1]
-                for r in range(2):
-                    for s in range(2):
-                        gsg += G[e, a, r] * S[r, s] * G[e, b, s]
-                for i in range(3):
-                    for jj in range(3):
-                        h = m_ * q[b, i] * q[a, jj] + FF[i, jj] * gg + l_ * q[a, i] * q[b, jj]
-                        if i == jj:
-                            h += gsg
-                        H[3 * a + i, 3 * b + jj] = Ke * h
-                        H[3 * b + jj, 3 * a + i] = Ke * h
-        if project:
-            project_psd(H, B, M, BH, V, wv, BV, NO_FRAME, False)
-        emit(e, st, g, H, grad, data, slots, g_out, H_out, mode, 3)
-    return total[0]
+    return run_stencils(_membrane_energy_gradient, _membrane_hessian, _membrane_run_scratch, emit,
+                        x, st, order, (G, K, mu, lam), project, B, grad, data, slots, g_out, H_out, mode, 3)  # fmt: skip
 
 
 @njit(**INLINE)
@@ -289,19 +293,16 @@ def _hinge_theta_hessian(ev, da, db, N1, N2, gr, L2, L, q1, q2, ta, tb, M1, M2, 
                 J[0, c, i, j] = -(j1 + Ja[c, i, j] + Jb[c, i, j])
 
 
-@njit(**JIT)
-def hinge_run(x, st, order, kk, rest_angle, project, B, grad, data, slots, g_out, H_out, mode):
-    """Per hinge the gradient and the (exact or projected) Hessian, scattered (SCATTER) or stored
-    (STORE); returns the energy, the sum of ``hinge_energy_gradient``'s, to the bit."""
-    xl, args = as_lanes(x), (kk, rest_angle)
+@njit(**INLINE)
+def _hinge_run_scratch():
+    """``core.run_stencils``' scratch: g (12,), H (12, 12), ``_hinge_scratch(1)`` on g, ev, da, db,
+    N1, N2, gr, aux and the Hessian's."""
     ev, da, db, N1, N2 = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
     gr = np.empty((4, 3))  # grad theta per vertex
     aux = np.empty(7)
-    g = np.empty(12)
+    g, H = np.empty(12), np.empty((12, 12))
     work = (g.reshape((12, 1)), ev.reshape((3, 1)), da.reshape((3, 1)), db.reshape((3, 1)), N1.reshape((3, 1)),
             N2.reshape((3, 1)), gr.reshape((4, 3, 1)), aux.reshape((7, 1)))  # fmt: skip
-    total = np.zeros(1)
-    H = np.empty((12, 12))
     M1, M2, Sk, T1, T2 = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     Ja = np.zeros((4, 3, 3))  # d ga / d x_c
     Jb = np.zeros((4, 3, 3))
@@ -309,27 +310,36 @@ def hinge_run(x, st, order, kk, rest_angle, project, B, grad, data, slots, g_out
     Tb = np.zeros((4, 3))
     J = np.empty((4, 4, 3, 3))  # J[r, c] = d grad_r theta / d x_c
     M, V, BV, BH = np.empty((9, 9)), np.empty((9, 9)), np.empty((12, 9)), np.empty((12, 9))
-    wv = np.empty(9)
-    for ii in range(order.shape[0]):
-        e = order[ii]
-        _hinge_energy_gradient(e, xl, st, args, work, total, 1)
-        d, L2, Le, q1, q2, ta, tb = aux[0], aux[1], aux[2], aux[3], aux[4], aux[5], aux[6]
-        _hinge_theta_hessian(ev, da, db, N1, N2, gr, L2, Le, q1, q2, ta, tb, M1, M2, Sk, T1, T2, Ja, Jb, Ta, Tb, J)
-        k2 = 2.0 * kk[e]
-        # H = 2k (grad grad^T + d sym(Hess theta))
-        for r in range(4):
-            for i in range(3):
-                p = 3 * r + i
-                for c in range(4):
-                    for j in range(3):
-                        qq = 3 * c + j
-                        if qq < p:
-                            continue
-                        ht = 0.5 * (J[r, c, i, j] + J[c, r, j, i])
-                        h = k2 * (gr[r, i] * gr[c, j] + d * ht)
-                        H[p, qq] = h
-                        H[qq, p] = h
-        if project:
-            project_psd(H, B, M, BH, V, wv, BV, NO_FRAME, False)
-        emit(e, st, g, H, grad, data, slots, g_out, H_out, mode, 4)
-    return total[0]
+    return g, H, work, (ev, da, db, N1, N2, gr, aux, M1, M2, Sk, T1, T2, Ja, Jb, Ta, Tb, J, M, V, BV, BH, np.empty(9))
+
+
+@njit(**INLINE)
+def _hinge_hessian(e, args, work, extra, project, B, H):
+    """The exact or projected Hessian H (12, 12) of hinge e: 2k (grad grad^T + d sym(Hess theta))."""
+    kk = args[0]
+    ev, da, db, N1, N2, gr, aux, M1, M2, Sk, T1, T2, Ja, Jb, Ta, Tb, J, M, V, BV, BH, wv = extra
+    d, L2, Le, q1, q2, ta, tb = aux[0], aux[1], aux[2], aux[3], aux[4], aux[5], aux[6]
+    _hinge_theta_hessian(ev, da, db, N1, N2, gr, L2, Le, q1, q2, ta, tb, M1, M2, Sk, T1, T2, Ja, Jb, Ta, Tb, J)
+    k2 = 2.0 * kk[e]
+    for r in range(4):
+        for i in range(3):
+            p = 3 * r + i
+            for c in range(4):
+                for j in range(3):
+                    qq = 3 * c + j
+                    if qq < p:
+                        continue
+                    ht = 0.5 * (J[r, c, i, j] + J[c, r, j, i])
+                    h = k2 * (gr[r, i] * gr[c, j] + d * ht)
+                    H[p, qq] = h
+                    H[qq, p] = h
+    if project:
+        project_psd(H, B, M, BH, V, wv, BV, NO_FRAME, False)
+
+
+@njit(**JIT)
+def hinge_run(x, st, order, kk, rest_angle, project, B, grad, data, slots, g_out, H_out, mode):
+    """Per hinge the gradient and the (exact or projected) Hessian, scattered (SCATTER) or stored
+    (STORE); returns the energy, the sum of ``hinge_energy_gradient``'s, to the bit."""
+    return run_stencils(_hinge_energy_gradient, _hinge_hessian, _hinge_run_scratch, emit,
+                        x, st, order, (kk, rest_angle), project, B, grad, data, slots, g_out, H_out, mode, 4)  # fmt: skip

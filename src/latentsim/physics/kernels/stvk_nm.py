@@ -38,7 +38,7 @@ import math
 import numpy as np
 from numba import njit
 
-from latentsim.physics.kernels.core import INLINE, JIT, NO_FRAME, as_lanes, emit, energy_gradient_lanes, lane_count, project_psd
+from latentsim.physics.kernels.core import INLINE, JIT, NO_FRAME, as_lanes, emit, energy_gradient_lanes, lane_count, project_psd, run_stencils
 
 
 @njit(**INLINE)
@@ -268,30 +268,29 @@ def _energy(x, st, order, args, k, c):
 
 
 @njit(**INLINE)
-def _run(x, st, order, args, project, B, grad, data, slots, g_out, H_out, mode, k, c):
-    """Per stencil the gradient and the (exact or projected) Hessian, scattered (SCATTER) or
-    stored (STORE); returns the energy, the sum of ``_energy_gradient``'s, to the bit."""
-    G, K, mu, lam = args
-    xl = as_lanes(x)
+def _run_scratch(k, c):
+    """``core.run_stencils``' scratch: g (3k,), H (3k, 3k), ``_scratch(k, c, 1)`` on g, F, E, P, aux
+    and the Hessian's (F, E, aux, A, M, V, BV, BH, wv)."""
     n3, m = 3 * k, 3 * k - 3
     F, E, P, aux, A = np.empty((3, c)), np.empty((c, c)), np.empty((3, c)), np.empty(10), np.empty((3 * c, 3 * c))
     g, H = np.empty(n3), np.empty((n3, n3))
     work = g.reshape((n3, 1)), F.reshape((3, c, 1)), E.reshape((c, c, 1)), P.reshape((3, c, 1)), aux.reshape((10, 1)), np.empty(1)
     M, V, BV, BH = np.empty((m, m)), np.empty((m, m)), np.empty((n3, m)), np.empty((n3, m))
-    wv = np.empty(m)
-    total = np.zeros(1)
-    for ii in range(order.shape[0]):
-        e = order[ii]
-        _energy_gradient(e, xl, st, args, work, total, k, c, 1)
-        if c == 2:
-            _membrane_hessian(F, mu[e], lam[e], E, aux, A)
-        else:
-            _tet_hessian(F, mu[e], lam[e], E, aux, A)
-        _to_stencil_hessian(e, G, A, K[e], H, k, c)
-        if project:
-            project_psd(H, B, M, BH, V, wv, BV, NO_FRAME, False)
-        emit(e, st, g, H, grad, data, slots, g_out, H_out, mode, k)
-    return total[0]
+    return g, H, work, (F, E, aux, A, M, V, BV, BH, np.empty(m))
+
+
+@njit(**INLINE)
+def _hessian(e, args, extra, project, B, H, k, c):
+    """The exact or projected Hessian H (3k, 3k) of stencil e from what ``_energy_gradient`` left."""
+    G, K, mu, lam = args
+    F, E, aux, A, M, V, BV, BH, wv = extra
+    if c == 2:
+        _membrane_hessian(F, mu[e], lam[e], E, aux, A)
+    else:
+        _tet_hessian(F, mu[e], lam[e], E, aux, A)
+    _to_stencil_hessian(e, G, A, K[e], H, k, c)
+    if project:
+        project_psd(H, B, M, BH, V, wv, BV, NO_FRAME, False)
 
 
 @njit(**JIT)
@@ -317,10 +316,22 @@ def membrane_nm_energy_gradient(x, st, order, G, K, mu, lam, grad):
     return energy_gradient_lanes(_membrane_nm_energy_gradient, _membrane_nm_scratch, x, st, order, (G, K, mu, lam), grad, 3)
 
 
+@njit(**INLINE)
+def _membrane_nm_run_scratch():
+    return _run_scratch(3, 2)
+
+
+@njit(**INLINE)
+def _membrane_nm_hessian(e, args, work, extra, project, B, H):
+    _hessian(e, args, extra, project, B, H, 3, 2)
+
+
 @njit(**JIT)
 def membrane_nm_run(x, st, order, G, K, mu, lam, project, B, grad, data, slots, g_out, H_out, mode):
-    """``_run`` of the membrane."""
-    return _run(x, st, order, (G, K, mu, lam), project, B, grad, data, slots, g_out, H_out, mode, 3, 2)
+    """Per triangle the gradient and the (exact or projected) Hessian, scattered (SCATTER) or stored
+    (STORE); returns the energy, the sum of ``membrane_nm_energy_gradient``'s, to the bit."""
+    return run_stencils(_membrane_nm_energy_gradient, _membrane_nm_hessian, _membrane_nm_run_scratch, emit,
+                        x, st, order, (G, K, mu, lam), project, B, grad, data, slots, g_out, H_out, mode, 3)  # fmt: skip
 
 
 @njit(**JIT)
@@ -346,7 +357,19 @@ def tet_nm_energy_gradient(x, st, order, D, vol, mu, lam, grad):
     return energy_gradient_lanes(_tet_nm_energy_gradient, _tet_nm_scratch, x, st, order, (D, vol, mu, lam), grad, 4)
 
 
+@njit(**INLINE)
+def _tet_nm_run_scratch():
+    return _run_scratch(4, 3)
+
+
+@njit(**INLINE)
+def _tet_nm_hessian(e, args, work, extra, project, B, H):
+    _hessian(e, args, extra, project, B, H, 4, 3)
+
+
 @njit(**JIT)
 def tet_nm_run(x, st, order, D, vol, mu, lam, project, B, grad, data, slots, g_out, H_out, mode):
-    """``_run`` of the tet."""
-    return _run(x, st, order, (D, vol, mu, lam), project, B, grad, data, slots, g_out, H_out, mode, 4, 3)
+    """Per tet the gradient and the (exact or projected) Hessian, scattered (SCATTER) or stored
+    (STORE); returns the energy, the sum of ``tet_nm_energy_gradient``'s, to the bit."""
+    return run_stencils(_tet_nm_energy_gradient, _tet_nm_hessian, _tet_nm_run_scratch, emit,
+                        x, st, order, (D, vol, mu, lam), project, B, grad, data, slots, g_out, H_out, mode, 4)  # fmt: skip

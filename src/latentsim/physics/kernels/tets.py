@@ -22,7 +22,7 @@ import math
 import numpy as np
 from numba import njit
 
-from latentsim.physics.kernels.core import INLINE, JIT, as_lanes, emit_upper, energy_gradient_lanes, jacobi_eigh, lane_count, run_stencils, svd3
+from latentsim.physics.kernels.core import INLINE, JIT, NO_FRAME, as_lanes, emit_upper, energy_gradient_lanes, jacobi_eigh, lane_count, run_stencils, svd3
 
 
 @njit(**INLINE)
@@ -239,7 +239,7 @@ def _tet_run_scratch():
 
 
 @njit(**INLINE)
-def _tet_hessian(e, args, work, extra, project, H):
+def _tet_hessian(e, args, work, extra, project, basis, H):
     """The projected or the exact Hessian of tet e (its upper triangle at least) from F and S."""
     D, vol, mu, lam = args
     F, S, P, FF, q, U, V, Lf, A, b, w3, sig, N = extra
@@ -254,4 +254,4 @@ def tet_run(x, st, order, D, vol, mu, lam, project, grad, data, slots, g_out, H_
     """Per tet the gradient and the (exact or projected) Hessian, scattered (SCATTER) or stored
     (STORE); returns the energy, the sum of ``tet_energy_gradient``'s, to the bit."""
     return run_stencils(_tet_energy_gradient, _tet_hessian, _tet_run_scratch, emit_upper,
-                        x, st, order, (D, vol, mu, lam), project, grad, data, slots, g_out, H_out, mode, 4)  # fmt: skip
+                        x, st, order, (D, vol, mu, lam), project, NO_FRAME, grad, data, slots, g_out, H_out, mode, 4)  # fmt: skip
