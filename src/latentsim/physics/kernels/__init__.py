@@ -6,11 +6,14 @@ written once in PyTorch (batched, differentiable); with autograd
 full-space solver (one state, many Newton iterations) and for the energy
 losses of many states, the per-call overhead of those array programs
 dominates the small per-stencil work, so the same formulas are compiled
-stencil by stencil:
+stencil by stencil (an optimisation: a term without kernels runs through
+autograd, ``solve.assembly.AutogradKernel``):
 
-- ``core``: scatter into the gradient and the sparse Hessian, the Jacobi
-  eigensolver, the 3x3 SVD, the PSD projection, the lanes (the energy kernels
-  take one state or many, the state index innermost);
+- ``core``: the loops of the energy + gradient and of the run kernels
+  (``energy_gradient_lanes``, ``run_stencils``), scatter into the gradient
+  and the sparse Hessian, the Jacobi eigensolver, the 3x3 SVD, the PSD
+  projection, the lanes (the energy kernels take one state or many, the
+  state index innermost);
 - ``tets``, ``rods``, ``shells``: the kernels of each term (formulas in their
   docstrings); each term names its own (``EnergyTerm.kernel_spec``);
 - ``inertia``: inertia and gravity of the incremental potential;
