@@ -39,7 +39,7 @@ from latentsim.physics.base import EnergyTerm, subset_weights
 from latentsim.physics.kernels import stvk_nm as nm_kernels
 from latentsim.physics.kernels.core import translation_free_basis
 from latentsim.physics.kernels.dispatch import KernelSpec, float64_array
-from latentsim.physics.shells import ShellHinge, _as_long, _as_positions, _per_stencil, triangle_kernel_spec, triangle_rest_frames
+from latentsim.physics.shells import ShellHinge, ShellMembraneStVK, _as_long, _as_positions, _per_stencil, triangle_kernel_spec, triangle_rest_frames
 from latentsim.physics.tets import _edge_matrix, lame
 
 __all__ = ["ShellMembraneNM", "TetsNM", "neural_modes_hinge"]
@@ -103,10 +103,7 @@ class ShellMembraneNM(EnergyTerm):
         Y, nu = _young_poisson(self.mu[idx], self.lam[idx])
         return ShellMembraneNM(self.rest_positions, self.stencils[idx], Y, nu, self.thickness[idx] * w)
 
-    def deformation_gradient(self, xe: torch.Tensor) -> torch.Tensor:
-        """F = Ds Dm^{-1}; xe (..., T, 3, 3) -> (..., T, 3, 2)."""
-        Ds = torch.stack([xe[..., 1, :] - xe[..., 0, :], xe[..., 2, :] - xe[..., 0, :]], dim=-1)
-        return Ds @ self.Dm_inv.to(xe)
+    deformation_gradient = ShellMembraneStVK.deformation_gradient  # F = Ds Dm^{-1}, (..., T, 3, 3) -> (..., T, 3, 2)
 
     def energy_density(self, F: torch.Tensor) -> torch.Tensor:
         """psi = mu tr(E^2) + lam/2 (J - 1)^2 [Pa] per triangle; F (..., T, 3, 2) -> (..., T)."""
