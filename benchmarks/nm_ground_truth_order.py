@@ -24,6 +24,7 @@ import torch  # noqa: E402
 
 from latentsim.config import load_config  # noqa: E402
 from latentsim.neural_modes.compliant_modes import ground_truth  # noqa: E402
+from latentsim.rule_params import nm_ground_truth_params  # noqa: E402
 from latentsim.stages import neural_modes as nm_pipeline  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -61,7 +62,7 @@ def subset_arguments(ap: argparse.ArgumentParser, samples: int) -> None:
 def study_subset(args) -> dict:
     """The first ``args.samples`` samples of one set of a study's ground truth, as rule ``nm_ground_truth``
     draws them: {params (the rule's), potential, arrays (the mesh's), basis (linear modes), z (N, m)}."""
-    p = nm_pipeline.ground_truth_params(load_config(args.config), args.scene, args.study)
+    p = nm_ground_truth_params(load_config(args.config), args.scene, args.study)
     results = Path(args.results)
     pot, arrays = nm_pipeline.scene_potential(results / "mesh" / args.scene / "mesh.h5", p["model"], p["material"])
     basis = nm_pipeline.read_linear_modes(results / "neural_modes" / args.scene / "linear_modes.h5")

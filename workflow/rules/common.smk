@@ -5,7 +5,7 @@ import sys
 
 from snakemake.exceptions import WorkflowError
 
-from latentsim.stages import neural_modes as nm_pipeline
+from latentsim import rule_params
 from latentsim.stages.baselines import BASELINES, SEEDED_BASELINES
 from latentsim.report.tables import layers_text
 from latentsim.stages.sweep import parse_label, point_label
@@ -16,15 +16,12 @@ from latentsim.config import (
     autoencoder_dir,
     autoencoder_settings,
     conditioned,
-    conditioned_autoencoder_settings,
-    conditioned_integrator_settings,
     conditions,
     integrator_settings,
     own_autoencoder,
     scene_methods,
     scene_seeds,
     seed_dir,
-    sweep_point_settings,
     sweep_point_method,
     validate_config,
 )
@@ -84,23 +81,18 @@ wildcard_constraints:
     seed=r"\d+",
 
 
-def canonical(obj):
-    """Plain dicts with sorted keys: reordering a YAML mapping must not trigger a rerun."""
-    return json.loads(json.dumps(obj, sort_keys=True))
-
-
+# The params of the rules: built in latentsim.rule_params (both papers), from the job's wildcards here.
 def scene_cfg(*keys):
     """Input function: the named keys of the scene's config, as one plain dict."""
 
     def get(wildcards):
-        sc = config["scenes"][wildcards.scene]
-        return canonical({k: sc[k] for k in keys})
+        return rule_params.scene_slice(config, wildcards.scene, keys)
 
     return get
 
 
 def mesh_sources():
-    return canonical(config["meshes"])
+    return rule_params.mesh_sources(config)
 
 
 def user_mesh(wildcards):
@@ -115,12 +107,8 @@ def user_mesh(wildcards):
 def autoencoder_params(wildcards):
     """Input function: the autoencoder settings of the scene (or of the variant ``method``), seed and device."""
     method = getattr(wildcards, "method", "self_supervised")
-    return canonical(
-        {
-            "settings": autoencoder_settings(config, wildcards.scene, method),
-            "seed": int(wildcards.seed),
-            "device": config["device"],
-        }
+    return rule_params.autoencoder_params(
+        config, wildcards.scene, wildcards.seed, method
     )
 
 
@@ -139,12 +127,8 @@ def method_autoencoder(*names):
 
 def integrator_params(wildcards):
     """Input function: a method's integrator settings (scene's, with the variant's overrides)."""
-    return canonical(
-        {
-            "settings": integrator_settings(config, wildcards.scene, wildcards.method),
-            "seed": int(wildcards.seed),
-            "device": config["device"],
-        }
+    return rule_params.integrator_params(
+        config, wildcards.scene, wildcards.method, wildcards.seed
     )
 
 
@@ -189,17 +173,8 @@ def sweep_points(scene):
 
 def sweep_params(wildcards):
     """Input function: the full settings of one sweep point."""
-    sc = config["scenes"][wildcards.scene]
     r, i = parse_label(wildcards.point)
-    return canonical(
-        {
-            **sweep_point_settings(config, wildcards.scene, r, i),
-            "rollout": sc["rollout"],
-            "stress": sc["sweep"]["stress"],
-            "seed": int(wildcards.seed),
-            "device": config["device"],
-        }
-    )
+    return rule_params.sweep_params(config, wildcards.scene, r, i, wildcards.seed)
 
 
 def sweep_point_models(wildcards):
@@ -217,34 +192,19 @@ def sweep_point_models(wildcards):
     }
 
 
-def earlier_seeds(wildcards):
-    """The seeds of the scene that run before this one (none for the first, or with ``sweep.prune`` off)."""
-    seeds = scene_seeds(config, wildcards.scene)
-    if not config["scenes"][wildcards.scene]["sweep"]["prune"]:
-        return []
-    return seeds[: seeds.index(int(wildcards.seed))]
-
-
 def sweep_earlier_metrics(wildcards):
     """Input function: the point's metrics of the seeds run before this one, which may decide that it cannot
     pass (then this seed is not trained)."""
+    earlier = rule_params.earlier_seeds(config, wildcards.scene, wildcards.seed)
     return [
         f"results/sweep/{wildcards.scene}/{wildcards.point}/{seed_dir(s)}/metrics.csv"
-        for s in earlier_seeds(wildcards)
+        for s in earlier
     ]
 
 
 def sweep_prune_params(wildcards):
-    """Params: what decides whether the point's earlier seeds leave it a chance to pass; none for a seed
-    that runs whatever the others measured."""
-    if not earlier_seeds(wildcards):
-        return {}
-    sw = config["scenes"][wildcards.scene]["sweep"]
-    return {
-        "tolerance": sw["tolerance"],
-        "pass_fraction": sw["pass_fraction"],
-        "seeds": len(scene_seeds(config, wildcards.scene)),
-    }
+    """Params: what decides whether the point's earlier seeds leave it a chance to pass."""
+    return rule_params.sweep_prune_params(config, wildcards.scene, wildcards.seed)
 
 
 def sweep_tolerance(wildcards):
@@ -375,63 +335,28 @@ def condition_files(split):
 
 
 def sim_params(wildcards):
-    """Input function: the scene's simulation settings (its contact block only where it has colliders, so
-    that a scene without any keeps the params it had before contact existed)."""
-    sc = config["scenes"][wildcards.scene]
-    keys = ("model", "material", "dt", "gravity", "newton", "sequences")
-    out = {k: sc[k] for k in keys}
-    if sc["contact"]["colliders"]:
-        out["contact"] = sc["contact"]
-    return canonical(out)
+    """Input function: the scene's simulation settings."""
+    return rule_params.sim_params(config, wildcards.scene)
 
 
 def condition_sim_params(wildcards):
     """Input function: the scene's simulation settings and the condition (time step, modulus, split)."""
-    return canonical(
-        {
-            "sim": sim_params(wildcards),
-            "condition": conditions(config, wildcards.scene)[wildcards.condition],
-        }
+    return rule_params.condition_sim_params(
+        config, wildcards.scene, wildcards.condition
     )
 
 
 def conditioned_autoencoder_params(wildcards):
     """Input function: the conditioned scene's autoencoder settings, seed and device."""
-    return canonical(
-        {
-            "settings": conditioned_autoencoder_settings(config, wildcards.scene),
-            "seed": int(wildcards.seed),
-            "device": config["device"],
-        }
+    return rule_params.conditioned_autoencoder_params(
+        config, wildcards.scene, wildcards.seed
     )
 
 
 def conditioned_integrator_params(wildcards):
-    """Input function: the settings, seed and device of the conditioned integrator (``model`` conditioned:
-    the box) or of the reference at one test condition (``model`` that condition's name: the point).
-    """
-    c = config["scenes"][wildcards.scene]["conditioning"]
-    if wildcards.model == "conditioned":
-        box = {
-            "time_step": c["time_step"],
-            "youngs_modulus": c["youngs_modulus"],
-            "time_step_weight_power": c["time_step_weight_power"],
-        }
-    else:  # one point, where the loss's weight (h / h_0)^p is one constant factor
-        q = conditions(config, wildcards.scene)[wildcards.model]
-        box = {
-            "time_step": [q["time_step"]] * 2,
-            "youngs_modulus": [q["youngs_modulus"]] * 2,
-        }
-    return canonical(
-        {
-            "settings": conditioned_integrator_settings(
-                config, wildcards.scene, wildcards.model
-            ),
-            "seed": int(wildcards.seed),
-            "device": config["device"],
-            "conditioning": box,
-        }
+    """Input function: the settings, seed and device of the conditioned integrator or of one reference."""
+    return rule_params.conditioned_integrator_params(
+        config, wildcards.scene, wildcards.model, wildcards.seed
     )
 
 
@@ -478,19 +403,45 @@ def report_pages():
 
 
 # --- Neural Modes (workflow/rules/neural_modes.smk) ---
+NM_SCENES = sorted(s for s in SCENES if config["scenes"][s].get("paper") == "wang2024")
+
+
+def nm_study_scenes(study):
+    """The Neural Modes scenes whose ``nm_study.<study>`` is enabled."""
+    return [s for s in NM_SCENES if config["scenes"][s]["nm_study"][study]["enabled"]]
+
+
+def neural_modes_targets():
+    """Every Neural Modes artefact of the configured wang2024 scenes (rule all's input); none without any."""
+    if not NM_SCENES:
+        return []
+    out = [f"results/neural_modes/{s}/neural_modes.pt" for s in NM_SCENES]
+    out += ["results/neural_modes/summary.csv", "results/neural_modes/summary.md"]
+    last = {
+        "sheet": "sheet/tables.md",
+        "energy": "energy/table5.md",
+        "dynamics": "dynamics/dynamics.md",
+        "keyframes": "keyframes/keyframes.png",
+        "aspect": "aspect/aspect.md",
+    }
+    for study, path in last.items():
+        out += [f"results/neural_modes/{s}/{path}" for s in nm_study_scenes(study)]
+    return out
+
+
 def nm_modes_params(wildcards):
     """Input function: what the linear modes depend on (model, material, modes, boundary, normalization)."""
-    return nm_pipeline.modes_params(config, wildcards.scene)
+    return rule_params.nm_modes_params(config, wildcards.scene)
 
 
 def nm_train_params(wildcards):
     """Input function: the scene's model, material and whole neural_modes block."""
-    return nm_pipeline.scene_params(config, wildcards.scene)
+    return rule_params.nm_train_params(config, wildcards.scene)
 
 
 def nm_ground_truth_params(wildcards):
     """Input function: what a study's ground truth depends on (its sample sets, the modes, the box)."""
-    return nm_pipeline.ground_truth_params(config, wildcards.scene, wildcards.study)
+    return rule_params.nm_ground_truth_params(config, wildcards.scene, wildcards.study)
 
 
 def nm_study_params(study):
@@ -498,6 +449,6 @@ def nm_study_params(study):
 
     def get(wildcards):
         seed = int(wildcards.seed) if "seed" in wildcards.keys() else None
-        return nm_pipeline.study_params(config, wildcards.scene, study, seed)
+        return rule_params.nm_study_params(config, wildcards.scene, study, seed)
 
     return get

@@ -1,15 +1,7 @@
 # Neural Modes (Wang et al. 2024) for wang2024 scenes: linear modes, self-supervised training, summary,
 # and the paper's evaluation studies that a scene's nm_study block switches on.
-from functools import partial
-
-from latentsim.stages import neural_modes as nm_pipeline
+# NM_SCENES, neural_modes_targets (rule all's input) and the rules' params: common.smk.
 from latentsim.neural_modes.dynamics import DYNAMICS_METHODS
-
-NM_SCENES = sorted(s for s in SCENES if config["scenes"][s].get("paper") == "wang2024")
-
-
-# Every Neural Modes artefact of the configured wang2024 scenes (rule all's input).
-neural_modes_targets = partial(nm_pipeline.targets, config, NM_SCENES)
 
 
 # Lowest vibration modes of the rest state (sparse shift-invert), Dirichlet or rigid-free.

@@ -1,6 +1,7 @@
 # HTML pages of the tables, for `snakemake --report`: the report shows HTML inline, where it offers a CSV
 # only for download. Each job renders tables another job wrote (latentsim.report.tables.write_table_html),
 # so editing a page never reruns a computation.
+from latentsim.stages import neural_modes as nm_pipeline
 
 
 # The evaluation's tables: the glance (and the grid the landing page shows), Li et al. Tables 1-2,

@@ -13,8 +13,8 @@ and the evaluation studies of Wang et al. 2024 that a scene's ``nm_study`` block
   (``latentsim.neural_modes.aspect``).
 
 Each stage reads its inputs, calls the package and writes its artefacts atomically with provenance
-(``docs/artefacts.md``, section Neural Modes).  The ``*_params`` functions give each rule only the
-config it depends on, so editing one study reruns only that study of that scene.
+(``docs/artefacts.md``, section Neural Modes).  The params each rule passes them are built in
+``latentsim.rule_params`` (``nm_*_params``), with both papers' others.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ import pandas as pd
 import torch
 
 from latentsim import neural_modes as nm
-from latentsim.config import scene_seeds, with_defaults
+from latentsim.config import with_defaults
 from latentsim.io import ArtefactError, atomic_h5, atomic_path, open_artefact, read_mesh_arrays, read_tree, require, write_dataset, write_tree
 from latentsim.latent import save_module
 from latentsim.neural_modes import aspect as nm_aspect
@@ -46,27 +46,11 @@ from latentsim.neural_modes.symmetry import half_turn
 from latentsim.neural_modes import figures as nm_figures
 from latentsim.report.paraview import write_xdmf_series
 from latentsim.report.tables import write_table
+from latentsim.rule_params import SET_KEYS
 from latentsim.latent.timing import time_full_space
 from latentsim.scene import build_elastic, energy_description, material_model
 
 log = logging.getLogger(__name__)
-
-
-def _canonical(obj):
-    """Plain dicts with sorted keys (as common.smk's ``canonical``): reordering YAML must not rerun a rule."""
-    return json.loads(json.dumps(obj, sort_keys=True))
-
-
-def scene_params(config: dict, scene: str) -> dict:
-    """The params of the Neural Modes rules: the scene's model, material and neural_modes slice (sorted keys)."""
-    sc = config["scenes"][scene]
-    return _canonical({"model": sc["model"], "material": sc["material"], "neural_modes": sc["neural_modes"]})
-
-
-MODE_KEYS = ("modes", "boundary", "normalization")  # all that the linear modes depend on
-GROUND_TRUTH_KEYS = MODE_KEYS + ("box", "metric")  # ... and the ground truth
-SET_KEYS = {"sheet": ("train_grid", "random_samples", "val_grid", "test_grid"), "energy": ("samples", "train", "validation")}
-STUDY_SETS = ("epochs", "batch_size", "sampling", "grid")  # Neural Modes settings the sheet study sets itself
 
 
 #: The energy of the paper's columns: Wang et al.'s own, as their Table 1 names it for each model.
@@ -100,59 +84,6 @@ def scene_energies(config: dict, scenes) -> str:
     return "; ".join(f"{s}: {energy_description(config['scenes'][s]['model'], config['scenes'][s]['material'])}" for s in scenes)
 
 
-def modes_params(config: dict, scene: str) -> dict:
-    """The params of ``nm_linear_modes``: model, material and the mode keys of the neural_modes slice."""
-    sc = config["scenes"][scene]
-    return _canonical({"model": sc["model"], "material": sc["material"], "neural_modes": {k: sc["neural_modes"][k] for k in MODE_KEYS}})
-
-
-def ground_truth_params(config: dict, scene: str, study: str) -> dict:
-    """The params of ``nm_ground_truth``: what the sample sets and Eq. 9 depend on, nothing of any training."""
-    sc = config["scenes"][scene]
-    st = sc["nm_study"][study]
-    return _canonical(
-        {
-            "model": sc["model"], "material": sc["material"], "neural_modes": {k: sc["neural_modes"][k] for k in GROUND_TRUTH_KEYS},
-            "sets": {k: st[k] for k in SET_KEYS[study]}, "max_iterations": st["gt_max_iterations"], "seed": scene_seeds(config, scene)[0],
-        }
-    )  # fmt: skip
-
-
-def study_params(config: dict, scene: str, study: str, seed: int | None = None) -> dict:
-    """The params of a study's rule: its ``nm_study`` block, the seed (default: the scene's first; the sheet
-    study runs once per seed of the scene), and what else it reads of the scene."""
-    sc = config["scenes"][scene]
-    nmc = sc["neural_modes"]
-    out = {"study": sc["nm_study"][study], "seed": scene_seeds(config, scene)[0] if seed is None else int(seed)}
-    if study == "sheet":
-        out.update(model=sc["model"], material=sc["material"], neural_modes={k: v for k, v in nmc.items() if k not in STUDY_SETS})
-    elif study == "energy":
-        out.update(model=sc["model"], material=sc["material"], widths=nmc["widths"])
-    elif study == "aspect":  # its own modes, widths and sampling; the scene's map and loss settings
-        out.update(model=sc["model"], material=sc["material"], neural_modes={k: v for k, v in nmc.items() if k not in STUDY_SETS + ("modes", "widths")})
-    else:
-        out.update(box=nmc["box"])
-    return _canonical(out)
-
-
-def study_scenes(config: dict, scenes, study: str) -> list:
-    """The scenes among ``scenes`` whose ``nm_study.<study>`` is enabled."""
-    return [s for s in scenes if config["scenes"][s]["nm_study"][study]["enabled"]]
-
-
-def targets(config: dict, scenes) -> list:
-    """Every Neural Modes artefact of the given (wang2024) scenes; none when there are none."""
-    if not scenes:
-        return []
-    out = [f"results/neural_modes/{s}/neural_modes.pt" for s in scenes] + ["results/neural_modes/summary.csv", "results/neural_modes/summary.md"]
-    out += [f"results/neural_modes/{s}/sheet/tables.md" for s in study_scenes(config, scenes, "sheet")]
-    out += [f"results/neural_modes/{s}/energy/table5.md" for s in study_scenes(config, scenes, "energy")]
-    out += [f"results/neural_modes/{s}/dynamics/dynamics.md" for s in study_scenes(config, scenes, "dynamics")]
-    out += [f"results/neural_modes/{s}/keyframes/keyframes.png" for s in study_scenes(config, scenes, "keyframes")]
-    out += [f"results/neural_modes/{s}/aspect/aspect.md" for s in study_scenes(config, scenes, "aspect")]
-    return out
-
-
 def scene_potential(mesh_h5, model: str, material: dict):
     """(potential with every elastic stencil, arrays) of a scene's mesh; no inertia or gravity needed here."""
     arrays = read_mesh_arrays(mesh_h5)
@@ -162,7 +93,7 @@ def scene_potential(mesh_h5, model: str, material: dict):
 def linear_modes_stage(mesh_h5, params: dict, out_h5):
     """Stage ``nm_linear_modes``: the scene's lowest m modes (sparse shift-invert) to ``linear_modes.h5``.
 
-    ``params``: :func:`modes_params` (or :func:`scene_params`: only the mode keys are read)."""
+    ``params``: ``rule_params.nm_modes_params`` (or ``nm_train_params``: only the mode keys are read)."""
     cfg = with_defaults("neural_modes", params["neural_modes"], "linear_modes_stage")
     pot, arrays = scene_potential(mesh_h5, params["model"], params["material"])
     X = np.asarray(arrays["rest_positions"], dtype=np.float64)
