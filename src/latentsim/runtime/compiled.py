@@ -133,37 +133,40 @@ def _affine(F, off, nin, nout, S, src, dst, flags, fast32):
             y[o] += h[o]
 
 
-@njit(**_JIT)
-def _kernel(F, I, S, z1, z2, p0, p1, p2, xD, x, zout, what):
-    """One frame. what: 1 integrate (z1.. -> zout), 2 decode (z1 -> x), 3 both (zout, then x).
+@njit(inline="always", **_JIT)
+def _integrate(F, I, S, z1, z2, p0, p1, p2, zout):
+    """zout (r,) <- the integrator's next latent from z1, z2 (r,) and p0, p1, p2 (k,), through its layers
+    in the ping-pong buffers a = S[0:w], b = S[w:2w] (plus z1 where the integrator is residual)."""
+    r, k, w, T = I[_R], I[_K], I[_W], I[_TABLE]
+    a, b = 0, w
+    for i in range(r):
+        S[a + i] = z1[i]
+        S[a + r + i] = z2[i]
+    for i in range(k):
+        S[a + 2 * r + i] = p0[i]
+        S[a + 2 * r + k + i] = p1[i]
+        S[a + 2 * r + 2 * k + i] = p2[i]
+    src, dst = a, b
+    for l in range(I[_NINT]):
+        row = T + 4 * l
+        _affine(F, I[row], I[row + 1], I[row + 2], S, src, dst, I[row + 3], I[_FAST32])
+        src, dst = dst, src
+    for i in range(r):
+        zi = S[src + i]
+        if I[_RESID]:
+            zi += z1[i]
+        zout[i] = zi
 
-    Scratch S: [a (w) | b (w) | z, h_L (r + w) | segment buffer (_CHUNK)].
-    """
-    r, k, w, D, T = I[_R], I[_K], I[_W], I[_D], I[_TABLE]
+
+@njit(inline="always", **_JIT)
+def _decode_hidden(F, I, S, z):
+    """The decoder's hidden layers (and its optional mid layer) from z (r,); returns the offset in S of the
+    output layer's input: [z; h_L] at zh = S[2w:], or the mid layer's output at a = S[0:]."""
+    r, w, T = I[_R], I[_W], I[_TABLE]
     n_int, n_dec, mid = I[_NINT], I[_NDEC], I[_MID]
     a, b, zh = 0, w, 2 * w
-    if what & 1:
-        for i in range(r):
-            S[a + i] = z1[i]
-            S[a + r + i] = z2[i]
-        for i in range(k):
-            S[a + 2 * r + i] = p0[i]
-            S[a + 2 * r + k + i] = p1[i]
-            S[a + 2 * r + 2 * k + i] = p2[i]
-        src, dst = a, b
-        for l in range(n_int):
-            row = T + 4 * l
-            _affine(F, I[row], I[row + 1], I[row + 2], S, src, dst, I[row + 3], I[_FAST32])
-            src, dst = dst, src
-        for i in range(r):
-            zi = S[src + i]
-            if I[_RESID]:
-                zi += z1[i]
-            zout[i] = zi
-    if not what & 2:
-        return
     for i in range(r):
-        S[zh + i] = zout[i] if what & 1 else z1[i]
+        S[zh + i] = z[i]
     # decoder hidden layers from z; the last writes h_L behind z, so the output layer reads [z; h_L]
     src = zh
     for l in range(n_dec):
@@ -176,15 +179,15 @@ def _kernel(F, I, S, z1, z2, p0, p1, p2, xD, x, zout, what):
         row = T + 4 * (n_int + n_dec)
         _affine(F, I[row], I[row + 1], I[row + 2], S, zh, a, I[row + 3], I[_FAST32])
         src = a
-    row = T + 4 * (n_int + n_dec + mid)
-    off, nin = I[row], I[row + 1]
-    A = F[off : off + (nin + 1) * D].reshape((nin + 1, D))
-    h = S[src : src + nin]
-    buf = S[3 * w + r : 3 * w + r + _CHUNK]
-    # the Dirichlet mean, the origin of the segments that have no root of their own
-    m, fused = I[_M], I[_FUSED]
+    return src
+
+
+@njit(inline="always", **_JIT)
+def _dirichlet_origin(I, xD, x, fused):
+    """(o0, o1, o2): the mean of the m prescribed positions xD (m, 3), the origin of the segments that have no
+    root of their own (zeros without any).  ``fused``: the same pass also copies them into x (n, 3)."""
+    m = I[_M]
     o0 = o1 = o2 = 0.0
-    xf, xDf = x.reshape(-1), xD.reshape(-1)
     dr = I[_DRUN]
     if fused:  # the prescribed vertices are the mean's and are copied back: one pass over xD does both
         for g in range(I[_NDRUN]):
@@ -203,45 +206,89 @@ def _kernel(F, I, S, z1, z2, p0, p1, p2, xD, x, zout, what):
             o1 += xD[j, 1]
             o2 += xD[j, 2]
         o0, o1, o2 = o0 / m, o1 / m, o2 / m
-    ck, sg = I[_CHK], I[_SEG]
-    for g in range(I[_NCHK]):
-        c0, c1, r0, r1 = I[ck + 4 * g], I[ck + 4 * g + 1], I[ck + 4 * g + 2], I[ck + 4 * g + 3]
-        nc = c1 - c0
-        u = buf[:nc]
-        _accumulate(A, h, nin, c0, c1, u)
-        if I[_SCATTER]:  # the free vertices' rows, each to its vertex
-            vs = I[I[_FREE] + c0 // 3 : I[_FREE] + c1 // 3]
-            if I[_SLOT] >= 0:  # roots: each free vertex's own root
-                ss = I[I[_SLOT] + c0 // 3 : I[_SLOT] + c1 // 3]
-                for f in range(nc // 3):
-                    v, s = vs[f], ss[f]
-                    x[v, 0] = u[3 * f] + xD[s, 0]
-                    x[v, 1] = u[3 * f + 1] + xD[s, 1]
-                    x[v, 2] = u[3 * f + 2] + xD[s, 2]
-            else:
-                for f in range(nc // 3):
-                    v = vs[f]
-                    x[v, 0] = u[3 * f] + o0
-                    x[v, 1] = u[3 * f + 1] + o1
-                    x[v, 2] = u[3 * f + 2] + o2
-            continue
-        for rr in range(r0, r1):  # the chunk's runs of one origin: the mean, or one rod's root
-            s0, s1, sl = I[sg + 3 * rr], I[sg + 3 * rr + 1], I[sg + 3 * rr + 2]
-            q0, q1, q2 = (xD[sl, 0], xD[sl, 1], xD[sl, 2]) if sl >= 0 else (o0, o1, o2)
-            nv = (s1 - s0) // 3
-            xo, uo = xf[s0:s1].reshape((nv, 3)), u[s0 - c0 : s1 - c0]
-            for j in range(nv):
-                xo[j, 0] = uo[3 * j] + q0
-                xo[j, 1] = uo[3 * j + 1] + q1
-                xo[j, 2] = uo[3 * j + 2] + q2
-    if fused:
-        return
-    # the prescribed vertices themselves, in runs (vertex, slot, count) of consecutive indices
+    return o0, o1, o2
+
+
+@njit(inline="always", **_JIT)
+def _scatter_chunk(I, u, c0, c1, xD, x, o0, o1, o2):
+    """The ``scatter`` layout: the chunk u (c1 - c0,) of free vertices' rows, each to its vertex of x (n, 3),
+    plus its own root (a row of xD (m, 3)) where the roots are slotted, else the origin (o0, o1, o2)."""
+    nc = c1 - c0
+    vs = I[I[_FREE] + c0 // 3 : I[_FREE] + c1 // 3]
+    if I[_SLOT] >= 0:  # roots: each free vertex's own root
+        ss = I[I[_SLOT] + c0 // 3 : I[_SLOT] + c1 // 3]
+        for f in range(nc // 3):
+            v, s = vs[f], ss[f]
+            x[v, 0] = u[3 * f] + xD[s, 0]
+            x[v, 1] = u[3 * f + 1] + xD[s, 1]
+            x[v, 2] = u[3 * f + 2] + xD[s, 2]
+    else:
+        for f in range(nc // 3):
+            v = vs[f]
+            x[v, 0] = u[3 * f] + o0
+            x[v, 1] = u[3 * f + 1] + o1
+            x[v, 2] = u[3 * f + 2] + o2
+
+
+@njit(inline="always", **_JIT)
+def _runs_chunk(I, u, c0, r0, r1, xD, xf, o0, o1, o2):
+    """The ``full`` layout: the chunk u (starting at value c0) into the flat positions xf (3n,), its runs r0..r1
+    of one origin each: the mean (o0, o1, o2), or one rod's root (a row of xD (m, 3))."""
+    sg = I[_SEG]
+    for rr in range(r0, r1):
+        s0, s1, sl = I[sg + 3 * rr], I[sg + 3 * rr + 1], I[sg + 3 * rr + 2]
+        q0, q1, q2 = (xD[sl, 0], xD[sl, 1], xD[sl, 2]) if sl >= 0 else (o0, o1, o2)
+        nv = (s1 - s0) // 3
+        xo, uo = xf[s0:s1].reshape((nv, 3)), u[s0 - c0 : s1 - c0]
+        for j in range(nv):
+            xo[j, 0] = uo[3 * j] + q0
+            xo[j, 1] = uo[3 * j + 1] + q1
+            xo[j, 2] = uo[3 * j + 2] + q2
+
+
+@njit(inline="always", **_JIT)
+def _copy_prescribed(I, xD, x):
+    """x (n, 3) <- the prescribed positions xD (m, 3), in runs (vertex, slot, count) of consecutive indices."""
+    xf, xDf = x.reshape(-1), xD.reshape(-1)
+    dr = I[_DRUN]
     for g in range(I[_NDRUN]):
         v0, j0, cnt = 3 * I[dr + 3 * g], 3 * I[dr + 3 * g + 1], 3 * I[dr + 3 * g + 2]
         xo, xi = xf[v0 : v0 + cnt], xDf[j0 : j0 + cnt]
         for j in range(cnt):  # a loop: numba's slice assignment checks and buffers (2x slower here)
             xo[j] = xi[j]
+
+
+@njit(**_JIT)
+def _kernel(F, I, S, z1, z2, p0, p1, p2, xD, x, zout, what):
+    """One frame. what: 1 integrate (z1.. -> zout), 2 decode (z1 -> x), 3 both (zout, then x).
+
+    Scratch S: [a (w) | b (w) | z, h_L (r + w) | segment buffer (_CHUNK)].
+    """
+    r, w, D, T = I[_R], I[_W], I[_D], I[_TABLE]
+    if what & 1:
+        _integrate(F, I, S, z1, z2, p0, p1, p2, zout)
+    if not what & 2:
+        return
+    src = _decode_hidden(F, I, S, zout if what & 1 else z1)
+    row = T + 4 * (I[_NINT] + I[_NDEC] + I[_MID])
+    off, nin = I[row], I[row + 1]
+    A = F[off : off + (nin + 1) * D].reshape((nin + 1, D))
+    h = S[src : src + nin]
+    buf = S[3 * w + r : 3 * w + r + _CHUNK]
+    fused = I[_FUSED]
+    o0, o1, o2 = _dirichlet_origin(I, xD, x, fused)
+    xf = x.reshape(-1)
+    ck = I[_CHK]
+    for g in range(I[_NCHK]):
+        c0, c1, r0, r1 = I[ck + 4 * g], I[ck + 4 * g + 1], I[ck + 4 * g + 2], I[ck + 4 * g + 3]
+        u = buf[: c1 - c0]
+        _accumulate(A, h, nin, c0, c1, u)
+        if I[_SCATTER]:  # the free vertices' rows, each to its vertex
+            _scatter_chunk(I, u, c0, c1, xD, x, o0, o1, o2)
+        else:
+            _runs_chunk(I, u, c0, r0, r1, xD, xf, o0, o1, o2)
+    if not fused:
+        _copy_prescribed(I, xD, x)
 
 
 @njit(**_JIT)
