@@ -32,6 +32,7 @@ from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 
 from latentsim.io import atomic_path
 from latentsim.report.motion import Motion, load_motion
+from latentsim.report.plots import save_figure
 
 __all__ = ["Motion", "have_ffmpeg", "load_motion", "render_clip", "render_frames"]
 
@@ -324,50 +325,71 @@ def render_frames(
     distance to the ground truth in each panel [m], 0 for the ground truth,
     NaN where a panel is not ``ok``).
     """
-    frames = [int(f) for f in frames]
-    if not frames:
-        raise ValueError("render_frames: no frames given")
-    if bounds not in ("truth", "all", "row"):
-        raise ValueError(f"render_frames: bounds must be 'truth', 'all' or 'row', got {bounds!r}")
+    frames = _checked_frames(frames, bounds)
     motions = _load_all(truth, methods, sequence, frames)
     gt = motions[0]
     bad = [f for f in frames if not 0 <= f < gt.n_frames]
     if bad:
         raise ValueError(f"render_frames: frames {bad} outside sequence {sequence!r} of the ground truth ({gt.n_frames} frames)")
-    if bounds == "row":
-        limits = np.stack([_limits(motions, [fr], "truth") for fr in frames])
-    else:
-        limits = np.repeat(_limits(motions, frames, bounds)[None], len(frames), axis=0)
+    limits = _row_limits(motions, frames, bounds)
     R, C = len(frames), len(motions)
     per_vertex, errors = _vertex_errors(motions, frames)
-    if wrap is not None and int(wrap) < 1:
-        raise ValueError(f"render_frames: wrap must be a positive number of frames, got {wrap}")
-    per_line = None if wrap is None else min(int(wrap), R)
-    # grid of panels: (rows, columns), and the place of frame i, motion j in it
-    shape = (R, C) if per_line is None else (-(-R // per_line) * C, per_line)
-    place = (lambda i, j: i * C + j + 1) if per_line is None else (lambda i, j: ((i // per_line) * C + j) * per_line + i % per_line + 1)
+    per_line, shape, place = _panel_grid(R, C, wrap)
     header, footer = 0.9, (0.8 if color_by_error else 0.0)  # inches for the title and the colour bar
     height = panel_size * shape[0] + header + footer
     fig = plt.figure(figsize=(panel_size * shape[1], height))
-    colours = _colours(C)
-    status = np.empty((R, C), dtype=object)
     top = _error_scale(errors, error_max)
-    for i, fr in enumerate(frames):
-        for j, m in enumerate(motions):
-            ax = fig.add_subplot(shape[0], shape[1], place(i, j), projection="3d")
-            values = _error_values(per_vertex, i, j, top) if color_by_error else None
-            status[i, j] = _draw_panel(ax, m, fr, limits[i], m.vertical, elev, azim, colours[j], values=values, cmap=_ERROR_CMAP, colliders=_at_frame(colliders, fr))
+    panel = lambda i, j: fig.add_subplot(shape[0], shape[1], place(i, j), projection="3d")  # noqa: E731
+    status = _draw_panels(panel, motions, frames, limits, per_vertex if color_by_error else None, top, elev, azim, colliders)
     fig.suptitle(title or f"{sequence}: ground truth vs methods (red: Dirichlet vertices)", fontsize=10)
     fig.subplots_adjust(
         left=0.01, right=0.99, bottom=(footer + 0.05) / height, top=1 - header / height, wspace=0.02, hspace=0.2 if per_line is None else 0.3
     )
     if color_by_error:
         _error_colorbar(fig, top, 0.45 / height, 0.12 / height)
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".").lower() or "png")
-    plt.close(fig)
+    save_figure(fig, path, dpi)
     return {"status": status.astype(str), "labels": [m.label for m in motions], "limits": limits, "max_error": errors}
+
+
+def _checked_frames(frames, bounds: str) -> list[int]:
+    """``frames`` as ints, refused when there are none or ``bounds`` is not one :func:`render_frames` knows."""
+    frames = [int(f) for f in frames]
+    if not frames:
+        raise ValueError("render_frames: no frames given")
+    if bounds not in ("truth", "all", "row"):
+        raise ValueError(f"render_frames: bounds must be 'truth', 'all' or 'row', got {bounds!r}")
+    return frames
+
+
+def _row_limits(motions, frames, bounds: str) -> np.ndarray:
+    """(len(frames), 3, 2) axis limits of each row: each frame's own ground truth (``bounds`` row), else the
+    limits of ``bounds`` over every frame, repeated."""
+    if bounds == "row":
+        return np.stack([_limits(motions, [fr], "truth") for fr in frames])
+    return np.repeat(_limits(motions, frames, bounds)[None], len(frames), axis=0)
+
+
+def _panel_grid(R: int, C: int, wrap):
+    """(frames a line or None, grid shape (rows, columns), place(i, j)): the subplot number of frame i,
+    motion j among R frames of C motions, one row per frame, or ``wrap`` frames to a line."""
+    if wrap is not None and int(wrap) < 1:
+        raise ValueError(f"render_frames: wrap must be a positive number of frames, got {wrap}")
+    per_line = None if wrap is None else min(int(wrap), R)
+    shape = (R, C) if per_line is None else (-(-R // per_line) * C, per_line)
+    place = (lambda i, j: i * C + j + 1) if per_line is None else (lambda i, j: ((i // per_line) * C + j) * per_line + i % per_line + 1)
+    return per_line, shape, place
+
+
+def _draw_panels(panel, motions, frames, limits, per_vertex, top, elev, azim, colliders) -> np.ndarray:
+    """Draw motion j at frame i on new 3D axes ``panel(i, j)``, coloured by error where ``per_vertex`` (from
+    :func:`_vertex_errors`) is given, on the scale's ``top``; returns the (len(frames), len(motions)) status."""
+    colours = _colours(len(motions))
+    status = np.empty((len(frames), len(motions)), dtype=object)
+    for i, fr in enumerate(frames):
+        for j, m in enumerate(motions):
+            values = None if per_vertex is None else _error_values(per_vertex, i, j, top)
+            status[i, j] = _draw_panel(panel(i, j), m, fr, limits[i], m.vertical, elev, azim, colours[j], values=values, cmap=_ERROR_CMAP, colliders=_at_frame(colliders, fr))
+    return status
 
 
 def have_ffmpeg() -> bool:
