@@ -350,11 +350,7 @@ def tetrahedralize(
         Open / non-manifold / inconsistently oriented surface (naming an
         edge), or a TetGen failure (e.g. self-intersecting surface).
     """
-    v = as_vertices(vertices)
-    tri = as_cells(triangles, 3, "triangle", len(v))
-    require_finite(v, "tetrahedralize")
-    check_closed_surface(tri)
-    v, tri, _ = remove_unreferenced(v, tri)
+    v, tri = _checked_surface(vertices, triangles)
     base = _base_switches(quality, preserve_surface)
     if target_vertices is not None:
         target_vertices = positive_int(target_vertices, "target_vertices")
@@ -362,6 +358,35 @@ def tetrahedralize(
 
     run = _Runs(v, tri, base, target_vertices)
     t_start = time.perf_counter()
+    _run_to_target(run, v, tri, target_vertices, tolerance, max_runs)
+    nodes, elems = _positive_tets(run.best["nodes"], run.best["elems"])
+    if quality is not None:
+        nodes = _improve_interior(nodes, elems)
+    seconds = time.perf_counter() - t_start
+    logger.info("tetrahedralize: %d vertices, %d tets (target %s) in %d runs, %.2fs",
+                len(nodes), len(elems), target_vertices, len(run.runs), seconds)
+    if return_info:
+        return nodes, elems, {"runs": run.runs, "switches": run.best["switches"],
+                              "seconds": seconds}
+    return nodes, elems
+
+
+def _checked_surface(vertices, triangles) -> tuple[np.ndarray, np.ndarray]:
+    """The input of :func:`tetrahedralize` checked (finite (n, 3) vertices, a closed, consistently oriented
+    (t, 3) surface) and without unreferenced vertices: (vertices (m, 3) float64, triangles (t, 3) int64)."""
+    v = as_vertices(vertices)
+    tri = as_cells(triangles, 3, "triangle", len(v))
+    require_finite(v, "tetrahedralize")
+    check_closed_surface(tri)
+    v, tri, _ = remove_unreferenced(v, tri)
+    return v, tri
+
+
+def _run_to_target(run: _Runs, v: np.ndarray, tri: np.ndarray, target_vertices: int | None,
+                   tolerance: float, max_runs: int) -> None:
+    """The quality run (no volume bound), then, where it gives fewer vertices than ``target_vertices``
+    by more than ``tolerance``, the search for a maximum volume (:func:`_search_max_volume`) over the
+    surface v (n, 3), tri (t, 3); ``run.best`` holds the run closest to the target."""
     n0 = run(None)
     if target_vertices is not None and n0 > target_vertices * (1 + tolerance):
         logger.info(
@@ -370,22 +395,19 @@ def tetrahedralize(
             target_vertices)
     if target_vertices is not None and n0 < target_vertices * (1 - tolerance):
         _search_max_volume(run, n0, abs(enclosed_volume(v, tri)), tolerance, max_runs)
-    nodes, elems = _positive_tets(run.best["nodes"], run.best["elems"])
-    if quality is not None:
-        fixed = np.zeros(len(nodes), dtype=bool)
-        fixed[surface_of(elems)] = True
-        before = float(tet_min_dihedral(nodes, elems).min())
-        nodes, moved = improve_slivers(nodes, elems, fixed)
-        logger.info("tetrahedralize: %d interior vertex moves, smallest dihedral angle "
-                    "%.3g -> %.3g degrees", moved, before,
-                    float(tet_min_dihedral(nodes, elems).min()))
-    seconds = time.perf_counter() - t_start
-    logger.info("tetrahedralize: %d vertices, %d tets (target %s) in %d runs, %.2fs",
-                len(nodes), len(elems), target_vertices, len(run.runs), seconds)
-    if return_info:
-        return nodes, elems, {"runs": run.runs, "switches": run.best["switches"],
-                              "seconds": seconds}
-    return nodes, elems
+
+
+def _improve_interior(nodes: np.ndarray, elems: np.ndarray) -> np.ndarray:
+    """nodes (n, 3) with the interior vertices of the slivers moved by :func:`improve_slivers` (the
+    surface of the tets elems (e, 4) stays), the smallest dihedral angle before and after logged."""
+    fixed = np.zeros(len(nodes), dtype=bool)
+    fixed[surface_of(elems)] = True
+    before = float(tet_min_dihedral(nodes, elems).min())
+    nodes, moved = improve_slivers(nodes, elems, fixed)
+    logger.info("tetrahedralize: %d interior vertex moves, smallest dihedral angle "
+                "%.3g -> %.3g degrees", moved, before,
+                float(tet_min_dihedral(nodes, elems).min()))
+    return nodes
 
 
 def _decimated(vertices: np.ndarray, triangles: np.ndarray, reduction: float, name: str):
