@@ -324,67 +324,22 @@ def stability_heatmap(df: pd.DataFrame, path, title="stability: frames survived"
     ``colour`` (R,C) float (the values coloured), ``bc_error`` (R,C) float,
     ``diverged`` (R,C) bool and ``max_penetration`` (R,C) float (NaN without colliders).
     """
-    _require_columns(df, ["method", "condition", "frames_survived"], "stability_heatmap")
-    if df.empty:
-        raise ValueError("stability_heatmap: empty DataFrame")
-    dup = df.duplicated(["method", "condition"], keep=False)
-    if dup.any():
-        pairs = df.loc[dup, ["method", "condition"]].drop_duplicates().to_records(index=False).tolist()
-        raise ValueError(f"stability_heatmap: several rows for (method, condition) {pairs}")
+    _check_stability_rows(df)
     methods = list(dict.fromkeys(df["method"].astype(str)))
     conditions = list(dict.fromkeys(df["condition"].astype(str)))
     R, C = len(methods), len(conditions)
-    frames = np.full((R, C), np.nan)
-    total = np.full((R, C), np.nan)
-    bc = np.full((R, C), np.nan)
-    diverged = np.zeros((R, C), dtype=bool)
+    g = _stability_grid(df, methods, conditions)
     by_seed = {"seeds", "seeds_survived"} <= set(df.columns)
-    n_seeds, k_seeds = np.full((R, C), np.nan), np.full((R, C), np.nan)
-    pen = np.full((R, C), np.nan)
-    for r in df.itertuples(index=False):
-        i, j = methods.index(str(r.method)), conditions.index(str(r.condition))
-        frames[i, j] = float(r.frames_survived)
-        if "frames" in df.columns:
-            total[i, j] = float(r.frames)
-        if "bc_error" in df.columns:
-            bc[i, j] = float(r.bc_error)
-        if by_seed:
-            n_seeds[i, j], k_seeds[i, j] = float(r.seeds), float(r.seeds_survived)
-        if "max_penetration" in df.columns:
-            pen[i, j] = float(r.max_penetration)
-        if "diverged" in df.columns:
-            diverged[i, j] = bool(r.diverged)
-        elif "diverged_frame" in df.columns:
-            diverged[i, j] = int(r.diverged_frame) >= 0
-        elif "frames" in df.columns:
-            diverged[i, j] = r.frames_survived < r.frames
     relative = "frames" in df.columns or by_seed
-    colour = k_seeds / n_seeds if by_seed else (frames / total if relative else frames)
+    frames = g["frames"]
+    colour = g["k_seeds"] / g["n_seeds"] if by_seed else (frames / g["total"] if relative else frames)
     fig, ax = plt.subplots(figsize=(3.0 + 1.3 * C, 2.2 + 0.75 * R), layout="constrained")
     cmap = plt.get_cmap("viridis").with_extremes(bad="0.85")
     vmax = 1.0 if relative else np.nanmax(frames)
     im = ax.imshow(np.ma.masked_invalid(colour), cmap=cmap, vmin=0.0, vmax=vmax, aspect="auto")
     for i in range(R):
         for j in range(C):
-            if np.isnan(frames[i, j]):
-                ax.text(j, i, "n/a", ha="center", va="center", fontsize=8, color="0.3")
-                continue
-            if diverged[i, j]:
-                ax.add_patch(plt.Rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, hatch="//", edgecolor="red", lw=1.5))
-            dark = colour[i, j] < 0.6 * vmax
-            text = f"{'✗ ' if diverged[i, j] else ''}{int(frames[i, j])}"
-            if by_seed:
-                text = f"{int(k_seeds[i, j])}/{int(n_seeds[i, j])} seeds" + (f"\nleast {int(frames[i, j])}" if diverged[i, j] else "")
-            if not np.isnan(bc[i, j]):
-                text += f"\nBC {bc[i, j]:.1e}"
-            if not np.isnan(pen[i, j]):
-                text += f"\nin {100 * pen[i, j]:.2g}%"
-                if pen[i, j] > PENETRATION_LIMIT:
-                    ax.add_patch(plt.Rectangle((j - 0.45, i - 0.45), 0.9, 0.9, fill=False, edgecolor="tab:orange", lw=2.0))
-            ax.text(
-                j, i, text, ha="center", va="center", fontsize=8, color="white" if dark else "black",
-                bbox={"boxstyle": "round,pad=0.15", "fc": "red", "alpha": 0.55, "lw": 0} if diverged[i, j] else None,
-            )
+            _stability_cell(ax, i, j, g, colour[i, j] < 0.6 * vmax, by_seed)
     ax.set_xticks(range(C), conditions, rotation=30, ha="right", fontsize=8)
     ax.set_yticks(range(R), methods, fontsize=8)
     ax.set_title(title)
@@ -393,7 +348,74 @@ def stability_heatmap(df: pd.DataFrame, path, title="stability: frames survived"
         fraction=0.04, pad=0.02,
     )
     save_figure(fig, path, dpi=dpi)
-    return {"methods": methods, "conditions": conditions, "frames": frames, "colour": colour, "bc_error": bc, "diverged": diverged, "max_penetration": pen}
+    return {"methods": methods, "conditions": conditions, "frames": frames, "colour": colour, "bc_error": g["bc"], "diverged": g["diverged"],
+            "max_penetration": g["pen"]}  # fmt: skip
+
+
+def _check_stability_rows(df: pd.DataFrame) -> None:
+    """Refuse a table :func:`stability_heatmap` cannot draw: a required column missing, no row, or two rows
+    of one (method, condition) pair."""
+    _require_columns(df, ["method", "condition", "frames_survived"], "stability_heatmap")
+    if df.empty:
+        raise ValueError("stability_heatmap: empty DataFrame")
+    dup = df.duplicated(["method", "condition"], keep=False)
+    if dup.any():
+        pairs = df.loc[dup, ["method", "condition"]].drop_duplicates().to_records(index=False).tolist()
+        raise ValueError(f"stability_heatmap: several rows for (method, condition) {pairs}")
+
+
+def _stability_grid(df: pd.DataFrame, methods: list, conditions: list) -> dict:
+    """The rows of :func:`stability_heatmap`'s table as (R, C) arrays over ``methods`` x ``conditions``, NaN
+    (False) where a pair has no row or the table lacks the column: ``frames`` (survived), ``total`` (frames),
+    ``bc`` (bc_error), ``n_seeds``, ``k_seeds`` (seeds, seeds_survived), ``pen`` (max_penetration) float and
+    ``diverged`` bool (the column, else ``diverged_frame >= 0``, else survived < frames)."""
+    R, C = len(methods), len(conditions)
+    g = {k: np.full((R, C), np.nan) for k in ("frames", "total", "bc", "n_seeds", "k_seeds", "pen")}
+    g["diverged"] = np.zeros((R, C), dtype=bool)
+    by_seed = {"seeds", "seeds_survived"} <= set(df.columns)
+    for r in df.itertuples(index=False):
+        i, j = methods.index(str(r.method)), conditions.index(str(r.condition))
+        g["frames"][i, j] = float(r.frames_survived)
+        if "frames" in df.columns:
+            g["total"][i, j] = float(r.frames)
+        if "bc_error" in df.columns:
+            g["bc"][i, j] = float(r.bc_error)
+        if by_seed:
+            g["n_seeds"][i, j], g["k_seeds"][i, j] = float(r.seeds), float(r.seeds_survived)
+        if "max_penetration" in df.columns:
+            g["pen"][i, j] = float(r.max_penetration)
+        if "diverged" in df.columns:
+            g["diverged"][i, j] = bool(r.diverged)
+        elif "diverged_frame" in df.columns:
+            g["diverged"][i, j] = int(r.diverged_frame) >= 0
+        elif "frames" in df.columns:
+            g["diverged"][i, j] = r.frames_survived < r.frames
+    return g
+
+
+def _stability_cell(ax, i: int, j: int, g: dict, dark: bool, by_seed: bool) -> None:
+    """Cell (i, j) of the stability map from the grid ``g`` (:func:`_stability_grid`): ``n/a`` without a row;
+    else the frames survived (or seeds), BC error and penetration, hatched where diverged, framed in orange
+    beyond ``PENETRATION_LIMIT``; white text on a ``dark`` cell."""
+    frames, diverged, bc, pen = g["frames"][i, j], g["diverged"][i, j], g["bc"][i, j], g["pen"][i, j]
+    if np.isnan(frames):
+        ax.text(j, i, "n/a", ha="center", va="center", fontsize=8, color="0.3")
+        return
+    if diverged:
+        ax.add_patch(plt.Rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, hatch="//", edgecolor="red", lw=1.5))
+    text = f"{'✗ ' if diverged else ''}{int(frames)}"
+    if by_seed:
+        text = f"{int(g['k_seeds'][i, j])}/{int(g['n_seeds'][i, j])} seeds" + (f"\nleast {int(frames)}" if diverged else "")
+    if not np.isnan(bc):
+        text += f"\nBC {bc:.1e}"
+    if not np.isnan(pen):
+        text += f"\nin {100 * pen:.2g}%"
+        if pen > PENETRATION_LIMIT:
+            ax.add_patch(plt.Rectangle((j - 0.45, i - 0.45), 0.9, 0.9, fill=False, edgecolor="tab:orange", lw=2.0))
+    ax.text(
+        j, i, text, ha="center", va="center", fontsize=8, color="white" if dark else "black",
+        bbox={"boxstyle": "round,pad=0.15", "fc": "red", "alpha": 0.55, "lw": 0} if diverged else None,
+    )
 
 
 # --------------------------------------------------------------------------- rollouts over time
