@@ -1,6 +1,7 @@
 # Neural Modes (Wang et al. 2024) for wang2024 scenes: linear modes, self-supervised training, summary,
 # and the paper's evaluation studies that a scene's nm_study block switches on.
-# NM_SCENES, neural_modes_targets (rule all's input) and the rules' params: common.smk.
+# NM_SCENES, neural_modes_targets (rule all's input) and the params input functions: common.smk
+# (the params themselves: latentsim.rule_params).
 from latentsim.neural_modes.dynamics import DYNAMICS_METHODS
 
 
