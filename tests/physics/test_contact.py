@@ -9,6 +9,8 @@ import torch
 
 from latentsim.physics.base import autograd_gradient_hessian
 from latentsim.physics.contact import Capsule, ContactBarrier, HalfSpace, Sphere, barrier, barrier_derivatives
+from latentsim.physics.frame import Frame
+from latentsim.solve.newton import max_step
 
 F64 = torch.float64
 COLLIDERS = {
@@ -146,11 +148,11 @@ def test_time_of_impact_lands_on_the_surface_and_max_step_stays_outside(name):
         tt = np.where(hit, frac * t, 5.0)
         assert (c.distance(torch.as_tensor(x + tt[:, None] * dx)).numpy() > 0).all()
     term = ContactBarrier(len(x), [c], d_hat=0.01, kappa=1.0)
-    alpha = term.max_step(x, dx)
+    alpha = max_step([term], x, dx)  # what a line search starts from
     assert 0 < alpha < 1 and alpha == pytest.approx(0.9 * float(t[hit].min()))
     for s in np.linspace(0, alpha, 7):
         assert (c.distance(torch.as_tensor(x + s * dx)).numpy() > 0).all()
-    assert term.max_step(x, np.zeros_like(x)) == 1.0
+    assert max_step([term], x, np.zeros_like(x)) == 1.0
 
 
 def test_the_extended_barrier_is_finite_inside_c2_at_the_seam_and_exact_above_it():
@@ -414,10 +416,10 @@ def test_an_attached_collider_is_its_rest_shape_carried_by_the_prescribed_vertic
         moved = col.moved(R.numpy(), c0.numpy(), t.numpy())
         assert torch.allclose(moved.distance(xs[-1]), col.distance(x_rest), atol=1e-12)
         posed = term.posed(targets[-1].numpy())
-        assert not posed.moving and torch.allclose(posed.energy(xs[-1]), term.energy(x_rest, torch.as_tensor(REST_D)), rtol=1e-10)
+        assert not posed.moving and torch.allclose(posed.energy(xs[-1]), term.energy(x_rest, Frame(torch.as_tensor(REST_D))), rtol=1e-10)
     X, XD = torch.stack(xs), torch.stack(targets)
     assert torch.allclose(term.distances(X, XD), col.distance(x_rest).expand(3, -1), atol=1e-12)
-    assert torch.allclose(term.energy(X, XD), term.energy(x_rest[None], torch.as_tensor(REST_D)[None]).expand(3), rtol=1e-10)
+    assert torch.allclose(term.energy(X, Frame(XD)), term.energy(x_rest[None], Frame(torch.as_tensor(REST_D)[None])).expand(3), rtol=1e-10)
     with pytest.raises(ValueError, match="Dirichlet targets"):
         term.energy(X)
 
@@ -431,20 +433,21 @@ def test_an_attached_collider_needs_a_pose_the_prescribed_vertices_determine():
         ContactBarrier(5, [COLLIDERS["sphere"]], 0.05, 2.0, attached=[True, False], rest_dirichlet=REST_D)
 
 
-def test_first_impact_between_follows_the_collider_as_it_moves():
+def test_first_impact_over_a_frame_follows_the_collider_as_it_moves():
     """A point carried with the collider never meets it; a still point that a translating sphere sweeps
     over is met at the fraction of the step where it lies on the sphere's surface."""
+    step = lambda before, after: Frame(targets=after, targets_prev=before)
     ball = Sphere((0.0, 0.0, 0.0), 0.1)
     term = ContactBarrier(1, [ball], 0.01, 1.0, attached=[True], rest_dirichlet=REST_D + [0.0, 0.5, 0.0])
     shift = np.array([0.4, 0.0, 0.0])
     carried = np.array([[0.15, 0.0, 0.0]])
-    assert term.first_impact_between(carried, REST_D + [0.0, 0.5, 0.0], carried + shift, REST_D + [0.4, 0.5, 0.0]) == np.inf
+    assert term.first_impact(carried, shift[None], step(REST_D + [0.0, 0.5, 0.0], REST_D + [0.4, 0.5, 0.0])) == np.inf
     still = np.array([[0.3, 0.0, 0.0]])
-    t = term.first_impact_between(still, REST_D + [0.0, 0.5, 0.0], still, REST_D + [0.4, 0.5, 0.0])
+    t = term.first_impact(still, np.zeros((1, 3)), step(REST_D + [0.0, 0.5, 0.0], REST_D + [0.4, 0.5, 0.0]))
     assert t == pytest.approx(0.5)  # the ball's surface reaches x = 0.3 when its centre is at 0.2
     # a static collider beside it is still tested along the straight step
     both = ContactBarrier(1, [ball, HalfSpace((0, -0.1, 0), (0, 1, 0))], 0.01, 1.0, attached=[True, False], rest_dirichlet=REST_D)
-    assert both.first_impact_between(still, REST_D, still + [0.0, -0.4, 0.0], REST_D) == pytest.approx(0.25)
+    assert both.first_impact(still, [[0.0, -0.4, 0.0]], step(REST_D, REST_D)) == pytest.approx(0.25)
 
 
 def test_a_cloth_carried_by_a_tray_that_moves_with_its_held_corner():
@@ -550,14 +553,14 @@ def test_friction_gradient_and_hessian_against_the_oracle_finite_differences_and
     slide = slide / slide.norm(dim=-1, keepdim=True) + 0.1 * n
     x = x_prev + slide * torch.linspace(1e-5, 1e-2, len(x_prev), dtype=F64)[:, None]  # slips below and above 1e-3
     term = ContactBarrier(len(x), [c], d_hat=0.05, kappa=2.0, friction=0.4, slip=1e-3)
-    step = term.anchored(x_prev.numpy(), np.zeros((0, 3)), np.zeros((0, 3)))
+    step = term.at(Frame(np.zeros((0, 3)), x_prev.numpy(), targets_prev=np.zeros((0, 3))))
     assert float(step.energy(x)) > float(ContactBarrier(len(x), [c], d_hat=0.05, kappa=2.0).energy(x))  # friction adds
-    assert float(step.energy(x)) == pytest.approx(float(term.energy(x, x_prev=x_prev)), rel=1e-12)
+    assert float(step.energy(x)) == pytest.approx(float(term.energy(x, Frame(x_prev=x_prev))), rel=1e-12)
     xe = step.gather(x)
     _closed_form_against_oracle_and_differences(step, x, rtol=1e-6)
     # friction alone is PSD in closed form (the barrier's part needs the projection for curved colliders)
     flat = ContactBarrier(len(x), [HalfSpace((0, -0.5, 0), (0, 1, 0))], d_hat=0.05, kappa=2.0, friction=0.4, slip=1e-3)
-    _, Hf = flat.anchored(x_prev.numpy(), np.zeros((0, 3)), np.zeros((0, 3))).local_gradient_hessian(xe, project=False)
+    _, Hf = flat.at(Frame(np.zeros((0, 3)), x_prev.numpy(), targets_prev=np.zeros((0, 3)))).local_gradient_hessian(xe, project=False)
     assert torch.linalg.eigvalsh(Hf).min() > -1e-9
 
 
@@ -571,12 +574,13 @@ def test_friction_with_an_attached_collider_counts_the_slip_relative_to_it():
     D0, D1 = torch.as_tensor(REST_D), torch.as_tensor(REST_D) + shift
     no_friction = ContactBarrier(1, [plane], d_hat=0.01, kappa=1.0, attached=[True], rest_dirichlet=REST_D)
     carried, left = x_prev + shift, x_prev
-    base = float(no_friction.energy(carried, D1))
+    base = float(no_friction.energy(carried, Frame(D1)))
+    frame = Frame(D1, x_prev, targets_prev=D0)
     lam = -float(barrier_derivatives(torch.tensor([0.004], dtype=F64), 0.01, 1.0)[0])
-    assert float(term.energy(carried, D1, x_prev=x_prev, targets_prev=D0)) == pytest.approx(base + 0.5 * lam * 1e-4 / 3, rel=1e-9)
-    assert float(term.energy(left, D1, x_prev=x_prev, targets_prev=D0)) == pytest.approx(base + 0.5 * lam * 0.02, rel=1e-9)
-    step = term.anchored(x_prev.numpy(), REST_D, D1.numpy())
-    assert float(step.energy(left)) == pytest.approx(float(term.energy(left, D1, x_prev=x_prev, targets_prev=D0)), rel=1e-12)
+    assert float(term.energy(carried, frame)) == pytest.approx(base + 0.5 * lam * 1e-4 / 3, rel=1e-9)
+    assert float(term.energy(left, frame)) == pytest.approx(base + 0.5 * lam * 0.02, rel=1e-9)
+    step = term.at(Frame(D1.numpy(), x_prev.numpy(), targets_prev=REST_D))
+    assert float(step.energy(left)) == pytest.approx(float(term.energy(left, frame)), rel=1e-12)
 
 
 @pytest.mark.parametrize("mu", [0.0, 0.2, 0.8])

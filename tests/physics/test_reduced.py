@@ -288,7 +288,7 @@ def test_a_trial_whose_path_crosses_a_collider_is_rejected_and_the_search_starts
     sub = LinearSubspace(coords, coords.encode(torch.as_tensor(V), torch.as_tensor(V[D])).numpy(), np.eye(coords.dim))
     monkeypatch.setattr(sub, "linear", linear, raising=False)
     solver = ReducedImplicitEuler(sub, pot)
-    solver.inner.prepare_contact(V, V[D], V[D])
+    solver.inner.begin_step(solver.inner.frame(V, V, V[D], V[D]))
     problem = _NewtonProblem(solver, V, V, V[D], ReducedStepInfo())
     q = sub.project(V, V[D])
     problem.stop(q, 0)

@@ -23,6 +23,17 @@ compare the kernels against, and the path by which every solver runs a term
 without kernels (``solve.assembly.AutogradKernel``): ``local_energy`` is all a
 new term needs, the kernels are an optimisation.
 
+A term of the incremental potential is ``energy(x, frame)``, with ``frame`` what
+the time step knows (:class:`~latentsim.physics.frame.Frame`: the prescribed
+targets, the previous positions, the time step); a term that depends on it (the
+contact barrier with its moving colliders and lagged friction, a damping term)
+overrides ``at(frame)``, the term as it stands over one step, whose energy and
+per-stencil derivatives are functions of x alone: what a solver evaluates.  A
+term whose energy is infinite somewhere (a barrier) also offers
+``first_impact(x, dx, frame=None)``: the first fraction t >= 0 of the straight
+step x -> x + dx at which it turns infinite (inf: never), where a line search
+must stop short; a term without it imposes no limit.
+
 Everything here is float64 unless the caller passes float32 states.
 """
 
@@ -54,16 +65,23 @@ class EnergyTerm:
         """Energy per stencil, x (..., n, 3) -> (..., E)."""
         return self.local_energy(self.gather(x))
 
-    def energy(self, x: torch.Tensor) -> torch.Tensor:
-        """Total energy, x (..., n, 3) -> (...)."""
+    def energy(self, x: torch.Tensor, frame=None) -> torch.Tensor:
+        """Total energy, x (..., n, 3) -> (...); ``frame`` (:class:`~latentsim.physics.frame.Frame`) that of
+        :meth:`at` the step's, ignored by a term that does not depend on it."""
         return self.element_energy(x).sum(-1)
+
+    def at(self, frame) -> "EnergyTerm":
+        """The term as it stands over the step of ``frame``: its energy and derivatives then depend on x
+        alone (this term itself, unless it depends on the frame)."""
+        return self
 
     def kernel_spec(self) -> KernelSpec | None:
         """The term's compiled kernels (``physics.kernels``); None: the term has none."""
         return None
 
-    def local_gradient_hessian(self, xe: torch.Tensor, project: bool = True):
-        """Per-stencil gradient (E, 3k) and Hessian (E, 3k, 3k), PSD-projected when ``project``.
+    def local_gradient_hessian(self, xe: torch.Tensor, project: bool = True, hessian: bool = True):
+        """Per-stencil gradient (E, 3k) and Hessian (E, 3k, 3k), PSD-projected when ``project``
+        (the Hessian None without ``hessian``: a line search's trial needs the gradient alone).
 
         xe : (E, k, 3), the positions of all E stencils (in ``stencils`` order).
         Computed by the compiled kernels (float64, returned in xe's dtype and
@@ -71,13 +89,14 @@ class EnergyTerm:
         """
         spec = self.kernel_spec()
         if spec is None:
-            return autograd_gradient_hessian(self, xe, project=project)
+            g, H = autograd_gradient_hessian(self, xe, project=project)
+            return g, (H if hessian else None)
         E, k, _ = xe.shape
         if E != len(self.stencils):
             raise ValueError(f"{self.name}: xe holds {E} stencils, the term has {len(self.stencils)} (their rest data)")
         own = TermKernel(self.name, np.arange(E * k).reshape(E, k), spec)  # stencil e = its own k vertices
         g, H = own.local(xe.detach().cpu().numpy().reshape(E * k, 3), project)
-        return torch.from_numpy(g).to(xe), torch.from_numpy(H).to(xe)
+        return torch.from_numpy(g).to(xe), (torch.from_numpy(H).to(xe) if hessian else None)
 
 
 def autograd_gradient_hessian(term: EnergyTerm, xe: torch.Tensor, project: bool = True):

@@ -19,7 +19,10 @@ rest shape's distance of the point carried back to the rest frame.  Friction is 
 
 :class:`ContactBarrier` is an energy term of the contract of :mod:`latentsim.physics.base` (one vertex
 per stencil), with its per-vertex gradient and PSD-projected Hessian in closed form; the autograd
-oracle of the base class checks them.
+oracle of the base class checks them.  It depends on the step's :class:`~latentsim.physics.frame.Frame`
+(the targets that place an attached collider, the previous positions friction lags from): a solver
+evaluates :meth:`ContactBarrier.at` the frame, the static barrier of that step, and its line search stops
+short of :meth:`ContactBarrier.first_impact`.
 """
 
 from __future__ import annotations
@@ -285,8 +288,10 @@ class ContactBarrier(EnergyTerm):
     Friction (Li et al. 2020, sec. 5) is lagged over a step: each vertex's normal force lambda = -b'(d) and
     tangent plane are those at the start of the step, and its energy mu lambda f0(|u|) of the slip u, the
     step's displacement relative to the collider projected on that plane (:func:`friction_f0`).  Where the
-    step starts is an argument: ``x_prev`` (and ``targets_prev``, the prescribed positions then, for an
-    attached collider) to :meth:`energy`, or :meth:`anchored` for a solver's step.
+    step starts is the frame's: its ``x_prev`` (and ``targets_prev``, the prescribed positions then, for an
+    attached collider), to :meth:`energy`, or :meth:`at` for a solver's step.
+    anchors : the lagged friction of one step, per collider (y_prev, lambda, tangent projector), as
+        :meth:`at` computes them; None (the default) for a barrier of no particular step.
 
     With an attached collider the barrier depends on the frame: :meth:`energy` and :meth:`distances` take
     the frame's ``targets``, and :meth:`posed` gives the static barrier of one frame (what a solver's
@@ -296,13 +301,13 @@ class ContactBarrier(EnergyTerm):
     name = "contact_barrier"
 
     def __init__(self, n_vertices: int, colliders, d_hat: float, kappa: float, extend_below: float | None = None,
-                 attached=None, rest_dirichlet=None, friction: float = 0.0, slip: float | None = None):  # fmt: skip
+                 attached=None, rest_dirichlet=None, friction: float = 0.0, slip: float | None = None, anchors=None):  # fmt: skip
         if not (d_hat > 0 and kappa > 0):
             raise ValueError(f"contact barrier: d_hat {d_hat!r} and kappa {kappa!r} must be positive")
         if not (friction >= 0 and (friction == 0 or (slip is not None and slip > 0))):
             raise ValueError(f"contact barrier: friction {friction!r} must be >= 0, and with friction the slip {slip!r} positive")
         self.friction, self.slip = float(friction), (None if slip is None else float(slip))
-        self._anchors = None  # a solver step's lagged friction state (anchored)
+        self.anchors = None if anchors is None else tuple(anchors)  # one step's lagged friction (at)
         if extend_below is not None and not 0 < extend_below < d_hat:
             raise ValueError(f"contact barrier: extend_below {extend_below!r} must lie in (0, d_hat = {d_hat})")
         self.colliders = list(colliders)
@@ -341,15 +346,16 @@ class ContactBarrier(EnergyTerm):
         moved = posed_colliders(self.colliders, self.attached, self.rest_dirichlet, targets)
         return ContactBarrier(len(self.stencils), moved, self.d_hat, self.kappa, self.extend_below, friction=self.friction, slip=self.slip)
 
-    def anchored(self, x_prev, targets_prev, targets) -> "ContactBarrier":
-        """The static barrier of a solver's step (:meth:`posed` at ``targets``) with its lagged friction: for
-        each collider and vertex the anchor (where the vertex stood at the step's start, carried with an
-        attached collider from its pose at ``targets_prev`` to its pose at ``targets``), the normal force
-        lambda = -b'(d) and the tangent projector there.  Frictionless, just :meth:`posed`."""
-        step = self.posed(targets)
+    def at(self, frame) -> "ContactBarrier":
+        """The static barrier of a solver's step (:meth:`posed` at the frame's ``targets``) with its lagged
+        friction: for each collider and vertex the anchor (where the vertex stood at the step's start, the
+        frame's ``x_prev``, carried with an attached collider from its pose at the frame's ``targets_prev`` to
+        its pose at ``targets``), the normal force lambda = -b'(d) and the tangent projector there.
+        Frictionless, just :meth:`posed` (this barrier itself with no collider attached)."""
+        targets, step = frame.targets, self.posed(frame.targets)
         if self.friction == 0:
             return step
-        x_prev = torch.as_tensor(np.asarray(x_prev, dtype=float))
+        targets_prev, x_prev = frame.targets_prev, torch.as_tensor(np.asarray(frame.x_prev, dtype=float))
         anchors = [x_prev] * len(self.colliders)
         if self.moving:  # x_prev carried back to the rest frame at the step's start, then out to the pose at its end
             back = self._to_rest(x_prev, targets_prev)
@@ -357,8 +363,9 @@ class ContactBarrier(EnergyTerm):
             c0 = torch.as_tensor(self.rest_dirichlet.mean(0))
             carried = (back - c0) @ R.transpose(-1, -2) + c
             anchors = [carried if a else x_prev for a in self.attached]
-        step._anchors = [(a,) + self._lagged(col, a) for col, a in zip(step.colliders, anchors)]
-        return step
+        anchors = [(a,) + self._lagged(col, a) for col, a in zip(step.colliders, anchors)]
+        return ContactBarrier(len(self.stencils), step.colliders, self.d_hat, self.kappa, self.extend_below, friction=self.friction,
+                              slip=self.slip, anchors=anchors)  # fmt: skip
 
     def _lagged(self, col, y_prev: torch.Tensor):
         """lambda (...,) and the tangent projector (..., 3, 3) of collider ``col`` at the step's start y_prev."""
@@ -395,11 +402,13 @@ class ContactBarrier(EnergyTerm):
         back = self._to_rest(x, targets)
         return [back if a else x for a in self.attached]
 
-    def energy(self, x: torch.Tensor, targets=None, x_prev=None, targets_prev=None) -> torch.Tensor:
-        """Total barrier energy, x (..., n, 3) -> (...); ``targets`` (..., m, 3) the frame's prescribed
+    def energy(self, x: torch.Tensor, frame=None) -> torch.Tensor:
+        """Total barrier energy, x (..., n, 3) -> (...); the frame's ``targets`` (..., m, 3), its prescribed
         positions, needed with an attached collider.  With friction, also the lagged friction of the step from
-        ``x_prev`` (the prescribed positions then: ``targets_prev``), or of :meth:`anchored`'s step."""
-        if not self.moving and (self.friction == 0 or x_prev is None):
+        the frame's ``x_prev`` (the prescribed positions then: its ``targets_prev``), or of :meth:`at`'s step
+        (whose energy needs no frame)."""
+        targets, x_prev, targets_prev = (None, None, None) if frame is None else (frame.targets, frame.x_prev, frame.targets_prev)
+        if self.anchors is not None or (not self.moving and (self.friction == 0 or x_prev is None)):
             return super().energy(x)
         frames = self._frames(x, targets)
         e = sum(barrier(col.distance(y), self.d_hat, self.kappa, self.extend_below).sum(-1) for col, y in zip(self.colliders, frames))
@@ -414,8 +423,8 @@ class ContactBarrier(EnergyTerm):
         total = torch.zeros(x.shape[:-1], dtype=x.dtype, device=x.device)
         for c in self.colliders:
             total = total + barrier(c.distance(x), self.d_hat, self.kappa, self.extend_below)
-        if self._anchors is not None:  # a solver step's lagged friction, spread over the vertices
-            for y_prev, lam, P in self._anchors:
+        if self.anchors is not None:  # a solver step's lagged friction, spread over the vertices
+            for y_prev, lam, P in self.anchors:
                 total = total + self._friction(x, y_prev, lam, P)
         return total
 
@@ -444,7 +453,7 @@ class ContactBarrier(EnergyTerm):
             g = g + db[:, None] * n
             if hessian:
                 H = H + d2b[:, None, None] * n[:, :, None] * n[:, None, :] + db[:, None, None] * hd
-        for y_prev, lam, P in self._anchors or ():
+        for y_prev, lam, P in self.anchors or ():
             # mu lambda f0(|u|), u = P (x - y_prev): g = mu lambda f1(s)/s P u; H = mu lambda (f1/s P + (f1' - f1/s) / s^2 (Pu)(Pu)^T), PSD
             u = (P @ (x - y_prev)[:, :, None])[:, :, 0]
             s = torch.sqrt((u * u).sum(-1) + 1e-300)
@@ -461,29 +470,20 @@ class ContactBarrier(EnergyTerm):
             H = (V * w.clamp_min(0.0)[:, None, :]) @ V.transpose(1, 2)
         return g, H
 
-    def first_impact(self, x: np.ndarray, dx: np.ndarray) -> float:
-        """The first time t >= 0 at which a vertex of x + t dx (x, dx (n, 3)) reaches a collider (where
-        it stands: :meth:`posed` first when one is attached); inf if none does."""
+    def first_impact(self, x: np.ndarray, dx: np.ndarray, frame=None) -> float:
+        """The first fraction t >= 0 of the step x -> x + dx (x, dx (n, 3)) at which a vertex reaches a collider
+        (where the energy turns infinite: a line search stops short of it); inf if none does.  The colliders
+        where they stand (:meth:`posed` first when one is attached), or, with a ``frame``, every attached one
+        moving over the step from its pose at the frame's ``targets_prev`` to its pose at its ``targets``: each
+        vertex's path taken straight in the collider's rest frame (exact for a translation; for a turn, a
+        straight path between the carried-back ends, which a solver's step of a small rotation follows closely)."""
         x, dx = np.asarray(x, dtype=float).reshape(-1, 3), np.asarray(dx, dtype=float).reshape(-1, 3)
-        return min((float(np.min(c.time_of_impact(x, dx), initial=np.inf)) for c in self.colliders), default=np.inf)
-
-    def first_impact_between(self, x0: np.ndarray, targets0, x1: np.ndarray, targets1) -> float:
-        """As :meth:`first_impact` for the step from x0 to x1 (n, 3) while every attached collider moves
-        from its pose at ``targets0`` to its pose at ``targets1``: each vertex's path taken straight in the
-        collider's rest frame (exact for a translation; for a turn, a straight path between the carried-back
-        ends, which a solver's step of a small rotation follows closely)."""
-        x0, x1 = np.asarray(x0, dtype=float).reshape(-1, 3), np.asarray(x1, dtype=float).reshape(-1, 3)
-        if not self.moving:
-            return self.first_impact(x0, x1 - x0)
-        back = [self._to_rest(torch.as_tensor(x), np.asarray(targets, dtype=float)).numpy() for x, targets in ((x0, targets0), (x1, targets1))]
+        if frame is None or not self.moving:
+            return min((float(np.min(c.time_of_impact(x, dx), initial=np.inf)) for c in self.colliders), default=np.inf)
+        ends = ((x, frame.targets_prev), (x + dx, frame.targets))
+        back = [self._to_rest(torch.as_tensor(y), np.asarray(targets, dtype=float)).numpy() for y, targets in ends]
         t = np.inf
         for col, a in zip(self.colliders, self.attached):
-            start, end = back if a else (x0, x1)
-            t = min(t, float(np.min(col.time_of_impact(start, end - start), initial=np.inf)))
+            start, step = (back[0], back[1] - back[0]) if a else (x, dx)
+            t = min(t, float(np.min(col.time_of_impact(start, step), initial=np.inf)))
         return t
-
-    def max_step(self, x: np.ndarray, dx: np.ndarray, safety: float = 0.9) -> float:
-        """The largest step fraction alpha in (0, 1] that keeps every vertex outside every collider
-        along x + t dx, t in [0, alpha]: ``safety`` times the first time of impact (as IPC's line
-        search does), 1 when no vertex comes that close within the whole step."""
-        return min(1.0, safety * self.first_impact(x, dx))

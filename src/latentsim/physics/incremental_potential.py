@@ -13,11 +13,16 @@ Variational implicit Euler (Martin et al. 2011): the end-of-step positions
                + w_bc ||x_D - x*_D||^2                           (Dirichlet penalty)
                + E_elastic(x)                                    (sum of EnergyTerms)
                + E_contact(x)                                    (barrier of the colliders, if any)
+               + any further term that depends on the step       (``extra_terms``)
 
 with a lumped (diagonal) mass ``M``.  The same object serves the full-space
 Newton solver (which removes Dirichlet DoFs instead of penalising them), the
 self-supervised losses (batched over decoded states), the metrics, and the
 reduced solvers.  All functions broadcast over leading batch axes.
+
+The barrier and the further terms depend on the step (:class:`~latentsim.physics.frame.Frame`:
+the targets, the previous positions, the time step): ``frame_terms`` lists them, each evaluated as
+``energy(x, frame)``; a solver sees them as terms like any other (``EnergyTerm.at``).
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ from dataclasses import dataclass, field
 import torch
 
 from latentsim.physics.base import EnergyTerm
+from latentsim.physics.frame import Frame
 from latentsim.physics.kernels.dispatch import compiled_energy
 
 
@@ -95,12 +101,20 @@ class IncrementalPotential(ElasticPotential):
     w_bc : penalty weight used where constraints are soft (learning, reduced solvers)
     contact : None, or the barrier of the scene's colliders (``physics.contact.ContactBarrier``), a
         term of E_total beside the elastic ones (it does not scale with the modulus)
+    extra_terms : further terms of E_total that take the step's frame (``energy(x, frame)``; a damping
+        term), after the barrier; like it, not scaled with the modulus
     """
 
     dt: float = field(kw_only=True)
     g: torch.Tensor = field(kw_only=True)
     w_bc: float = 1e5
     contact: object | None = field(default=None, kw_only=True)
+    extra_terms: list = field(default_factory=list, kw_only=True)
+
+    @property
+    def frame_terms(self) -> list:
+        """The terms of E_total that take the step's frame: the barrier (if any), then ``extra_terms``."""
+        return ([] if self.contact is None else [self.contact]) + list(self.extra_terms)
 
     def __call__(self, x, x_prev, x_prev2, targets=None, penalty=True, dt=None, stiffness=None):
         """E_total(x); ``targets`` (..., m, 3) are x*_D, penalised when ``penalty``.
@@ -113,9 +127,11 @@ class IncrementalPotential(ElasticPotential):
         e = inertia(x, x_prev, x_prev2, self.masses, self.dt if dt is None else dt)
         elastic = self.elastic(x)
         e = e + gravity(x, self.masses, self.g) + (elastic if stiffness is None else stiffness * elastic)
-        if self.contact is not None:
-            # an attached collider stands where the targets put it; friction is lagged from x_prev
-            e = e + self.contact.energy(x, targets, x_prev=x_prev, targets_prev=x_prev[..., self.dirichlet, :])
+        terms = self.frame_terms
+        if terms:  # (an attached collider stands where the targets put it; friction is lagged from x_prev)
+            frame = Frame(targets, x_prev, x_prev2, x_prev[..., self.dirichlet, :], self.dt if dt is None else dt, stiffness)
+            for term in terms:
+                e = e + term.energy(x, frame)
         if penalty and targets is not None and self.dirichlet.numel():
             e = e + dirichlet_penalty(x, self.dirichlet, targets, self.w_bc)
         return e

@@ -10,6 +10,8 @@ compiled kernels (``EnergyTerm.kernel_spec``, :mod:`latentsim.physics.kernels`) 
 term without runs its PyTorch ``local_energy`` through autograd (:class:`AutogradKernel`,
 ``EnergyTerm.local_gradient_hessian``), scattered into the same gradient and pattern: the
 kernels are an optimisation, not a requirement.
+The terms that depend on the step's frame (:meth:`CompiledAssembly.with_frame_terms`) add their own
+per-stencil gradient and Hessian (torch) into the same arrays.
 """
 
 from __future__ import annotations
@@ -94,32 +96,40 @@ class CompiledAssembly:
             self._diag_slots = pos[self._diag_slots]
             self._target_size = (pattern.bandwidth + 1) * pattern.shape[0]
 
-        self.contact = None
+        self.step_terms, self._step_slots, self._step_dofs = [], [], []
 
-    def with_contact(self, term) -> "CompiledAssembly":
-        """Add a contact barrier (``physics.contact.ContactBarrier``, one vertex per stencil) to every
-        evaluation: its closed-form per-vertex gradient and (projected or exact) Hessian."""
-        self.contact = term
-        slots = self.pattern.stencil_slots(term.stencils.numpy())
-        if self.banded:
-            slots = np.where(slots >= 0, self.pattern.band_positions()[slots], -1)
-        self._contact_slots = slots
+    def with_frame_terms(self, terms) -> "CompiledAssembly":
+        """Add terms that depend on the step's frame (``EnergyTerm.at``; their stencils among the pattern's) to
+        every evaluation, by their own per-stencil gradient and (projected or exact) Hessian.  ``step_terms``
+        holds them as they stand over the current step (a solver sets it per step, in the same order)."""
+        self.step_terms = list(terms)
+        self._step_slots, self._step_dofs = [], []
+        for term in self.step_terms:
+            st = term.stencils.cpu().numpy()
+            slots = self.pattern.stencil_slots(st)
+            if self.banded:
+                slots = np.where(slots >= 0, self.pattern.band_positions()[slots], -1)
+            self._step_slots.append(slots)
+            self._step_dofs.append((3 * st[:, :, None] + np.arange(3)).reshape(len(st), -1))
         return self
 
-    def _contact(self, x, grad, data=None, project=True) -> float:
-        """The barrier's energy at x (n,3); with ``grad``, its gradient added into it and, with ``data``,
-        its Hessian's upper triangle into the matrix data."""
+    def _frame_terms(self, x, grad, data=None, project=True) -> float:
+        """The step terms' energy at x (n,3); with ``grad``, their gradients added into it and, with ``data``,
+        their Hessians' upper triangles into the matrix data."""
         xt = torch.as_tensor(np.asarray(x, dtype=np.float64))
-        e = float(self.contact.energy(xt))
-        if grad is None or not np.isfinite(e):
-            return e
-        g, H = self.contact.local_gradient_hessian(self.contact.gather(xt), project=project, hessian=data is not None)
-        grad += g.numpy().reshape(-1)
-        if data is not None:
-            iu, ju = np.triu_indices(3)
-            values, ok = H.numpy()[:, iu, ju], self._contact_slots >= 0
-            np.add.at(data, self._contact_slots[ok], values[ok])
-        return e
+        total = 0.0
+        for term, slots, dofs in zip(self.step_terms, self._step_slots, self._step_dofs):
+            e = float(term.energy(xt))
+            total += e
+            if grad is None or not np.isfinite(e):
+                continue
+            g, H = term.local_gradient_hessian(term.gather(xt), project=project, hessian=data is not None)
+            np.add.at(grad, dofs, g.numpy())
+            if data is not None:
+                iu, ju = np.triu_indices(dofs.shape[1])
+                values, ok = H.numpy()[:, iu, ju], slots >= 0
+                np.add.at(data, slots[ok], values[ok])
+        return total
 
     @classmethod
     def of(cls, terms, pattern: HessianPattern, n_vertices: int, banded: bool = False, threads: int = 1):
@@ -128,18 +138,18 @@ class CompiledAssembly:
         return cls(ks, pattern, n_vertices, banded, threads)
 
     def energy(self, x) -> float:
-        """Elastic energy at x (n,3) (and the contact barrier's, with one)."""
+        """Elastic energy at x (n,3) (and the step terms')."""
         e = sum(k.energy(x) for k in self.kernels)
-        if self.contact is not None:
-            e += self._contact(x, None)
+        if self.step_terms:
+            e += self._frame_terms(x, None)
         return e
 
     def energy_gradient(self, x):
-        """Elastic energy and its full gradient (3n,) in one pass (with the contact barrier's)."""
+        """Elastic energy and its full gradient (3n,) in one pass (with the step terms')."""
         grad = np.zeros(3 * self.n)
         e = sum(k.energy_gradient(x, grad) for k in self.kernels)
-        if self.contact is not None:
-            e += self._contact(x, grad)
+        if self.step_terms:
+            e += self._frame_terms(x, grad)
         return e, grad
 
     def gradient_hessian(self, x, diagonal, project: bool):
@@ -155,8 +165,8 @@ class CompiledAssembly:
         e = 0.0
         for k, slots in zip(self.kernels, self.slots):
             e += k.accumulate(x, grad, data, slots, project)
-        if self.contact is not None:
-            e += self._contact(x, grad, data, project)
+        if self.step_terms:
+            e += self._frame_terms(x, grad, data, project)
         add_at(data, self._diag_slots, np.ascontiguousarray(diagonal, dtype=np.float64)[self.pattern.free_dofs])
         p = self.pattern
         if self.banded:

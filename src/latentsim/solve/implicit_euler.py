@@ -12,6 +12,11 @@ solve, and a backtracking (Armijo) line search on E_total (the one Newton loop o
 converged when the 2-norm of the free-DoF gradient is at most
 ``tolerance * f_ref``, with ``f_ref`` the weight of the free vertices
 (||m|| max(|g|, 1 m/s^2)), so the tolerance is a relative force residual.
+
+The potential's terms that depend on the step (its ``frame_terms``: a contact barrier, a damping
+term) are evaluated as they stand over each step (``EnergyTerm.at`` its
+:class:`~latentsim.physics.frame.Frame`), and the line search starts short of where one turns
+infinite (:func:`latentsim.solve.newton.max_step`).
 """
 
 from __future__ import annotations
@@ -22,10 +27,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from latentsim.physics.frame import Frame
 from latentsim.physics.incremental_potential import IncrementalPotential
 from latentsim.physics.kernels import inertia_gravity
 from latentsim.solve.assembly import CompiledAssembly
-from latentsim.solve.newton import LineSearch, minimise
+from latentsim.solve.newton import LineSearch, first_impact, max_step, minimise
 from latentsim.solve.sparse import HessianPattern, LinearSolver, NotPositiveDefinite
 
 
@@ -163,10 +169,9 @@ class ImplicitEuler:
         self.free_mask = np.repeat(free_v, 3)
         self.free_dofs = np.flatnonzero(self.free_mask)
         self.stencils = [t.stencils.cpu().numpy() for t in potential.terms]
-        self.contact = getattr(potential, "contact", None)
-        # the barrier's per-vertex blocks too (a reduced solver's cubature terms may not touch every vertex)
-        contact_stencils = [] if self.contact is None else [self.contact.stencils.cpu().numpy()]
-        self.pattern = HessianPattern(n, self.stencils + contact_stencils, self.free_dofs)
+        self.frame_terms = list(getattr(potential, "frame_terms", ()))
+        # their blocks too (a reduced solver's cubature terms may not touch every vertex)
+        self.pattern = HessianPattern(n, self.stencils + [t.stencils.cpu().numpy() for t in self.frame_terms], self.free_dofs)
         self.linear = LinearSolver(self.pattern, self.settings.linear_solver)
         m_free = self.masses[free_v]
         self.f_ref = float(np.linalg.norm(m_free) * max(np.linalg.norm(self.g), 1.0))
@@ -175,10 +180,14 @@ class ImplicitEuler:
         self.assembly = CompiledAssembly.of(
             potential.terms, self.pattern, n, self.linear.method == "banded", min(2, int(threads or torch.get_num_threads()))
         )
-        if self.contact is not None:
-            self.assembly.with_contact(self.contact)
-        self.step_contact = self.contact  # the barrier of this step (prepare_contact)
+        self.assembly.with_frame_terms(self.frame_terms)
+        self.step_terms = self.frame_terms  # as they stand over the current step (begin_step)
         self._last_iterations = 0  # the previous step's Newton iterations (NewtonSettings.fused_trial)
+
+    @property
+    def limits_steps(self) -> bool:
+        """Whether a term of the potential turns infinite somewhere (has a ``first_impact``: a barrier)."""
+        return any(hasattr(t, "first_impact") for t in self.frame_terms)
 
     # -- E_total and its derivatives ------------------------------------------
     def energy(self, x, x_prev, x_prev2) -> float:
@@ -242,22 +251,25 @@ class ImplicitEuler:
         return dx
 
     # -- one time step --------------------------------------------------------
-    def prepare_contact(self, x_prev, dirichlet_targets, previous_targets=None):
-        """Set the barrier of the step that starts at ``x_prev`` (n, 3) (``ContactBarrier.anchored``): every
-        collider attached to the prescribed vertices where ``dirichlet_targets`` (m, 3) carry it, and friction
-        lagged from ``x_prev`` (where the prescribed vertices were then: ``previous_targets``, by default
-        x_prev's own).  The energy, its derivatives and the line search of what follows see it.  :meth:`step`
-        calls it; a solver that steps otherwise (a reduced one) calls it per step."""
-        if self.contact is not None and (self.contact.moving or self.contact.friction > 0):
-            before = np.asarray(x_prev)[self.dirichlet] if previous_targets is None else previous_targets
-            self.step_contact = self.contact.anchored(x_prev, before, dirichlet_targets)
-            self.assembly.contact = self.step_contact
+    def frame(self, x_prev, x_prev2, dirichlet_targets, previous_targets=None) -> Frame:
+        """The frame of the step from ``x_prev``, ``x_prev2`` (n, 3) to the prescribed ``dirichlet_targets``
+        (m, 3); the prescribed vertices at its start ``previous_targets`` (by default x_prev's own)."""
+        before = np.asarray(x_prev)[self.dirichlet] if previous_targets is None else previous_targets
+        return Frame(dirichlet_targets, x_prev, x_prev2, before, float(self.potential.dt))
 
-    def initial_guess(self, x_prev, x_prev2, dirichlet_targets):
+    def begin_step(self, frame: Frame):
+        """Set the terms of the step of ``frame`` (``EnergyTerm.at``): the energy, its derivatives and the line
+        search of what follows see them.  :meth:`step` calls it; a solver that steps otherwise (a reduced one)
+        calls it per step."""
+        self.step_terms = [t.at(frame) for t in self.frame_terms]
+        self.assembly.step_terms = self.step_terms
+
+    def initial_guess(self, x_prev, x_prev2, dirichlet_targets, frame=None):
         """The lowest-energy of the constant-velocity predictor, x_{t-1}, and x_{t-1} carried by
         the rigid motion that best maps its Dirichlet vertices onto their targets (when the
         boundary jumps, e.g. reverses, the other two stretch the elements at the boundary);
-        each with x_D = x*_D(t).  Returns x (n,3).
+        each with x_D = x*_D(t), and each only where its straight path from x_{t-1} keeps every term finite
+        (:func:`~latentsim.solve.newton.first_impact` over ``frame``, by default :meth:`frame`'s).  Returns x (n,3).
 
         Raises NewtonFailed when an input is not finite, or when every candidate's energy is
         (the message names the inputs' first non-finite entry, or the candidates' energies).
@@ -267,12 +279,13 @@ class ImplicitEuler:
         if problems:
             raise NewtonFailed("non-finite input to the step: " + "; ".join(problems))
         D = self.dirichlet
+        frame = frame or self.frame(x_prev, x_prev2, dirichlet_targets)
         candidates = [2 * x_prev - x_prev2, x_prev.copy(), rigidly_carried(x_prev, D, dirichlet_targets)]
         best, e_best, energies = None, np.inf, []
         for c in candidates:
             c[D] = dirichlet_targets
-            if self.contact is not None and not self.contact.first_impact_between(x_prev, x_prev[D], c, dirichlet_targets) > 1.0:
-                energies.append(np.inf)  # its path from x_{t-1} passes through a collider (as the attached ones move)
+            if not first_impact(self.frame_terms, x_prev, c - x_prev, frame) > 1.0:
+                energies.append(np.inf)  # its path from x_{t-1} passes where a term is infinite (through a collider, as the attached ones move)
                 continue
             e = self.energy(c, x_prev, x_prev2)
             energies.append(e)
@@ -282,7 +295,7 @@ class ImplicitEuler:
             names = ("constant velocity", "x_{t-1}", "rigidly carried")
             raise NewtonFailed(
                 "every initial guess has a non-finite energy ("
-                + ("inf also where its path from x_{t-1} crosses a collider; " if self.contact is not None else "")
+                + ("inf also where its path from x_{t-1} crosses a collider; " if self.limits_steps else "")
                 + ", ".join(f"{k}: {e:.3e}" for k, e in zip(names, energies))
                 + "): the state or the potential is not finite"
             )
@@ -308,8 +321,9 @@ class ImplicitEuler:
         s = self.settings
         info = StepInfo()
         t0 = time.perf_counter()
-        self.prepare_contact(x_prev, dirichlet_targets)
-        x = self.initial_guess(x_prev, x_prev2, dirichlet_targets)
+        frame = self.frame(x_prev, x_prev2, dirichlet_targets)
+        self.begin_step(frame)
+        x = self.initial_guess(x_prev, x_prev2, dirichlet_targets, frame)
         e, grad = self._evaluate(x, x_prev, x_prev2)
         info.timings["guess"] += time.perf_counter() - t0
         problem = _StepProblem(self, x_prev, x_prev2, grad, info)
@@ -382,10 +396,9 @@ class _StepProblem:
         return e, (grad, None)
 
     def max_step(self, x, dx) -> float:
-        """The contact barrier's ``max_step``: the step fraction that keeps every vertex outside the
-        colliders (1 without colliders)."""
-        contact = self.solver.step_contact
-        return 1.0 if contact is None else contact.max_step(x, dx)
+        """The step terms' :func:`~latentsim.solve.newton.max_step`: the step fraction that keeps every one
+        finite (every vertex outside the colliders; 1 where no term limits it)."""
+        return max_step(self.solver.step_terms, x, dx)
 
     def _time_line_search(self, seconds):
         self.info.timings["energy"] += seconds - self.fused_seconds

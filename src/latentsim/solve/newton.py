@@ -33,18 +33,35 @@ A problem is any object with
 - ``line_search_failed(k, seconds)``: no step length down to ``min_step`` met Armijo: raise,
   or return to evaluate x_k again as iteration k + 1.
 - optionally ``max_step(x, dx) -> alpha0`` in (0, 1]: the largest step the search may start from
-  (a scene with colliders: the first time of impact along dx, scaled back, so that every iterate
-  stays outside them).
+  (:func:`max_step` of the problem's terms: ``IMPACT_SAFETY`` times the first fraction of dx at which
+  a term turns infinite, a barrier's time of impact, so that every iterate stays where all are finite).
 """
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["LineSearch", "NewtonInfo", "Trial", "line_search", "minimise"]
+__all__ = ["IMPACT_SAFETY", "LineSearch", "NewtonInfo", "Trial", "first_impact", "line_search", "max_step", "minimise"]
+
+#: the fraction of the first impact a line search starts from (as IPC's line search does)
+IMPACT_SAFETY = 0.9
+
+
+def first_impact(terms, x, dx, frame=None) -> float:
+    """The first fraction t >= 0 of the straight step x -> x + dx (n, 3) at which one of ``terms`` turns
+    infinite: the least of their ``first_impact(x, dx, frame)`` (``physics.base``; with ``frame``, along the
+    step it describes); inf where none does, or none has one."""
+    return min((float(t.first_impact(x, dx, frame)) for t in terms if hasattr(t, "first_impact")), default=math.inf)
+
+
+def max_step(terms, x, dx, safety: float = IMPACT_SAFETY) -> float:
+    """The largest step fraction alpha in (0, 1] a line search along x + t dx starts from: ``safety`` times
+    the terms' :func:`first_impact`, 1 when none comes that close within the whole step."""
+    return min(1.0, safety * first_impact(terms, x, dx))
 
 
 @dataclass

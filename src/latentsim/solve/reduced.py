@@ -25,13 +25,13 @@ spanning all free DoFs this is exactly the full solver's test.  L-BFGS
 (two-loop recursion preconditioned by the reduced mass matrix J^T M J / h^2)
 is the Hessian-free alternative.
 
-With colliders (the potential's contact barrier) every iterate stays outside them, as in the full
-space: an initial guess counts only where the straight path to it from x_{t-1} stays outside (and
-x_{t-1}'s own projection is tried where neither other guess's does); the line search starts from
-the colliders' first time of impact along the step's tangent J dq (exact for a linear map), and for
-a nonlinear map rejects a trial whose chord from the iterate crosses one.  Testing only where a step
-lands lets a step jump through a thin collider, and from a guess of infinite energy (inside one) no
-later decrease is resolvable.
+Where a term of the potential turns infinite somewhere (a barrier against colliders: its
+``first_impact``) every iterate stays where all are finite, as in the full space: an initial guess counts
+only where the straight path to it from x_{t-1} does (and x_{t-1}'s own projection is tried where
+neither other guess's does); the line search starts from the terms' first impact along the step's
+tangent J dq (exact for a linear map), and for a nonlinear map rejects a trial whose chord from the
+iterate crosses one.  Testing only where a step lands lets a step jump through a thin collider, and
+from a guess of infinite energy (inside one) no later decrease is resolvable.
 
 The full-space gradient and Hessian come from :class:`latentsim.solve.implicit_euler.ImplicitEuler`
 (the compiled assembly of :mod:`latentsim.solve.assembly`); physics is not re-implemented here.
@@ -39,7 +39,7 @@ Both minimisers run the one Newton loop and line search of :mod:`latentsim.solve
 
 A subspace is any object with ``dim``, ``n_vertices``, ``hard_dirichlet``,
 ``dirichlet`` and ``jacobian(q, xD) -> (x (n, 3), J (3n, r))`` /
-``map(q, xD) -> x`` (with colliders also ``project(x, xD) -> q``, and ``linear`` True where
+``map(q, xD) -> x`` (with a barrier also ``project(x, xD) -> q``, and ``linear`` True where
 phi is linear in q): :class:`~latentsim.latent.subspaces.LinearSubspace` (x = X + U q in the
 relative coordinates) and :class:`~latentsim.latent.subspaces.DecoderSubspace` (the autoencoder's
 decoder), re-exported here.
@@ -56,7 +56,7 @@ import torch
 
 from latentsim.physics.incremental_potential import IncrementalPotential, dirichlet_penalty
 from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings
-from latentsim.solve.newton import LineSearch, minimise
+from latentsim.solve.newton import LineSearch, first_impact, max_step, minimise
 
 __all__ = [
     "ReducedFailed",
@@ -232,15 +232,15 @@ class ReducedImplicitEuler:
         (g,) = torch.autograd.grad(e, xt)
         return float(e.detach()), g.numpy().reshape(-1)
 
-    def _best_guess(self, candidates, x_prev, x_prev2, xD, energies):
-        """(q, x, E) of the lowest-energy of ``candidates`` (q's) whose energy is finite and, with colliders,
-        whose straight path from x_{t-1} keeps every vertex outside them (as the attached ones move); None if
-        none is.  Appends each one's energy (inf where its path crosses a collider) to ``energies``."""
-        contact, best = self.inner.contact, None
+    def _best_guess(self, candidates, frame, xD, energies):
+        """(q, x, E) of the lowest-energy of ``candidates`` (q's) whose energy is finite and whose straight path
+        from the ``frame``'s x_{t-1} keeps every term finite (every vertex outside the colliders, as the attached
+        ones move); None if none is.  Appends each one's energy (inf where its path crosses a collider) to ``energies``."""
+        best, x_prev, x_prev2 = None, frame.x_prev, frame.x_prev2
         for c in candidates:
             c = np.asarray(c, dtype=np.float64)
             x = self.subspace.map(c, xD)
-            if contact is not None and not contact.first_impact_between(x_prev, x_prev[self.D], x, xD) > 1.0:
+            if not first_impact(self.inner.frame_terms, x_prev, x - x_prev, frame) > 1.0:
                 energies.append(np.inf)
                 continue
             e = self.energy(x, x_prev, x_prev2, xD)
@@ -265,19 +265,20 @@ class ReducedImplicitEuler:
         when the test is not met in ``max_iterations``, a value is non-finite, or every
         initial guess has a non-finite energy (or a path from x_{t-1} through a collider).
         """
-        xD = np.asarray(xD, dtype=np.float64)
-        self.inner.prepare_contact(x_prev, xD, np.asarray(x_prev)[self.D])  # attached colliders where this step's targets put them; friction lagged from x_prev
+        xD, x_prev = np.asarray(xD, dtype=np.float64), np.asarray(x_prev, dtype=np.float64)
+        frame = self.inner.frame(x_prev, x_prev2, xD, x_prev[self.D])  # the prescribed vertices then: the potential's
+        self.inner.begin_step(frame)  # attached colliders where this step's targets put them; friction lagged from x_prev
         q_prev, q_prev2 = np.asarray(q_prev, dtype=np.float64), np.asarray(q_prev2, dtype=np.float64)
         candidates = [q_init] if q_init is not None else [2.0 * q_prev - q_prev2, q_prev]
-        contact, x_prev, energies = self.inner.contact, np.asarray(x_prev, dtype=np.float64), []
-        best = self._best_guess(candidates, x_prev, x_prev2, xD, energies)
-        if best is None and contact is not None and q_init is None:
+        limited, energies = self.inner.limits_steps, []
+        best = self._best_guess(candidates, frame, xD, energies)
+        if best is None and limited and q_init is None:
             # neither guess's path stays outside: x_{t-1} left where it is, as near as the subspace comes (as the
             # full space's guesses; a body its prescribed vertices carry towards a collider it rests on)
-            best = self._best_guess([self.subspace.project(x_prev, xD)], x_prev, x_prev2, xD, energies)
+            best = self._best_guess([self.subspace.project(x_prev, xD)], frame, xD, energies)
         if best is None:  # from a guess of infinite energy no step length is ever resolvably worse: never start there
             raise ReducedFailed("every initial guess has a non-finite energy ("
-                                + ("inf also where its path from x_{t-1} crosses a collider: " if contact is not None else "")
+                                + ("inf also where its path from x_{t-1} crosses a collider: " if limited else "")
                                 + ", ".join(f"{e:.3e}" for e in energies) + ")", ReducedStepInfo())
         q, x, e = best
         info = ReducedStepInfo(energies=[e])
@@ -304,21 +305,18 @@ class _ReducedProblem:
 
     def trial(self, q, alpha, searching):
         x = self.solver.subspace.map(q, self.xD)
-        contact = self.solver.inner.step_contact
-        # the straight path from the iterate passes through a collider: rejected, as inside one (for a linear map
-        # max_step has kept every trial's path outside already)
-        if contact is not None and not getattr(self.solver.subspace, "linear", False) and not contact.first_impact(self.x, x - self.x) > 1.0:
+        # the straight path from the iterate passes where a term is infinite (through a collider): rejected, as
+        # inside one (for a linear map max_step has kept every trial's path outside already)
+        if not getattr(self.solver.subspace, "linear", False) and not first_impact(self.solver.inner.step_terms, self.x, x - self.x) > 1.0:
             return np.inf, x
         return self.solver.energy(x, self.x_prev, self.x_prev2, self.xD), x
 
     def max_step(self, q, dq) -> float:
-        """The contact barrier's ``max_step`` along x + t J dq (x = phi(q) and J from the last ``stop``): the
-        step fraction that keeps every vertex outside the colliders, exact for a linear map (for a decoder
-        the trial tests each chord it takes); 1 without colliders."""
-        contact = self.solver.inner.step_contact
-        if contact is None:
-            return 1.0
-        return contact.max_step(self.x, (self.J @ dq).reshape(-1, 3))
+        """The step terms' :func:`~latentsim.solve.newton.max_step` along x + t J dq (x = phi(q) and J from the
+        last ``stop``): the step fraction that keeps every vertex outside the colliders, exact for a linear map
+        (for a decoder the trial tests each chord it takes); 1 where no term limits it."""
+        terms = self.solver.inner.step_terms
+        return max_step(terms, self.x, (self.J @ dq).reshape(-1, 3)) if self.solver.inner.limits_steps else 1.0
 
     def accept(self, trial, e_old, seconds):
         self.info.energies.append(trial.energy)
