@@ -279,7 +279,7 @@ class ImplicitEuler:
         if problems:
             raise NewtonFailed("non-finite input to the step: " + "; ".join(problems))
         D = self.dirichlet
-        frame = frame or self.frame(x_prev, x_prev2, dirichlet_targets)
+        frame = self.frame(x_prev, x_prev2, dirichlet_targets) if frame is None else frame
         candidates = [2 * x_prev - x_prev2, x_prev.copy(), rigidly_carried(x_prev, D, dirichlet_targets)]
         best, e_best, energies = None, np.inf, []
         for c in candidates:
