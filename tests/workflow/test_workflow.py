@@ -149,7 +149,8 @@ def test_a_second_configs_all_is_refused_before_any_job_where_another_configs_su
 
 def test_dry_run_of_the_soft_solids_example_plans_every_stage_of_both_scenes(tmp_path):
     """config/examples/soft_solids.yaml (neo-Hookean giraffe and armadillo) validates and plans the simulation,
-    the latent methods with their variant and the giraffe's Neural Modes (its full run: docs/measurements.md)."""
+    the latent methods with their variant and the giraffe's Neural Modes (its full run:
+    docs/measurements.md#soft-solids)."""
     config = ROOT / "config" / "examples" / "soft_solids.yaml"
     scenes = yaml.safe_load(config.read_text())["scenes"]
     assert {s["material"]["model"] for s in scenes.values()} == {"neohookean"}
@@ -174,7 +175,7 @@ def _assert_example_plans_its_scene(config, scene, tmp_path):
 def test_the_hair_head_scene_turns_a_ring_of_hair_about_its_head():
     """hair_head (hair on a ring of roots about a sphere collider; the default config's dry run plans it): its ring
     of roots lies outside the head, each root as far from the head's centre (the centre the program turns the
-    roots about), so that the head stays where it is (its run: docs/measurements.md)."""
+    roots about), so that the head stays where it is (its run: docs/measurements.md#contact)."""
     from latentsim.mesh import rod_bundle
 
     scene = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["scenes"]["hair_head"]
@@ -190,7 +191,7 @@ def test_the_hair_head_scene_turns_a_ring_of_hair_about_its_head():
 def test_the_bunny_drop_scene_throws_a_free_body_straight_up_and_down():
     """bunny_drop (the bunny, free, dropped onto a frictionless ground; the default config's dry run plans it): its
     throws are vertical and without spin (else it slides or turns for ever), and the test throw's speed lies
-    between the training ones' (its run: docs/measurements.md)."""
+    between the training ones' (its run: docs/measurements.md#contact)."""
     scene = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["scenes"]["bunny_drop"]
     assert scene["dirichlet"] == {"type": "free"}
     speeds = {q["split"]: [] for q in scene["sequences"]}
@@ -206,7 +207,7 @@ def test_dry_run_of_the_cape_example_plans_a_cloth_against_a_body_that_moves_wit
     """config/examples/cape.yaml (a cloth held along its top edge, a capsule attached to the held vertices)
     validates and plans every stage of its scene; the held set fixes a pose (not on one line), the body starts
     clear of the cloth, and the test half walks at speeds between the training half's (its run:
-    docs/measurements.md)."""
+    docs/measurements.md#contact)."""
     from latentsim.mesh import cloth_grid
     from latentsim.physics.contact import Capsule
     from latentsim.scene import bc_parameters
@@ -233,7 +234,7 @@ def test_dry_run_of_the_cape_example_plans_a_cloth_against_a_body_that_moves_wit
 def test_dry_run_of_the_bunny_slide_example_plans_a_free_body_thrown_across_a_ground_with_friction(tmp_path):
     """config/examples/bunny_slide.yaml (the bunny thrown sideways onto a ground with friction) validates and plans
     every stage of its scene; the ground has friction, the throws have no spin, and the test throw's sideways speed
-    lies between the training throws' (its run: docs/measurements.md)."""
+    lies between the training throws' (its run: docs/measurements.md#contact)."""
     config = ROOT / "config" / "examples" / "bunny_slide.yaml"
     scene = yaml.safe_load(config.read_text())["scenes"]["bunny_slide"]
     assert scene["dirichlet"] == {"type": "free"} and scene["contact"]["friction"] > 0

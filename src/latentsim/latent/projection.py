@@ -1,7 +1,7 @@
 """A contact projection of a latent rollout's frames (``rollout.contact_projection``; in neither paper).
 
 The integrator's loss holds a contact barrier, but where a network does not learn a collider its rollout can pass
-through it (the cloth over the ball, docs/measurements.md).  The projection keeps what a user sees outside: each
+through it (the cloth over the ball, docs/measurements.md#contact).  The projection keeps what a user sees outside: each
 decoded frame x_p within the scene's d_hat of a collider is replaced by the decode of the latent
 
     q* = argmin_q  1/(2 h^2) sum_i m_i |D(q)_i - x_p,i|^2 + B(D(q)),
