@@ -12,6 +12,11 @@ planned, and how it ended (``complete``, ``failed``, naming the rules, or ``stop
 minutes (the parts' sum), jobs, whether the target completed, CPU and job minutes, and minutes per
 stage summed over each stage's jobs (``benchmarks/stage_times.py`` on ``results/benchmarks``).  Parts whose
 command does not ask for ``--target`` (dry runs, single files) are left out.
+
+A run not yet complete also gets ``remaining``: per rule, the jobs the first part planned that no part has
+finished, the mean wall minutes of the rule's finished jobs (start to finish in the log, so under whatever
+shared the cores), and the wall minutes they would take at ``--cores`` jobs at a time; rules none of whose
+jobs has finished are named, without a time.
 """
 
 from __future__ import annotations
@@ -61,6 +66,56 @@ def read_part(path: Path) -> dict:
     }
 
 
+def job_minutes(lines) -> dict:
+    """Rule -> wall minutes of each job the log saw start and finish."""
+    started, out, stamp, rule = {}, {}, None, None
+    for ln in (x.strip() for x in lines):
+        if m := STAMP.match(ln):
+            stamp = _time(m.group(1))
+        elif m := re.match(r"^(?:local)?rule (\w+):$", ln):
+            rule = m.group(1)
+        elif (m := re.match(r"^jobid: (\d+)$", ln)) and rule:
+            started[m.group(1)], rule = (rule, stamp), None
+        elif (m := re.match(r"^Finished jobid: (\d+) \(Rule: (\w+)\)$", ln)) and m.group(1) in started:
+            name, begin = started.pop(m.group(1))
+            out.setdefault(name, []).append((stamp - begin).total_seconds() / 60)
+    return out
+
+
+def planned_jobs(lines) -> dict:
+    """Rule -> jobs, from the log's "Job stats" table."""
+    start = next((i for i, ln in enumerate(lines) if ln.strip() == "Job stats:"), None)
+    rows = {}
+    for ln in lines[start + 1 :] if start is not None else []:
+        if m := re.match(r"^(\w+)\s+(\d+)$", ln.strip()):
+            if m.group(1) == "total":
+                break
+            rows[m.group(1)] = int(m.group(2))
+    return rows
+
+
+def remaining(logs, cores: int) -> dict:
+    """What is left of a run: per rule, jobs not finished, mean job minutes, their wall minutes at ``cores``."""
+    texts = [p.read_text(errors="replace").splitlines() for p in logs]
+    plan = planned_jobs(texts[0])
+    done = {}
+    for lines in texts:
+        for rule, mins in job_minutes(lines).items():
+            done.setdefault(rule, []).extend(mins)
+    rules, unknown = [], []
+    for rule, n in plan.items():
+        left = n - len(done.get(rule, []))
+        if left <= 0 or rule == "all":
+            continue
+        if rule not in done:
+            unknown.append(rule)
+            continue
+        mean = sum(done[rule]) / len(done[rule])
+        rules.append({"rule": rule, "jobs_left": left, "mean_job_min": round(mean, 2), "wall_min": round(left * mean / cores, 1)})
+    rules.sort(key=lambda r: -r["wall_min"])
+    return {"cores": cores, "wall_min_known": round(sum(r["wall_min"] for r in rules), 1), "rules": rules, "rules_without_a_finished_job": unknown}
+
+
 def asks_for(command: str | None, target: str) -> bool:
     """Whether a logged command runs ``target`` (not a dry run)."""
     words = (command or "").split()
@@ -79,7 +134,7 @@ def run_record(folder, target: str = "all") -> dict:
     if not stages.empty:
         g = stages.groupby("stage")[["jobs", "wall_s", "cpu_s"]].sum().sort_values("wall_s", ascending=False)
         per_stage = [{"stage": s, "jobs": int(r.jobs), "job_min": round(r.wall_s / 60, 1), "cpu_min": round(r.cpu_s / 60, 1)} for s, r in g.iterrows()]
-    return {
+    record = {
         "target": target,
         "complete": parts[-1]["ended"] == "complete",
         "commits": sorted({p["commit"] for p in parts if p["commit"]}),
@@ -91,6 +146,11 @@ def run_record(folder, target: str = "all") -> dict:
         "parts": parts,
         "stages": per_stage,
     }
+    if not record["complete"]:
+        own = [folder / ".snakemake" / "log" / p["log"] for p in parts]
+        cores = re.search(r"--cores[ =](\d+)", parts[0]["command"] or "")
+        record["remaining"] = remaining(own, int(cores.group(1)) if cores else 1)
+    return record
 
 
 def main(argv=None):

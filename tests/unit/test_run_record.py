@@ -56,3 +56,26 @@ def test_a_failed_part_names_its_rules_and_a_folder_without_a_run_is_refused(tmp
     assert run_record.run_record(tmp_path)["parts"][0]["ended"] == "failed: evaluate, summary"
     with pytest.raises(SystemExit, match="no Snakemake log of a run of 'sizing'"):
         run_record.run_record(tmp_path, "sizing")
+
+
+def test_an_unfinished_run_estimates_what_is_left_from_its_finished_jobs(tmp_path):
+    def job(stamp, rule, jobid):
+        return [f"[Sat Dec  5 {stamp} 2026]", f"rule {rule}:", "    output: x", f"    jobid: {jobid}"]
+
+    def done(stamp, rule, jobid):
+        return [f"[Sat Dec  5 {stamp} 2026]", f"Finished jobid: {jobid} (Rule: {rule})"]
+
+    events = job("02:00:00", "simulate", 1) + job("02:00:00", "simulate", 2) + done("02:04:00", "simulate", 1)
+    events += done("02:06:00", "simulate", 2) + job("02:06:00", "train_integrator", 3) + done("02:16:00", "train_integrator", 3)
+    events += job("02:16:00", "train_integrator", 4)  # started, not finished: still left
+    path = tmp_path / ".snakemake" / "log" / "a.snakemake.log"
+    _log(tmp_path, "a.snakemake.log", "snakemake --cores 2 all", "abc1234", events)
+    path.write_text(path.read_text().replace("job  count\n", "job  count\nsimulate  3\ntrain_integrator  5\nevaluate  2\n"))
+    rest = run_record.run_record(tmp_path)["remaining"]
+    assert rest["cores"] == 2 and rest["rules_without_a_finished_job"] == ["evaluate"]
+    # train_integrator: 4 left of 5 at 10 min each, two at a time; simulate: 1 left at (4 + 6) / 2 min
+    assert rest["rules"] == [
+        {"rule": "train_integrator", "jobs_left": 4, "mean_job_min": 10.0, "wall_min": 20.0},
+        {"rule": "simulate", "jobs_left": 1, "mean_job_min": 5.0, "wall_min": 2.5},
+    ]
+    assert rest["wall_min_known"] == 22.5
