@@ -26,6 +26,22 @@ from latentsim.solve.sparse import BandedUpper, HessianPattern
 __all__ = ["AutogradKernel", "CompiledAssembly"]
 
 
+def stencil_dofs(stencils) -> np.ndarray:
+    """The degrees of freedom of each stencil, (E, 3k), vertex-major as the per-stencil gradients."""
+    return (3 * stencils[:, :, None] + np.arange(3)).reshape(len(stencils), -1)
+
+
+def add_stencil_blocks(grad, data, dofs, slots, g, H=None):
+    """grad (3n,) += the per-stencil gradients g (E, 3k) at ``dofs``; with ``data`` and H (E, 3k, 3k), data[slots]
+    += the upper triangles of the Hessians (``slots`` (E, 3k(3k+1)/2) as ``HessianPattern.stencil_slots``, -1 for
+    entries of fixed DoFs, which are dropped)."""
+    np.add.at(grad, dofs, g)
+    if data is not None:
+        iu, ju = np.triu_indices(dofs.shape[1])
+        values, ok = H[:, iu, ju], slots >= 0
+        np.add.at(data, slots[ok], values[ok])
+
+
 class AutogradKernel:
     """A term without compiled kernels, behind the interface of ``kernels.TermKernel`` that
     :class:`CompiledAssembly` calls: its energy and gradient by PyTorch autograd of
@@ -62,12 +78,7 @@ class AutogradKernel:
         with torch.no_grad():
             e = float(self.term.local_energy(xe).sum())
         g, H = self.term.local_gradient_hessian(xe, project=bool(project))
-        g, H = g.cpu().numpy(), H.cpu().numpy()
-        rows = (3 * self.stencils[:, :, None] + np.arange(3)).reshape(len(self.stencils), -1)
-        np.add.at(grad, rows, g)
-        iu, ju = np.triu_indices(3 * self.k)
-        values, ok = H[:, iu, ju], slots >= 0
-        np.add.at(data, slots[ok], values[ok])
+        add_stencil_blocks(grad, data, stencil_dofs(self.stencils), slots, g.cpu().numpy(), H.cpu().numpy())
         return e
 
 
@@ -110,7 +121,7 @@ class CompiledAssembly:
             if self.banded:
                 slots = np.where(slots >= 0, self.pattern.band_positions()[slots], -1)
             self._step_slots.append(slots)
-            self._step_dofs.append((3 * st[:, :, None] + np.arange(3)).reshape(len(st), -1))
+            self._step_dofs.append(stencil_dofs(st))
         return self
 
     def _frame_terms(self, x, grad, data=None, project=True) -> float:
@@ -124,11 +135,7 @@ class CompiledAssembly:
             if grad is None or not np.isfinite(e):
                 continue
             g, H = term.local_gradient_hessian(term.gather(xt), project=project, hessian=data is not None)
-            np.add.at(grad, dofs, g.numpy())
-            if data is not None:
-                iu, ju = np.triu_indices(dofs.shape[1])
-                values, ok = H.numpy()[:, iu, ju], slots >= 0
-                np.add.at(data, slots[ok], values[ok])
+            add_stencil_blocks(grad, data, dofs, slots, g.numpy(), None if data is None else H.numpy())
         return total
 
     @classmethod
