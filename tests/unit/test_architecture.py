@@ -51,19 +51,21 @@ def test_architecture_doc_is_what_the_code_says():
     assert proc.returncode == 0, proc.stderr
 
 
-#: Functions still longer than the limit, being split elsewhere.  This list must shrink, not grow: a new
-#: function over the limit is split into helpers instead of being added here.
-LONG_FUNCTIONS_ALLOWED = {"fit_integrator", "integrator_loss"}
 MAX_FUNCTION_LINES = 100
+#: the training loop's own limit: a feature beyond the paper is a piece that feeds it data (latent/features.py)
+MAX_FIT_INTEGRATOR_LINES = 60
 
 
 def test_no_function_in_the_package_is_longer_than_the_limit():
     """Every function and method of src/ (docstring included) is at most MAX_FUNCTION_LINES lines long."""
-    long = {}
+    long, fit = {}, None
     for path in sorted((ROOT / "src").rglob("*.py")):
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 lines = node.end_lineno - node.lineno + 1
-                if lines > MAX_FUNCTION_LINES and node.name not in LONG_FUNCTIONS_ALLOWED:
+                if lines > MAX_FUNCTION_LINES:
                     long[f"{path.relative_to(ROOT)}:{node.lineno} {node.name}"] = lines
+                if node.name == "fit_integrator":
+                    fit = lines
     assert long == {}, f"functions over {MAX_FUNCTION_LINES} lines (split them into helpers): {long}"
+    assert fit is not None and fit < MAX_FIT_INTEGRATOR_LINES, f"fit_integrator is {fit} lines"
