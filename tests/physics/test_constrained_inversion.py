@@ -4,7 +4,7 @@
   dense sampling of t; inf where the step inverts none; elements inverted at x are not watched.
 - On a clamped stvk_nm beam at modal amplitudes where the exact-Hessian KKT steps turn elements inside
   out (StVK has E = 0 for a reflected element) and end unconverged at the iteration cap, the guarded
-  iteration converges to the tolerance with every element positive; without the guard none converges.
+  iteration converges to the tolerance with every element positive; without the guard the iterates invert them.
 """
 
 from __future__ import annotations
@@ -90,11 +90,21 @@ def test_ground_truth_keeps_tets_positive_and_converges(beam):
         assert (volume_signs(x, T) / v0).min() > 0.5
 
 
-def test_without_the_guard_the_beam_inverts_and_does_not_converge(beam):
-    """The case above is one the guard decides: the unguarded iteration (every step length allowed)
-    ends each of these samples unconverged at the cap, two of them among inverted elements."""
+def test_without_the_guard_the_iterates_turn_elements_inside_out(beam):
+    """The case above is one the guard decides: unguarded (every step length allowed), each sample's
+    exact-Hessian KKT steps turn elements inside out within the first iterations (by a twentieth of the
+    largest rest volume at least; seen here: at the second or third iterate, by 0.09 to 5 of it).
+    Where the unguarded iteration then ends (unconverged at the cap, or converged after many steps
+    among inverted elements) depends on rounding, so it is not asserted."""
     pot, V, T, lm, z = beam
-    with mock.patch.object(ConstrainedNewton, "inversion_free_step", lambda self, x, dxf: 1.0):
-        runs = _solve_all(pot, V, lm, z)
-    assert all(not info.converged and info.iterations == 40 for _, info in runs)
-    assert sum(bool((volume_signs(x, T) <= 0).any()) for x, _ in runs) >= 2
+    scale = volume_signs(V, T).max()
+    for zi in z:
+        smallest = []
+
+        def unguarded(self, x, dxf):
+            smallest.append(volume_signs(x, self.tets).min() / scale)
+            return 1.0
+
+        with mock.patch.object(ConstrainedNewton, "inversion_free_step", unguarded):
+            ConstrainedNewton(pot, V, lm.free_dofs).solve(lm.modes @ zi, rtol=1e-5, max_iter=6)
+        assert smallest[0] > 0 and min(smallest) < -0.05, smallest
