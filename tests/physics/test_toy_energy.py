@@ -154,8 +154,8 @@ def test_the_training_loss_evaluates_the_toy_on_decoded_states():
     B = 5
     z = 0.1 * torch.randn(B, 3, dtype=torch.float64)
     xD = torch.as_tensor(clamp_path(X, D, 3)).expand(B, 3, len(D), 3)
-    batch = {"z_prev": z, "z_prev2": 0.9 * z, "p": torch.zeros(B, 6), "p_prev": torch.zeros(B, 6), "p_prev2": torch.zeros(B, 6),
-             "xD": xD[:, 2], "xD_prev": xD[:, 1], "xD_prev2": xD[:, 0]}  # fmt: skip
+    batch = {"z": 1.1 * z, "z_prev": z, "z_prev2": 0.9 * z, "p": torch.zeros(B, 6), "p_prev": torch.zeros(B, 6), "p_prev2": torch.zeros(B, 6),
+             "xD": xD[:, 2], "xD_prev": xD[:, 1], "xD_prev2": xD[:, 0]}  # fmt: skip (z: the rows' ground truth, unused here)
     step = torch.nn.Linear(3, 3, dtype=torch.float64)
 
     def integrator(z1, z2, p, p1, p2):
