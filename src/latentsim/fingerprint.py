@@ -62,7 +62,13 @@ def is_timing(name: str) -> bool:
     differ between two identical runs.  Names are the pipeline's: ``step_ms``, ``ms/step mean``,
     ``train s``, ``speedup``, ``step_over_floor`` (a step's time over its floor's), ``on_front``."""
     leaf = name.rsplit("/", 1)[-1].rsplit("@", 1)[-1]
-    return leaf in TIMING_NAMES or bool(TIMING_WORDS.search(leaf))
+    return is_timing_word(leaf)
+
+
+def is_timing_word(word: str) -> bool:
+    """``is_timing`` of one name as it is: an attribute's, a state dict key's, a CSV column's (whose
+    '/' is part of it, as in ``ms/step median``, not a path)."""
+    return word in TIMING_NAMES or bool(TIMING_WORDS.search(word))
 
 
 def _digest(data: bytes) -> str:
@@ -130,7 +136,7 @@ def _csv(path: Path) -> dict:
     """One entry per row, named by the row's text cells (scene, method, ...): its numbers, timing
     columns left out.  Rows are matched by name, so a table sorted by speed compares as well."""
     df = pd.read_csv(path)
-    df = df[[c for c in df.columns if not is_timing(str(c))]]
+    df = df[[c for c in df.columns if not is_timing_word(str(c))]]
     text = [c for c in df.columns if df[c].dtype.kind not in "fiub"]
     numbers = [c for c in df.columns if c not in text]
     out: dict = {"columns": _entry(np.asarray(list(map(str, df.columns))))}

@@ -7,6 +7,7 @@ import json
 
 import h5py
 import numpy as np
+import pandas as pd
 import pytest
 import scipy
 import torch
@@ -129,3 +130,19 @@ def test_command_line_prints_the_recorded_environment(tmp_path, capsys):
     out = capsys.readouterr().out
     assert f'"numpy": "{np.__version__}"' in out and "same processor and libraries as this machine" in out
     assert f"{old}: no environment recorded" in out
+
+
+def test_fingerprints_leave_wall_times_out_of_tables_and_keep_results(tmp_path):
+    """A table's wall-time columns ("ms/step median", "map ms", "train s") may differ between two
+    identical runs and are left out; a result column ("error mean") differing is reported."""
+    here, there = tmp_path / "here", tmp_path / "there"
+    rows = {"method": ["full space", "Neural Modes"], "error mean": [0.0, 0.0048], "ms/step median": [3.2, 10.2],
+            "map ms": [np.nan, 1.9], "train s": [0.0, 12.0]}  # fmt: skip
+    for results, slower in ((here, 1.0), (there, 6.6)):
+        (results / "nm").mkdir(parents=True)
+        timed = {k: (np.asarray(v) * slower if k.endswith(("median", "ms", " s")) else v) for k, v in rows.items()}
+        pd.DataFrame(timed).to_csv(results / "nm" / "dynamics.csv", index=False)
+    assert not compare(fingerprint_tree(here), fingerprint_tree(there))
+    pd.DataFrame({**rows, "error mean": [0.0, 0.0049]}).to_csv(there / "nm" / "dynamics.csv", index=False)
+    diff = compare(fingerprint_tree(here), fingerprint_tree(there))
+    assert len(diff) == 1 and diff[0].startswith("nm/dynamics.csv:row Neural Modes: differs"), diff
