@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from latentsim.physics.base import EnergyTerm
+from latentsim.physics.primitives import closest_on_segment, core_distance, plane_distance
 
 
 def barrier(d: torch.Tensor, d_hat: float, kappa: float, extend_below: float | None = None) -> torch.Tensor:
@@ -69,6 +70,18 @@ def barrier_derivatives(d: torch.Tensor, d_hat: float, kappa: float, extend_belo
     e1, e2 = barrier_derivatives(torch.full_like(d, float(extend_below)), d_hat, kappa)
     below = d < extend_below
     return torch.where(below, e1 + e2 * (d - extend_below), db), torch.where(below, e2, d2b)
+
+
+def primitive_barriers(x: torch.Tensor, edges, triangles, collider: "Collider", d_hat: float, kappa: float,
+                       extend_below: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """Per-primitive barrier energies of a surface against one collider: b(d_e) for each edge and b(d_t) for each
+    triangle (:func:`barrier` of :meth:`Collider.primitive_distance`), x (..., n, 3), edges (E, 2) and triangles
+    (T, 3) vertex indices -> ((..., E), (..., T)).  Against a :class:`HalfSpace` each is its nearest vertex's."""
+    out = []
+    for idx in (edges, triangles):
+        idx = torch.as_tensor(np.asarray(idx), dtype=torch.int64, device=x.device)
+        out.append(barrier(collider.primitive_distance(x[..., idx, :]), d_hat, kappa, extend_below))
+    return out[0], out[1]
 
 
 def rigid_pose(rest: np.ndarray, targets) -> tuple[torch.Tensor, torch.Tensor]:
@@ -143,6 +156,11 @@ class Collider:
         outside); inf where the straight line never does, 0 for a point on or inside the surface."""
         raise NotImplementedError
 
+    def primitive_distance(self, xp: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
+        """xp (..., k, 3), vertices (k = 1), edges (k = 2) or triangles (k = 3) -> the signed distance of each
+        one's closest point from the surface (...) (:mod:`latentsim.physics.primitives`)."""
+        raise NotImplementedError
+
 
 @dataclass(frozen=True)
 class HalfSpace(Collider):
@@ -174,6 +192,12 @@ class HalfSpace(Collider):
         with np.errstate(divide="ignore", invalid="ignore"):
             t = np.where(rate < 0, d / -rate, np.inf)
         return t
+
+    def primitive_distance(self, xp):
+        """The least vertex's distance (:func:`~latentsim.physics.primitives.plane_distance`): against a plane an
+        edge or triangle is no nearer than its nearest vertex."""
+        n, p = (torch.as_tensor(v, dtype=xp.dtype, device=xp.device) for v in (self.normal, self.point))
+        return plane_distance(xp, p, n)
 
 
 def _sphere_toi(rel: np.ndarray, dx: np.ndarray, r: float) -> np.ndarray:
@@ -216,6 +240,11 @@ class Sphere(Collider):
     def time_of_impact(self, x, dx):
         return _sphere_toi(x - np.asarray(self.centre), dx, float(self.radius))
 
+    def primitive_distance(self, xp):
+        """d = dist(c, primitive) - r (:func:`~latentsim.physics.primitives.core_distance`, the core the centre)."""
+        c = torch.as_tensor(self.centre, dtype=xp.dtype, device=xp.device)
+        return core_distance(c[None, :], xp) - float(self.radius)
+
 
 @dataclass(frozen=True)
 class Capsule(Collider):
@@ -236,9 +265,7 @@ class Capsule(Collider):
 
     def _closest(self, x):
         a, b = (torch.as_tensor(v, dtype=x.dtype, device=x.device) for v in (self.a, self.b))
-        e = b - a
-        s = (((x - a) * e).sum(-1) / (e * e).sum()).clamp(0.0, 1.0)
-        return a + s[..., None] * e, s
+        return closest_on_segment(x, a, b)
 
     def distance(self, x):
         q, _ = self._closest(x)
@@ -268,6 +295,11 @@ class Capsule(Collider):
         side = _sphere_toi(rel_perp, d_perp, r)
         along = (rel @ e) + np.where(np.isfinite(side), side, 0.0) * (dx @ e)
         return np.minimum(t, np.where(np.isfinite(side) & (along >= 0) & (along <= length), side, np.inf))
+
+    def primitive_distance(self, xp):
+        """d = dist([a, b], primitive) - r (:func:`~latentsim.physics.primitives.core_distance`, the core the axis)."""
+        axis = torch.as_tensor((self.a, self.b), dtype=xp.dtype, device=xp.device)
+        return core_distance(axis, xp) - float(self.radius)
 
 
 class ContactBarrier(EnergyTerm):
