@@ -144,6 +144,21 @@ def test_gradients_match_finite_differences_on_random_geometry():
         assert torch.autograd.gradcheck(core_distance, (core, prim), eps=1e-7, atol=1e-7, rtol=1e-6)
 
 
+
+@pytest.mark.parametrize("core, prim, step", [
+    (((0.3, 1e-9, 0.5),), TRI, (0.0, -2e-9, 0.0)),  # point-triangle: the face region into edge t0 t1's
+    (((1.0 - 1e-9, -1.0, 0.3), (1.0 - 1e-9, 1.0, 0.4)), ((0.0, 0.0, 0.0), (1.0, 0.0, 0.0)), (2e-9, 0.0, 0.0)),  # edge-edge: insides to an end
+])  # fmt: skip
+def test_gradient_is_continuous_across_a_region_boundary(core, prim, step):
+    """C1: the gradient just before and just after the boundary agree to the step's order."""
+    core, prim = T(core), T(prim)
+    grads = []
+    for shift in (0.0, 1.0):
+        c = (core + shift * T(step)).requires_grad_()
+        p = prim.clone().requires_grad_()
+        grads.append(torch.cat([g.reshape(-1) for g in torch.autograd.grad(core_distance(c, p), (c, p))]))
+    assert torch.allclose(grads[0], grads[1], rtol=0, atol=1e-7)
+
 # -- brute force: the minimum over a dense sampling of the primitive ----------------------------------------
 def _triangle_grid(tri: torch.Tensor, n: int) -> torch.Tensor:
     """The points of the barycentric grid of spacing 1/n, (T, 3, 3) -> (T, (n+1)(n+2)/2, 3)."""

@@ -46,7 +46,6 @@ from __future__ import annotations
 import math
 from typing import Callable
 
-import numpy as np
 import torch
 
 __all__ = ["closest_on_segment", "point_segment_distance", "point_triangle_distance", "segment_segment_distance",
@@ -57,10 +56,12 @@ PARALLEL = 1e-12
 
 
 def _dot(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """u . v over the last axis, (..., 3) -> (...)."""
     return (u * v).sum(-1)
 
 
 def _norm(v: torch.Tensor) -> torch.Tensor:
+    """|v| over the last axis, (..., 3) -> (...)."""
     return torch.linalg.vector_norm(v, dim=-1)
 
 
@@ -180,6 +181,7 @@ def segment_triangle_distance(seg: torch.Tensor, tri: torch.Tensor) -> torch.Ten
 
 
 def _point_point(p: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """d = |p - x|, p and x (..., 1, 3) -> (...)."""
     return _norm(p[..., 0, :] - x[..., 0, :])
 
 
@@ -234,7 +236,8 @@ def primitive_toi(x, dx, distance: Callable[[torch.Tensor], torch.Tensor], safet
 
     Parameters
     ----------
-    x, dx : (..., k, 3) the primitives' vertices at the start and their displacements over the step.
+    x, dx : (..., k, 3) the primitives' vertices at the start and their displacements over the step (tensors or
+        arrays; computed in float64, without gradients).
     distance : (N, k, 3) -> (N,), the primitives' signed distances from the collider (e.g. a collider's
         ``primitive_distance``).
     safety : the fraction of the starting distance that counts as impact, in [0, 1); rtol : see above.
@@ -244,7 +247,7 @@ def primitive_toi(x, dx, distance: Callable[[torch.Tensor], torch.Tensor], safet
     (...) float64: t in (0, 1) where the target is reached, inf where it is not within the step, 0 where the
     primitive starts on or inside the collider.
     """
-    x, dx = (torch.as_tensor(np.asarray(v, dtype=float) if not torch.is_tensor(v) else v, dtype=torch.float64) for v in (x, dx))
+    x, dx = (torch.as_tensor(v, dtype=torch.float64) for v in (x, dx))
     shape, k = x.shape[:-2], x.shape[-2]
     x, dx = x.reshape(-1, k, 3), torch.broadcast_to(dx, shape + (k, 3)).reshape(-1, k, 3)
     with torch.no_grad():
