@@ -115,3 +115,40 @@ def test_nearest_neighbour_order_visits_every_sample_once_along_a_chain_of_neigh
     assert sorted(order) == list(range(len(z)))
     assert list(order) == [2, 1, 4, 3, 0]  # 0.5 nearest the origin, then -1, -2.5, then back up to 2 and 3
     assert len(nearest_neighbour_order(np.zeros((0, 3)))) == 0
+
+
+def test_before_after_sets_learned_methods_side_by_side_and_flags_a_median_outside_the_old_range(tmp_path, capsys):
+    import pandas as pd
+
+    from latentsim.io import write_csv
+
+    mod = load("before_after")
+    cols = ["scene", "method", "seeds", "mean_error", "mean_error_min", "mean_error_max", "seeds_stable", "test_survived", "stress_survived"]
+
+    def run(name, cloth_error, cloth_stable, rods_error):
+        folder = tmp_path / name
+        folder.mkdir()
+        glance = pd.DataFrame([
+            ["cloth", "supervised_5x256", 5, cloth_error, 0.004, 0.010, f"{cloth_stable}/5", f"{cloth_stable}/5", "30/40"],
+            ["cloth", "full_space", 1, 0.0, 0.0, 0.0, "1/1", "1/1", None],
+            ["cloth", "pca_reduced", 1, 0.02, 0.02, 0.02, "1/1", "1/1", None],
+            ["rods", "self_supervised", 3, rods_error, 0.001, 0.003, "3/3", "3/3", None],
+        ], columns=cols)  # fmt: skip
+        write_csv(glance, folder / "glance.csv")
+        write_csv(pd.DataFrame({"scene": ["cloth", "rods"], "method": ["supervised_5x256", "self_supervised"],
+                                "test_diverged": [f"{5 - cloth_stable}/5", "0/3"]}), folder / "divergence.csv")  # fmt: skip
+        return folder
+
+    before = run("before", 0.007, 4, 0.002)
+    same = run("same", 0.009, 4, 0.0015)
+    table = mod.before_after(before, same)
+    assert list(table["method"]) == ["supervised_5x256", "self_supervised"]  # the seedless baselines left out
+    assert list(table["inside"]) == ["yes", "yes"]
+    row = table.iloc[0]
+    assert row["mean error before"] == "0.007 (0.004 to 0.01)" and row["diverged"] == "1/5 / 1/5" and row["stress survived"] == "30/40 / 30/40"
+    assert table.iloc[1]["stress survived"] == "- / -"
+    worse = run("worse", 0.012, 2, 0.002)
+    assert mod.main([str(before), str(worse)]) == 1
+    out = capsys.readouterr().out
+    assert "| no " in out and "1 of 2 rows with the new median outside the old range" in out
+    assert mod.main([str(before), str(same), "--scenes", "rods"]) == 0
