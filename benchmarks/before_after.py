@@ -4,7 +4,8 @@
 
 A change to training that is not exact to the bit (a saving that approximates, a rule that stops early) is
 accepted where its results stay inside the seeds' own spread.  From each run's ``glance.csv`` and
-``divergence.csv`` (the summary's tables), one row per scene and learned method that both runs hold: the
+``divergence.csv`` (the summary's tables; where a run has no summary, as a run of some scenes' targets,
+from each ``<scene>/metrics.csv`` and ``stress.csv`` by the summary's own functions), one row per scene and learned method that both runs hold: the
 median mean error over seeds with its range over the stable seeds, before and after; the seeds whose every
 test sequence survived; the test rollouts and stress conditions survived (``k/N``); the seeds in which a
 test sequence diverged (each such cell "before / after"); and ``inside``: whether the new median lies in the old range (``no`` where it does
@@ -24,6 +25,7 @@ import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 from latentsim.io import read_csv  # noqa: E402 (the checked reading of the pipeline's tables)
+from latentsim.report.tables import divergence_table, glance_table  # noqa: E402
 
 KEYS = ["scene", "method"]
 SEEDLESS = {"full_space", "newton_1it"}  # and every *_reduced baseline
@@ -34,15 +36,26 @@ def _learned(table: pd.DataFrame) -> pd.DataFrame:
     return table[keep]
 
 
+def _tables(folder: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """A run's glance and divergence tables: the summary's, or made from its scenes' tables as the summary does."""
+    if (folder / "glance.csv").exists():
+        divergence = folder / "divergence.csv"
+        return read_csv(folder / "glance.csv"), read_csv(divergence) if divergence.exists() else pd.DataFrame(columns=KEYS)
+    metrics = [read_csv(p) for p in sorted(folder.glob("*/metrics.csv"))]
+    if not metrics:
+        raise SystemExit(f"{folder}: neither glance.csv nor any <scene>/metrics.csv")
+    stress = [read_csv(p) for p in sorted(folder.glob("*/stress.csv"))]
+    df, st = pd.concat(metrics, ignore_index=True), pd.concat(stress, ignore_index=True) if stress else pd.DataFrame()
+    return glance_table(df, st), divergence_table(df, st)
+
+
 def _run(folder: Path) -> pd.DataFrame:
     """(scene, method) -> the glance's error, survival and stress columns, and the divergence count."""
-    glance = _learned(read_csv(folder / "glance.csv"))
+    glance, divergence = _tables(folder)
     cols = KEYS + ["seeds", "mean_error", "mean_error_min", "mean_error_max", "seeds_stable", "test_survived", "stress_survived"]
-    out = glance[cols]
-    divergence = folder / "divergence.csv"
-    if divergence.exists():
-        div = _learned(read_csv(divergence))[KEYS + ["test_diverged"]]
-        out = out.merge(div, on=KEYS, how="left")
+    out = _learned(glance)[cols]
+    if "test_diverged" in divergence.columns:
+        out = out.merge(_learned(divergence)[KEYS + ["test_diverged"]], on=KEYS, how="left")
     return out
 
 
