@@ -269,6 +269,9 @@ def check_training_features(settings: dict, key, conditioned: bool = False, rigi
         raise ConfigError(f"{key('integrator')}: origin_input is not for a conditioned integrator (its own rollouts step the program at other time steps)")
     if own > 0 and mode != "self_supervised":
         raise ConfigError(f"{key('integrator')}: own_rollouts_every needs a self-supervised training")
+    if settings["plateau_stop"] is not None and (mode != "supervised" or conditioned):
+        raise ConfigError(f"{key('integrator.plateau_stop')} is for a supervised training only (mode {mode}): an energy loss "
+                          "flattens while the test error still falls")  # fmt: skip
     if speeds is None:
         return
     what = key("integrator.own_rollouts_speeds")
@@ -345,6 +348,20 @@ def _check_variants(config: dict) -> None:
         method = scene.get("sweep", {}).get("method", "self_supervised")
         if method != "self_supervised" and method not in scene.get("variants", []):
             raise ConfigError(f"config key 'scenes.{name}.sweep.method': {method!r} is not one of the scene's methods: {['self_supervised', *scene.get('variants', [])]}")
+        for method in scene_methods(config, name):
+            check_training_features(integrator_settings(config, name, method), _method_key(name, method))
+
+
+def _method_key(scene: str, method: str):
+    """Names an integrator setting of a scene's method in messages: the scene's own integrator block,
+    or the variant's block in ``integrator_variants``."""
+
+    def key(k: str) -> str:
+        if method == "self_supervised" or not k.startswith("integrator"):
+            return f"config key 'scenes.{scene}.{k}'"
+        return f"config key 'integrator_variants.{method}{k[len('integrator'):]}' (scene {scene})"
+
+    return key
 
 
 def _check_sequences(config: dict) -> None:

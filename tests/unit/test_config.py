@@ -246,3 +246,24 @@ def test_material_names_come_from_the_registry(tiny, monkeypatch):
         validate_config(bad)
     monkeypatch.setitem(MATERIALS, "springy", dict(MATERIALS["stvk"]))
     validate_config(copy.deepcopy(bad))
+
+
+def test_a_plateau_stop_on_an_energy_loss_is_refused_on_load_naming_its_block(tiny):
+    """The plateau rule is for the supervised baselines: on a variant of the energy loss, or on a scene's
+    own (self-supervised) integrator, the config is refused before any job, naming where it is set."""
+    rule = {"window": 50, "tolerance": 0.01}
+    ok = copy.deepcopy(tiny)
+    ok["integrator_variants"]["supervised"]["plateau_stop"] = rule
+    assert validate_config(ok)["integrator_variants"]["supervised"]["plateau_stop"] == rule
+    bad = copy.deepcopy(tiny)
+    bad["integrator_variants"]["small"]["plateau_stop"] = rule
+    with pytest.raises(ConfigError, match=r"integrator_variants\.small\.plateau_stop' \(scene tiny_rods\) is for a supervised training only"):
+        validate_config(bad)
+    own = copy.deepcopy(tiny)
+    own["scenes"]["tiny_cloth"]["integrator"]["plateau_stop"] = rule
+    with pytest.raises(ConfigError, match=r"scenes\.tiny_cloth\.integrator\.plateau_stop' is for a supervised training only"):
+        validate_config(own)
+    half = copy.deepcopy(tiny)
+    half["integrator_variants"]["supervised"]["plateau_stop"] = {"window": 50}
+    with pytest.raises(ConfigError, match=r"plateau_stop.*tolerance"):
+        validate_config(half)

@@ -181,3 +181,40 @@ def test_own_rollouts_at_speeds_refuse_what_they_cannot_scale(chain_setup):
     ]:
         with pytest.raises(ValueError, match=rf"scene x: integrator.own_rollouts_speeds.*{match}"):
             training_features(with_defaults("integrator", cfg, "test"), sq, coords, ch.pot.dt, cond, "scene x")
+
+
+def test_the_plateau_rule_compares_the_least_loss_of_the_last_window_with_the_least_before():
+    from latentsim.latent.base import PlateauStop
+
+    rule = PlateauStop(window=3, tolerance=0.1)
+    assert PlateauStop.of(None) is None and PlateauStop.of({"window": 3, "tolerance": 0.1}).window == 3
+    assert not rule.reached([5.0, 4.0, 3.0, 2.9, 2.8])  # fewer than two windows
+    assert not rule.reached([5.0, 4.0, 3.0, 2.6, 2.9, 2.9])  # 2.6 is more than 10% below 3.0
+    assert rule.reached([5.0, 4.0, 3.0, 2.8, 2.9, 2.9])  # 2.8 is not
+    assert rule.reached([5.0, 4.0, 3.0, 3.5, 3.1, 3.2])  # no fall at all
+    assert not PlateauStop(3, 0.0).reached([5.0, 4.0, 3.0, 3.5, 3.1, 2.99])  # any fall counts at tolerance 0
+
+
+def test_a_supervised_training_ends_at_its_plateau_and_a_resumed_one_at_the_same_epoch(chain_setup, tmp_path):
+    """With a plateau rule the supervised training runs fewer epochs than asked, the last window
+    without progress; stopped and resumed from a checkpoint, it ends at the same epoch with the same
+    weights; the rule is refused for the energy loss."""
+    from latentsim.config import ConfigError
+    from latentsim.latent.base import PlateauStop
+
+    ch, seqs, coords, ae = chain_setup
+    cfg = dict(mode="supervised", widths=[16], epochs=300, lr=3e-3, batch_size=40, noise_scale=0.0, plateau_stop={"window": 10, "tolerance": 0.2})
+    full, hf = fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=3)
+    n = len(hf["loss"])
+    rule = PlateauStop(10, 0.2)
+    assert 20 <= n < 300 and rule.reached(hf["loss"]) and not rule.reached(hf["loss"][:-1])
+    # the stopped training is the first n epochs of the one that runs them all
+    _, h_all = fit_integrator(ae, coords, ch.pot, seqs, {**cfg, "plateau_stop": None, "epochs": n + 5}, seed=3)
+    assert h_all["loss"][:n] == hf["loss"] and len(h_all["loss"]) == n + 5
+    path = tmp_path / "ckpt.pt"
+    fit_integrator(ae, coords, ch.pot, seqs, {**cfg, "epochs": n - 3}, seed=3, checkpoint_path=path, checkpoint_every=1)
+    resumed, hr = fit_integrator(ae, coords, ch.pot, seqs, cfg, seed=3, checkpoint_path=path, checkpoint_every=1)
+    assert hr["loss"] == hf["loss"]
+    assert all(torch.equal(full.state_dict()[k], resumed.state_dict()[k]) for k in full.state_dict())
+    with pytest.raises(ConfigError, match="plateau_stop is for a supervised training only"):
+        fit_integrator(ae, coords, ch.pot, seqs, {**cfg, "mode": "self_supervised"}, seed=3)

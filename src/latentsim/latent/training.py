@@ -28,6 +28,9 @@ to).  The features beyond the paper are pieces it consumes (:mod:`latentsim.late
   unconditioned integrator also rolls each moving training sequence out once more under its
   program at a speed drawn from that range: states of faster or slower motions than the data's.
   The health rule and the loss history follow the data's triplets alone.
+- Plateau stop (``plateau_stop``; supervised mode only, :class:`~latentsim.latent.base.PlateauStop`): the
+  training ends before an epoch once the least loss of the last ``window`` epochs is not ``tolerance``
+  (relative) below the least before them; the rest of the epochs are not run.
 - Origin input (``origin_input``): each p_t ends with the frame's mean prescribed position
   (:func:`~latentsim.latent.integrator.boundary_inputs`; needs prescribed vertices, not with
   ``conditioning``).
@@ -59,7 +62,7 @@ from tqdm import tqdm
 
 from latentsim.config import with_defaults
 from latentsim.latent.autoencoder import Autoencoder
-from latentsim.latent.base import LossHealth, TrainingDiverged, minibatches, potential_on, resolve_device
+from latentsim.latent.base import LossHealth, PlateauStop, TrainingDiverged, minibatches, potential_on, resolve_device
 from latentsim.latent.batch import Triplets
 from latentsim.latent.conditioning import Conditioning
 from latentsim.latent.coordinates import RelativeCoordinates
@@ -97,6 +100,7 @@ class _Training:
     Attributes
     ----------
     integ, opt, gen, health : the integrator, its Adam, the generator of every draw and the health rule.
+    plateau : the rule that ends a supervised training whose loss stopped falling, or None.
     ae, coords, pot, cfg : the frozen autoencoder, its coordinates, the loss's potential and the settings.
     features : the pieces of the features beyond the paper (:class:`~latentsim.latent.features.TrainingFeatures`).
     centre : the training latents' centre c.
@@ -112,6 +116,27 @@ class _Training:
     cfg: dict
     features: TrainingFeatures
     centre: torch.Tensor
+    plateau: PlateauStop | None = None
+
+
+def _plateau_reached(run: _Training, losses, label: str) -> bool:
+    """Whether the training ends here by its plateau rule (logged), before training another epoch."""
+    if run.plateau is None or not run.plateau.reached(losses):
+        return False
+    p = run.plateau
+    log.info("integrator%s: loss plateau after %d epochs (least loss of the last %d not %g below the least before): stopped",
+                f" ({label})" if label else "", len(losses), p.window, p.tolerance)  # fmt: skip
+    return True
+
+
+def _own_rows(run: _Training, epoch: int, data, radius: float, own, history: dict):
+    """The rolled-out rows epoch ``epoch`` trains on beside the data's: fresh ones where a rollout is
+    due (their count appended to ``history["own_triplets"]``), else ``own``, the last ones (or None)."""
+    fresh = run.features.rollouts(epoch, run.integ, data, run.centre, 2.0 * radius, run.gen)
+    if fresh is None:
+        return own
+    history.setdefault("own_triplets", []).append(len(fresh))
+    return fresh
 
 
 def fit_integrator(ae: Autoencoder, coords: RelativeCoordinates, potential, sequences: Sequence[dict], config: dict | None = None, seed: int = 0,
@@ -152,10 +177,9 @@ def fit_integrator(ae: Autoencoder, coords: RelativeCoordinates, potential, sequ
     try:
         for epoch in bar:
             _set_learning_rate(run.opt, cfg, epoch, epochs)
-            fresh = run.features.rollouts(epoch, run.integ, data, run.centre, 2.0 * radius, run.gen)
-            if fresh is not None:
-                own = fresh
-                history.setdefault("own_triplets", []).append(len(own))
+            if _plateau_reached(run, history["loss"], label):
+                break
+            own = _own_rows(run, epoch, data, radius, own, history)
             loss, mse, distance = _integrator_epoch(run, data if own is None else data.cat(own), epoch, None if own is None else len(data))
             run.health.check(epoch, loss)
             _check_latent_range(epoch, distance, radius, float(cfg["latent_range_factor"]))
@@ -190,7 +214,8 @@ def _new_training(ae: Autoencoder, coords: RelativeCoordinates, potential, seque
     health = LossHealth(cfg["divergence_factor"], cfg["max_loss"], key="integrator")
     centre, radius = _latent_range(data.z)
     history: dict[str, Any] = {"loss": [], "latent_mse": [], "latent_distance": [], "start_epoch": 0, "n_triplets": len(data), "latent_radius": radius}
-    return _Training(integ, opt, gen, health, ae_f, coords, pot, cfg, features, centre), data, radius, history
+    plateau = PlateauStop.of(cfg["plateau_stop"])
+    return _Training(integ, opt, gen, health, ae_f, coords, pot, cfg, features, centre, plateau), data, radius, history
 
 
 def _latent_range(z: torch.Tensor) -> tuple[torch.Tensor, float]:
