@@ -152,3 +152,23 @@ def test_before_after_sets_learned_methods_side_by_side_and_flags_a_median_outsi
     out = capsys.readouterr().out
     assert "| no " in out and "1 of 2 rows with the new median outside the old range" in out
     assert mod.main([str(before), str(same), "--scenes", "rods"]) == 0
+
+
+def test_plateau_rule_finds_where_the_rule_ends_each_supervised_history(tmp_path, capsys):
+    import h5py
+
+    mod = load("plateau_rule")
+    flat_from_40 = [1.0 / (1 + e) for e in range(40)] + [0.0251] * 60  # falls for 40 epochs, then flat
+    falling = [1.0 / (1 + e) for e in range(100)]  # falls by more than 7% a window to the end
+    for method, seed, losses in (("supervised_5x256", 0, flat_from_40), ("supervised_5x256", 1, falling), ("self_supervised", 0, flat_from_40)):
+        path = tmp_path / "integrator" / "cloth" / method / f"seed{seed}" / "history.h5"
+        path.parent.mkdir(parents=True)
+        with h5py.File(path, "w") as f:
+            f["loss"] = losses
+    table = mod.plateau_table(tmp_path, window=10, tolerance=0.07)
+    assert list(table["seed"]) == [0, 1] and set(table["method"]) == {"supervised_5x256"}  # the energy loss left out
+    # flat from epoch 40: after 48 epochs the least of the last 10 (1/40) is first not 7% below the least before (1/38)
+    assert list(table["stop"]) == [48, 100] and list(table["saved"]) == [0.52, 0.0]
+    assert table["stop / last"].iloc[0] == 1.0
+    assert mod.main([str(tmp_path), "--window", "10", "--tolerance", "0.07"]) == 0
+    assert "26% of the epochs saved on average" in capsys.readouterr().out
