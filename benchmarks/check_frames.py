@@ -3,7 +3,7 @@ solver: the incremental potential is rebuilt from each trajectories.h5 (its mode
 gradient recomputed at every frame by autograd of the PyTorch energies (not the solver's compiled kernels), and
 the largest free-DoF residual compared with the solver's tolerance (a scene with colliders: the barrier's
 gradient included).  Tet scenes also report the frames that end with an inverted tet; scenes with colliders the
-nearest approach of any vertex to one over every frame (negative: inside).
+nearest approach of any vertex, edge or triangle to one over every frame (negative: inside).
 
     python benchmarks/check_frames.py [results/sim]
 
@@ -43,7 +43,7 @@ def check(path: Path) -> dict:
                 worst = max(worst, float(g[free].norm()) / tol)
             frames += len(X) - 1
             if pot.contact is not None:
-                nearest = min(nearest, float(pot.contact.distances(X, XD).min()))
+                nearest = min(nearest, float(pot.contact.clearance(X, XD).min()))
             if "inverted_tets" in grp:
                 inverted += int((grp["inverted_tets"][1:] > 0).sum())
     return dict(law=law, frames=frames, worst=worst, inverted=inverted, nearest=nearest)

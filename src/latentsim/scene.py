@@ -27,6 +27,7 @@ import json
 import numpy as np
 import torch
 
+from latentsim.mesh.surface import surface_of
 from latentsim.physics import rods, shells, tets
 from latentsim.physics.materials import MATERIALS, MODEL_STENCILS, materials_of
 from latentsim.physics.contact import Capsule, ContactBarrier, HalfSpace, Sphere, posed_colliders
@@ -245,8 +246,8 @@ def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity
     g = torch.as_tensor(np.asarray(gravity, dtype=np.float64))
     barrier = None
     if contact and contact.get("colliders"):
-        c = contact_settings(contact, arrays["rest_positions"], elastic.masses.numpy(), g.numpy())
-        barrier = contact_barrier(c, elastic.n_vertices, arrays["rest_positions"], arrays.get("dirichlet", ()), dt)
+        c = contact_settings(contact, arrays["rest_positions"], elastic.masses.numpy(), g.numpy(), own_thickness(model, material))
+        barrier = contact_barrier(c, elastic.n_vertices, arrays["rest_positions"], arrays.get("dirichlet", ()), dt, surface_primitives(model, arrays))
     return IncrementalPotential(
         terms=elastic.terms,
         masses=elastic.masses,
@@ -271,18 +272,42 @@ def collider(q: dict):
     return cls(*(q[k] for k in keys))
 
 
-def contact_barrier(contact: dict, n_vertices: int, rest_positions, dirichlet, dt: float) -> ContactBarrier:
-    """The barrier of a resolved ``contact`` block (:func:`contact_settings`): its colliders, those with
+def own_thickness(model: str, material: dict) -> float:
+    """How far a scene's surface reaches beyond its vertices, where ``contact.thickness`` is unset: half a
+    shell's ``material.thickness``, a strand's ``material.radius``, 0 for a solid (its vertices are its surface)."""
+    if model == "shell":
+        return 0.5 * float(material["thickness"])
+    if model == "rods":
+        return float(material["radius"])
+    return 0.0
+
+
+def surface_primitives(model: str, arrays: dict):
+    """The primitives of a model's surface that contact holds out of a curved collider: a strand's edges (P, 2), a
+    shell's triangles, a solid's boundary triangles (its ``surface``, or those of its tets) (P, 3)."""
+    if model == "rods":
+        return np.asarray(arrays["edges"], dtype=np.int64)
+    if model == "shell":
+        return np.asarray(arrays["triangles"], dtype=np.int64)
+    if "surface" in arrays:
+        return np.asarray(arrays["surface"], dtype=np.int64)
+    return surface_of(np.asarray(arrays["tets"], dtype=np.int64))
+
+
+def contact_barrier(contact: dict, n_vertices: int, rest_positions, dirichlet, dt: float, primitives=None) -> ContactBarrier:
+    """The barrier of a resolved ``contact`` block (:func:`contact_settings`): its colliders, thickened by its
+    ``thickness`` (absent: 0; :meth:`~latentsim.physics.contact.Collider.thickened`), those with
     ``attached: true`` moving rigidly with the prescribed vertices ``dirichlet`` (indices into
-    ``rest_positions``), and its friction (static below a slip of ``friction_velocity`` times the time step
-    ``dt``)."""
+    ``rest_positions``), its friction (static below a slip of ``friction_velocity`` times the time step
+    ``dt``), and the surface's ``primitives`` (:func:`surface_primitives`; None: the vertices alone)."""
     attached = [bool(q.get("attached", False)) for q in contact["colliders"]]
     rest_D = np.asarray(rest_positions, dtype=float)[np.asarray(dirichlet, dtype=np.int64)] if any(attached) else None
     mu = float(contact.get("friction", 0.0))
     slip = float(contact.get("friction_velocity", FRICTION_VELOCITY)) * float(dt) if mu > 0 else None
     try:
-        return ContactBarrier(n_vertices, [collider(q) for q in contact["colliders"]], contact["d_hat"], contact["kappa"],
-                              attached=attached, rest_dirichlet=rest_D, friction=mu, slip=slip)  # fmt: skip
+        shapes = [collider(q).thickened(float(contact.get("thickness", 0.0))) for q in contact["colliders"]]
+        return ContactBarrier(n_vertices, shapes, contact["d_hat"], contact["kappa"], attached=attached, rest_dirichlet=rest_D,
+                              friction=mu, slip=slip, primitives=primitives)  # fmt: skip
     except ValueError as e:
         raise ValueError(f"contact.colliders: {e}") from None
 
@@ -298,15 +323,20 @@ def posed_collider_entries(entries, rest_dirichlet, targets) -> list[dict]:
     return [{**q, **{k: list(getattr(m, k)) for k in m.points + m.directions}} if a else q for q, m, a in zip(entries, moved, attached)]
 
 
-def contact_settings(contact: dict, rest_positions, masses, gravity) -> dict:
+def contact_settings(contact: dict, rest_positions, masses, gravity, own: float = 0.0) -> dict:
     """A scene's ``contact`` block with its defaults resolved: ``d_hat`` (null: 1e-3 of the rest
     bounding-box diagonal, IPC's default) and ``kappa`` (null: 100 m_max |g| / d_hat, so that the
     barrier holds a vertex pressed with 119 times the heaviest vertex's weight at d_hat / 2); with
-    ``friction``, its ``friction_velocity`` (unset: :data:`FRICTION_VELOCITY`)."""
+    ``friction``, its ``friction_velocity`` (unset: :data:`FRICTION_VELOCITY`); ``thickness`` (null: ``own``,
+    the scene's :func:`own_thickness`), recorded where it or ``own`` is not 0 (a solid's block resolves as it
+    did before thickness existed)."""
     rest = np.asarray(rest_positions, dtype=float)
     d_hat = contact.get("d_hat") or 1e-3 * float(np.linalg.norm(rest.max(0) - rest.min(0)))
     kappa = contact.get("kappa") or 100.0 * float(np.max(masses)) * max(float(np.linalg.norm(gravity)), 1.0) / d_hat
     out = {"colliders": list(contact["colliders"]), "d_hat": float(d_hat), "kappa": float(kappa)}
+    thickness = own if contact.get("thickness") is None else float(contact["thickness"])
+    if thickness or own:
+        out["thickness"] = float(thickness)
     if contact.get("friction"):  # (a frictionless block resolves as it did before friction existed)
         out.update(friction=float(contact["friction"]), friction_velocity=float(contact.get("friction_velocity") or FRICTION_VELOCITY))
     return out
@@ -326,7 +356,9 @@ def contact_from_artefact(f) -> ContactBarrier | None:
     if CONTACT_ATTR not in f.attrs:
         return None
     c = json.loads(str(f.attrs[CONTACT_ATTR]))
-    return contact_barrier(c, len(f["rest_positions"]), f["rest_positions"][()], f["dirichlet"][()] if "dirichlet" in f else (), float(f.attrs["dt"]))
+    arrays = {k: f[k][()] for k in ELEMENT_KEYS + ("surface",) if k in f}
+    return contact_barrier(c, len(f["rest_positions"]), f["rest_positions"][()], f["dirichlet"][()] if "dirichlet" in f else (), float(f.attrs["dt"]),
+                           surface_primitives(str(f.attrs["model"]), arrays))  # fmt: skip
 
 
 def potential_from_artefact(f, w_bc: float = 1e5, free_only: bool = False) -> IncrementalPotential:

@@ -39,17 +39,27 @@ def test_penetrations_count_the_vertices_inside_or_on_each_collider():
 
 @pytest.mark.parametrize("attached", [False, True])
 def test_a_collider_the_rest_mesh_starts_inside_is_named_before_any_frame(tmp_path, attached):
-    """A ball about the cloth's centre holds its four middle vertices (2.8 cm from the centre, inside 5 cm); the
+    """A ball about the cloth's centre holds its four middle vertices (2.8 cm from the centre, inside 5 cm) and the
+    16 triangles about them (the deepest, through the centre, 5 cm + the cloth's half thickness 0.5 mm inside); the
     error names it by its index and type and counts them, static or attached to the held corner."""
     mesh_h5, cfg = _cloth(tmp_path, [29, 34, 35])
     ball = {"type": "sphere", "centre": [0.0, 0.0, 0.0], "radius": 0.05, "attached": attached}
     cfg["contact"] = {"colliders": [FLOOR, ball]}
-    with pytest.raises(SimulationError, match=r"scene 'cloth': initial penetration: 4 of the rest mesh's 36 vertices lie inside or on collider 1 "
-                                              r"\(sphere\) of contact\.colliders \(config key 'scenes\.cloth\.contact\.colliders\.1'; deepest 0\.0217 m inside\)"):  # fmt: skip
+    with pytest.raises(SimulationError, match=r"scene 'cloth': initial penetration: 20 of the rest mesh's vertices, edges or triangles lie inside or "
+                                              r"on collider 1 \(sphere\) of contact\.colliders \(config key 'scenes\.cloth\.contact\.colliders\.1'; "
+                                              r"deepest 0\.0505 m inside\)"):  # fmt: skip
         simulate_scene("cloth", mesh_h5, cfg, tmp_path / "trajectories.h5")
     assert not (tmp_path / "trajectories.h5").exists()
-    ball["radius"] = 0.02  # between the middle vertices: the cloth starts outside and runs
+    # between the middle vertices: no vertex is in it, the middle cell's two triangles are, and the four that share their edges
+    ball["radius"] = 0.02  # (2 cm from the centre, within 2 cm + the half thickness)
+    with pytest.raises(SimulationError, match=r"initial penetration: 6 of the rest mesh's .* deepest 0\.0205 m inside"):
+        simulate_scene("cloth", mesh_h5, cfg, tmp_path / "trajectories.h5")
+    ball["centre"] = [0.0, 0.0, -0.0203]  # 0.3 mm under the mid-surface, within the half thickness: still inside
+    with pytest.raises(SimulationError, match=r"deepest 0\.0002 m inside"):
+        simulate_scene("cloth", mesh_h5, cfg, tmp_path / "trajectories.h5")
+    cfg["contact"]["thickness"] = 0.0  # the mid-surface alone: outside, and it runs
     simulate_scene("cloth", mesh_h5, cfg, tmp_path / "trajectories.h5")
+    assert (tmp_path / "trajectories.h5").exists()
 
 
 def test_a_d_hat_too_large_for_the_built_mesh_stops_the_simulation(tmp_path):

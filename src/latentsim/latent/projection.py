@@ -44,7 +44,7 @@ class _Problem:
 
     def energy(self, x) -> float:
         kinetic = 0.5 * float((self.o.weights * ((x - self.x_pred) ** 2).sum(-1)).sum())
-        return kinetic + float(self.barrier.energy(torch.as_tensor(x)))
+        return kinetic + sum(float(t.energy(torch.as_tensor(x))) for t in self.barrier.terms())
 
     def stop(self, q, k) -> bool:
         o = self.o
@@ -57,6 +57,14 @@ class _Problem:
             g[near] += gb.numpy()
             Jn = J.reshape(-1, 3, J.shape[-1])[near]
             Hq += (Jn.transpose(0, 2, 1) @ Hb.numpy() @ Jn).sum(0)
+        for term in self.barrier.terms()[1:]:  # the surface's primitives within reach: their 3k x 3k blocks
+            st = term.stencils.numpy()
+            gs, Hs = term.local_gradient_hessian(term.gather(torch.as_tensor(x)), project=True)
+            on = np.flatnonzero(gs.abs().amax(-1).numpy() > 0)
+            if len(on):
+                np.add.at(g, st[on], gs.numpy()[on].reshape(len(on), -1, 3))
+                Js = J.reshape(-1, 3, J.shape[-1])[st[on]].reshape(len(on), -1, J.shape[-1])  # (P, 3k, r)
+                Hq += (Js.transpose(0, 2, 1) @ Hs.numpy()[on] @ Js).sum(0)
         self.g, self.gq, self.Hq = g, J.T @ g.reshape(-1), Hq
         self.q, self.k = q, k
         return False
@@ -116,7 +124,7 @@ class ContactProjection:
         frames that are fine away from the surface); a frame that is not finite is not.  One batched test."""
         X = torch.as_tensor(np.asarray(X, dtype=np.float64))
         finite = torch.isfinite(X).all(-1).all(-1)
-        d = self.contact.distances(torch.where(finite[:, None, None], X, 0.0), torch.as_tensor(np.asarray(XD, dtype=np.float64))).amin(-1)
+        d = self.contact.clearance(torch.where(finite[:, None, None], X, 0.0), torch.as_tensor(np.asarray(XD, dtype=np.float64)))
         return (finite & (d < self.contact.d_hat)).numpy()
 
     def needed(self, x, xD) -> bool:
@@ -139,7 +147,7 @@ class ContactProjection:
             except _Stalled:
                 q, total = problem.q, total + problem.k
             y = self.subspace.map(q, xD)
-            if float(surface.distances(torch.as_tensor(y)).min()) >= 0:
+            if float(surface.clearance(torch.as_tensor(y))) >= 0:
                 break
         return q, y, total
 
@@ -167,7 +175,7 @@ class ContactProjection:
         x = self.subspace.map(q, xD)
         if not np.isfinite(x).all():
             return z, False, 0, 0.0
-        d = float(self.contact.distances(torch.as_tensor(x)[None], torch.as_tensor(xD)[None]).min())
+        d = float(self.contact.clearance(torch.as_tensor(x)[None], torch.as_tensor(xD)[None]).min())
         if d >= self.contact.d_hat:
             return z, False, 0, 0.0
         q, _, iterations = self.project(q, x, xD)

@@ -204,7 +204,7 @@ def survive_latent(integrator, ae, coords, z0, z1, condition: Condition, dirichl
 
 def _deepest(contact, x, xD) -> float:
     """The deepest entry of frames ``x`` (T, n, 3) into the colliders posed by ``xD`` (T, m, 3) [m]; 0 when none enters."""
-    d = contact.distances(torch.as_tensor(x, dtype=torch.float64), xD).amin(-1).numpy()
+    d = contact.clearance(torch.as_tensor(x, dtype=torch.float64), xD).numpy()
     return float(np.maximum(-d, 0.0).max())
 
 

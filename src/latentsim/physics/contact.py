@@ -34,8 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from latentsim.physics.base import EnergyTerm
-from latentsim.physics.primitives import closest_on_segment, core_distance, plane_distance
+from latentsim.physics.base import EnergyTerm, project_psd
+from latentsim.physics.primitives import closest_on_segment, core_distance, distance_hessian, plane_distance, primitive_toi
 
 
 def barrier(d: torch.Tensor, d_hat: float, kappa: float, extend_below: float | None = None) -> torch.Tensor:
@@ -160,6 +160,20 @@ class Collider:
         """xp (..., k, 3), vertices (k = 1), edges (k = 2) or triangles (k = 3) -> the signed distance of each
         one's closest point from the surface (...) (:mod:`latentsim.physics.primitives`)."""
         raise NotImplementedError
+
+    def thickened(self, offset: float) -> "Collider":
+        """The shape grown by ``offset`` >= 0 along its outward normal (each signed distance less by ``offset``):
+        a collider as a surface of that half-thickness sees it (a shell's half thickness, a strand's radius)."""
+        if not offset > 0:
+            return self
+        if isinstance(self, HalfSpace):
+            return dataclasses.replace(self, point=tuple(np.asarray(self.point) + float(offset) * np.asarray(self.normal)))
+        return dataclasses.replace(self, radius=float(self.radius) + float(offset))
+
+    @property
+    def curved(self) -> bool:
+        """Whether a surface's edge or triangle can come nearer than its vertices (not against a plane)."""
+        return not isinstance(self, HalfSpace)
 
 
 @dataclass(frozen=True)
@@ -324,6 +338,9 @@ class ContactBarrier(EnergyTerm):
     attached collider), to :meth:`energy`, or :meth:`at` for a solver's step.
     anchors : the lagged friction of one step, per collider (y_prev, lambda, tangent projector), as
         :meth:`at` computes them; None (the default) for a barrier of no particular step.
+    primitives : None (vertices only), or the surface's edges (P, 2) or triangles (P, 3): each is then also
+        kept out of every curved collider by a :class:`SurfaceBarrier` (:meth:`terms`), so that no point of the
+        surface comes within the barrier's reach unseen (against a half-space the vertices are the nearest points).
 
     With an attached collider the barrier depends on the frame: :meth:`energy` and :meth:`distances` take
     the frame's ``targets``, and :meth:`posed` gives the static barrier of one frame (what a solver's
@@ -333,7 +350,8 @@ class ContactBarrier(EnergyTerm):
     name = "contact_barrier"
 
     def __init__(self, n_vertices: int, colliders, d_hat: float, kappa: float, extend_below: float | None = None,
-                 attached=None, rest_dirichlet=None, friction: float = 0.0, slip: float | None = None, anchors=None):  # fmt: skip
+                 attached=None, rest_dirichlet=None, friction: float = 0.0, slip: float | None = None, anchors=None,
+                 primitives=None):  # fmt: skip
         if not (d_hat > 0 and kappa > 0):
             raise ValueError(f"contact barrier: d_hat {d_hat!r} and kappa {kappa!r} must be positive")
         if not (friction >= 0 and (friction == 0 or (slip is not None and slip > 0))):
@@ -356,6 +374,16 @@ class ContactBarrier(EnergyTerm):
             self.rest_dirichlet = rest
         self.d_hat, self.kappa, self.extend_below = float(d_hat), float(kappa), extend_below
         self.stencils = torch.arange(int(n_vertices)).reshape(-1, 1)
+        self.primitives = None if primitives is None else torch.as_tensor(np.asarray(primitives, dtype=np.int64))
+        if self.primitives is not None and (self.primitives.ndim != 2 or self.primitives.shape[1] not in (2, 3)):
+            raise ValueError(f"contact barrier: primitives of shape {tuple(self.primitives.shape)}: give edges (P, 2) or triangles (P, 3)")
+
+    def terms(self) -> list:
+        """The terms of E_total this contact adds: this barrier (the vertices, and friction), then the
+        :class:`SurfaceBarrier` of its primitives where a collider is curved."""
+        if self.primitives is None or not any(c.curved for c in self.colliders):
+            return [self]
+        return [self, SurfaceBarrier(self)]
 
     @property
     def moving(self) -> bool:
@@ -368,7 +396,7 @@ class ContactBarrier(EnergyTerm):
         (:func:`barrier`'s ``extend_below``): finite inside the colliders, for learned losses."""
         d_hat = d_hat_factor * self.d_hat
         return ContactBarrier(len(self.stencils), self.colliders, d_hat, kappa_factor * self.kappa, fraction * d_hat, self.attached,
-                              self.rest_dirichlet, self.friction, self.slip)  # fmt: skip
+                              self.rest_dirichlet, self.friction, self.slip, primitives=self.primitives)  # fmt: skip
 
     def posed(self, targets) -> "ContactBarrier":
         """The static barrier of one frame: every attached collider carried to its pose at ``targets`` (m, 3),
@@ -376,7 +404,8 @@ class ContactBarrier(EnergyTerm):
         if not self.moving:
             return self
         moved = posed_colliders(self.colliders, self.attached, self.rest_dirichlet, targets)
-        return ContactBarrier(len(self.stencils), moved, self.d_hat, self.kappa, self.extend_below, friction=self.friction, slip=self.slip)
+        return ContactBarrier(len(self.stencils), moved, self.d_hat, self.kappa, self.extend_below, friction=self.friction, slip=self.slip,
+                              primitives=self.primitives)  # fmt: skip
 
     def at(self, frame) -> "ContactBarrier":
         """The static barrier of a solver's step (:meth:`posed` at the frame's ``targets``) with its lagged
@@ -397,7 +426,7 @@ class ContactBarrier(EnergyTerm):
             anchors = [carried if a else x_prev for a in self.attached]
         anchors = [(a,) + self._lagged(col, a) for col, a in zip(step.colliders, anchors)]
         return ContactBarrier(len(self.stencils), step.colliders, self.d_hat, self.kappa, self.extend_below, friction=self.friction,
-                              slip=self.slip, anchors=anchors)  # fmt: skip
+                              slip=self.slip, anchors=anchors, primitives=self.primitives)  # fmt: skip
 
     def _lagged(self, col, y_prev: torch.Tensor):
         """lambda (...,) and the tangent projector (..., 3, 3) of collider ``col`` at the step's start y_prev."""
@@ -465,11 +494,28 @@ class ContactBarrier(EnergyTerm):
         ``targets`` as in :meth:`energy`."""
         return torch.stack(self._signed_distances(x, targets)).amin(0)
 
+    def _all_distances(self, x: torch.Tensor, targets) -> list[torch.Tensor]:
+        """Per collider, the signed distances of every vertex and then (a curved collider) of every primitive, (..., n [+ P])."""
+        out = []
+        for col, y in zip(self.colliders, self._frames(x, targets)):
+            d = col.distance(y)
+            if self.primitives is not None and col.curved:
+                d = torch.cat([d, col.primitive_distance(y[..., self.primitives, :])], -1)
+            out.append(d)
+        return out
+
+    def clearance(self, x: torch.Tensor, targets=None) -> torch.Tensor:
+        """The least signed distance of the surface from the colliders, x (..., n, 3) -> (...): over the vertices and,
+        with ``primitives``, over every edge's or triangle's closest point (negative: some point of the surface is inside).
+        ``targets`` as in :meth:`energy`."""
+        return torch.stack([d.amin(-1) for d in self._all_distances(x, targets)]).amin(0)
+
     def penetrations(self, x, targets=None) -> list[tuple[int, float]]:
-        """Per collider, how many vertices of x (n, 3) lie inside it or on its surface (signed distance <= 0,
-        where the barrier is infinite) and the smallest signed distance; ``targets`` as in :meth:`energy`."""
+        """Per collider, how many vertices (and, with ``primitives``, edges or triangles) of x (n, 3) lie inside it or
+        touch its surface (signed distance <= 0, where the barrier is infinite) and the smallest signed distance;
+        ``targets`` as in :meth:`energy`."""
         x = torch.as_tensor(np.asarray(x, dtype=float))
-        return [(int((d <= 0).sum()), float(d.min())) for d in self._signed_distances(x, targets)]
+        return [(int((d <= 0).sum()), float(d.min())) for d in self._all_distances(x, targets)]
 
     def local_gradient_hessian(self, xe: torch.Tensor, project: bool = True, hessian: bool = True):
         """Per vertex: g = b'(d) grad d and H = b''(d) grad d grad d^T + b'(d) Hess d, summed over the
@@ -518,4 +564,130 @@ class ContactBarrier(EnergyTerm):
         for col, a in zip(self.colliders, self.attached):
             start, step = (back[0], back[1] - back[0]) if a else (x, dx)
             t = min(t, float(np.min(col.time_of_impact(start, step), initial=np.inf)))
+        return t
+
+
+class SurfaceBarrier(EnergyTerm):
+    """The edges or triangles of a surface against the curved colliders of a :class:`ContactBarrier`:
+    sum_p sum_c b(d_c(p)), d_c(p) the signed distance of primitive p's closest point from collider c
+    (:meth:`Collider.primitive_distance`), one primitive per stencil.
+
+    A vertex-only barrier lets a ball or a capsule into the inside of an edge or a triangle where no vertex is
+    near it; this term holds every point of the surface out.  A primitive's distance is at most its vertices',
+    so a contact at a vertex is held by the vertex barrier and by each primitive that meets there (IPC's sum over
+    pairs counts such duplicates alike; Li et al. 2020): the barrier is stiffer there, never weaker.  Half-spaces
+    are left to the vertex barrier (against a plane the nearest point of a primitive is a vertex).  Friction
+    acts on the vertices only (:class:`ContactBarrier`).
+
+    Everything but the stencils is the contact's: its colliders (posed with the prescribed vertices when
+    attached), ``d_hat``, ``kappa``, ``extend_below``.  Only the primitives that may lie within ``d_hat`` are
+    evaluated: a distance is 1-Lipschitz, so a primitive is no nearer than its nearest vertex less its longest edge,
+    and one farther than that bound contributes exactly nothing.  The gradient is b'(d) grad d, grad d by autograd of
+    the closest-point distances (:mod:`latentsim.physics.primitives`; C1 wherever the closest pair is unique, where
+    it is the closest point's barycentric weights times the unit normal, -w_i n).  The Hessian is b''(d) grad d
+    grad d^T + b'(d) Hess d, Hess d in closed form from that gradient
+    (:func:`~latentsim.physics.primitives.distance_hessian`; autograd's, its test oracle, costs about as much as the
+    rest of a cloth's Newton iteration), eigenvalue-clamped when projected.
+    """
+
+    name = "surface_barrier"
+
+    def __init__(self, contact: ContactBarrier):
+        self.contact = contact
+        self.stencils = contact.primitives
+        self.curved = [i for i, c in enumerate(contact.colliders) if c.curved]
+        self.d_hat, self.kappa, self.extend_below = contact.d_hat, contact.kappa, contact.extend_below
+
+    def at(self, frame) -> "SurfaceBarrier":
+        """The static term of one step: the contact's colliders posed at the frame's targets."""
+        return SurfaceBarrier(self.contact.posed(frame.targets)) if self.contact.moving else self
+
+    def _distances(self, xe: torch.Tensor, colliders) -> list[torch.Tensor]:
+        """Each curved collider's signed distance of every primitive, xe (..., P, k, 3) -> [(..., P)]."""
+        return [colliders[i].primitive_distance(xe) for i in self.curved]
+
+    def local_energy(self, xe: torch.Tensor) -> torch.Tensor:
+        total = torch.zeros(xe.shape[:-2], dtype=xe.dtype, device=xe.device)
+        for d in self._distances(xe, self.contact.colliders):
+            total = total + barrier(d, self.d_hat, self.kappa, self.extend_below)
+        return total
+
+    def _within_reach(self, ye: torch.Tensor, col) -> torch.Tensor:
+        """The primitives (P,) that may come within d_hat of collider ``col`` in any state of ye (..., P, k, 3): those
+        whose nearest vertex less their longest edge is nearer (a bound below the primitive's distance)."""
+        with torch.no_grad():
+            edge = torch.linalg.vector_norm(ye - ye.roll(1, dims=-2), dim=-1).amax(-1)
+            bound = col.distance(ye).amin(-1) - edge
+            return (bound < self.d_hat).reshape(-1, bound.shape[-1]).any(0)
+
+    def energy(self, x: torch.Tensor, frame=None) -> torch.Tensor:
+        """Total energy, x (..., n, 3) -> (...); with an attached collider, at its pose of the frame's ``targets``.
+        Only the primitives within reach of a collider are evaluated (the others' energy is exactly 0)."""
+        frames = self.contact._frames(x, None if frame is None else frame.targets)
+        total = torch.zeros(x.shape[:-2], dtype=x.dtype, device=x.device)
+        for i in self.curved:
+            ye = frames[i][..., self.stencils, :]
+            near = self._within_reach(ye, self.contact.colliders[i])
+            if bool(near.any()):
+                d = self.contact.colliders[i].primitive_distance(ye[..., near, :, :])
+                total = total + barrier(d, self.d_hat, self.kappa, self.extend_below).sum(-1)
+        return total
+
+    def distances(self, x: torch.Tensor, targets=None) -> torch.Tensor:
+        """The signed distance of every primitive from its nearest curved collider, x (..., n, 3) -> (..., P)."""
+        frames = self.contact._frames(x, targets)
+        return torch.stack([self.contact.colliders[i].primitive_distance(frames[i][..., self.stencils, :]) for i in self.curved]).amin(0)
+
+    def local_gradient_hessian(self, xe: torch.Tensor, project: bool = True, hessian: bool = True):
+        """Per primitive (E, 3k) and (E, 3k, 3k) (None without ``hessian``; PSD-projected when ``project``), of the
+        primitives within reach of a collider; zero for the rest."""
+        E, k, _ = xe.shape
+        g = torch.zeros(E, 3 * k, dtype=xe.dtype, device=xe.device)
+        H = torch.zeros(E, 3 * k, 3 * k, dtype=xe.dtype, device=xe.device) if hessian else None
+        near = torch.zeros(E, dtype=torch.bool)
+        for i in self.curved:
+            near |= self._within_reach(xe, self.contact.colliders[i])
+        idx = near.nonzero()[:, 0]
+        if not len(idx):
+            return g, H
+        y = xe[idx].detach().clone().requires_grad_(True)
+        for i in self.curved:
+            with torch.enable_grad():
+                d = self.contact.colliders[i].primitive_distance(y)
+                (grad_d,) = torch.autograd.grad(d.sum(), y)  # the primitives are independent: each one's grad d
+            col, d = self.contact.colliders[i], d.detach()
+            db, d2b = barrier_derivatives(d, self.d_hat, self.kappa, self.extend_below)
+            gd = grad_d.reshape(len(idx), 3 * k)
+            g[idx] += db[:, None] * gd
+            if hessian:
+                axis = torch.as_tensor((col.a, col.b), dtype=y.dtype) if isinstance(col, Capsule) else None
+                Hd = distance_hessian(y.detach(), grad_d, d + float(col.radius), axis)
+                H[idx] += d2b[:, None, None] * gd[:, :, None] * gd[:, None, :] + db[:, None, None] * Hd
+        if hessian and project:
+            H[idx] = project_psd(H[idx])
+        return g, H
+
+    def first_impact(self, x: np.ndarray, dx: np.ndarray, frame=None) -> float:
+        """The first fraction t of the step x -> x + dx (n, 3) at which a primitive comes to a tenth of its starting
+        distance from a curved collider (:func:`~latentsim.physics.primitives.primitive_toi`, conservative: the true
+        impact is later); inf if none does within the step.  Moving colliders as :meth:`ContactBarrier.first_impact`."""
+        x, dx = np.asarray(x, dtype=float).reshape(-1, 3), np.asarray(dx, dtype=float).reshape(-1, 3)
+        c = self.contact
+        starts = [(x, dx)] * len(c.colliders)
+        if frame is not None and c.moving:
+            ends = ((x, frame.targets_prev), (x + dx, frame.targets))
+            back = [c._to_rest(torch.as_tensor(y), np.asarray(t, dtype=float)).numpy() for y, t in ends]
+            starts = [(back[0], back[1] - back[0]) if a else (x, dx) for a in c.attached]
+        st = self.stencils.numpy()
+        t = math.inf
+        for i in self.curved:
+            y, dy = starts[i]
+            ye, dye = torch.as_tensor(y[st]), torch.as_tensor(dy[st])
+            # a primitive at least lb away (its nearest vertex less its longest edge) moving at most `speed` over the
+            # step cannot close 0.9 of its distance, the advancement's target, where 0.9 lb > speed: left out
+            lb = c.colliders[i].distance(ye).amin(-1) - torch.linalg.vector_norm(ye - ye.roll(1, dims=-2), dim=-1).amax(-1)
+            can = 0.9 * lb <= torch.linalg.vector_norm(dye, dim=-1).amax(-1)
+            if bool(can.any()):
+                toi = primitive_toi(ye[can], dye[can], c.colliders[i].primitive_distance)
+                t = min(t, float(toi.min()))
         return t

@@ -113,8 +113,9 @@ class IncrementalPotential(ElasticPotential):
 
     @property
     def frame_terms(self) -> list:
-        """The terms of E_total that take the step's frame: the barrier (if any), then ``extra_terms``."""
-        return ([] if self.contact is None else [self.contact]) + list(self.extra_terms)
+        """The terms of E_total that take the step's frame: the contact's (the vertex barrier and, with a surface's
+        primitives, their barrier: ``ContactBarrier.terms``), then ``extra_terms``."""
+        return ([] if self.contact is None else self.contact.terms()) + list(self.extra_terms)
 
     def __call__(self, x, x_prev, x_prev2, targets=None, penalty=True, dt=None, stiffness=None):
         """E_total(x); ``targets`` (..., m, 3) are x*_D, penalised when ``penalty``.

@@ -49,7 +49,7 @@ from typing import Callable
 import torch
 
 __all__ = ["closest_on_segment", "point_segment_distance", "point_triangle_distance", "segment_segment_distance",
-           "segment_triangle_distance", "core_distance", "plane_distance", "primitive_toi"]  # fmt: skip
+           "segment_triangle_distance", "core_distance", "plane_distance", "primitive_toi", "distance_hessian"]  # fmt: skip
 
 #: squared sine below which two edges count as parallel, and a triangle's |n|^2 / (|e1|^2 |e2|^2) as zero area
 PARALLEL = 1e-12
@@ -272,3 +272,61 @@ def primitive_toi(x, dx, distance: Callable[[torch.Tensor], torch.Tensor], safet
             active[idx[~reached]] = True
         out[active] = t[active]
     return out.reshape(shape)
+
+
+def distance_hessian(xp: torch.Tensor, grad: torch.Tensor, rho: torch.Tensor, axis: torch.Tensor | None = None,
+                     active_tol: float = 1e-12) -> torch.Tensor:  # fmt: skip
+    """The Hessian of the distance rho = min |q - p| between a core (a point, or the segment ``axis``) and a primitive's
+    closest point p = sum_i w_i x_i, from the gradient the distance already has (its envelope, grad_i = -w_i n).
+
+    The distance is the value of an inner minimum over the closest point's barycentric weights w (and the axis'
+    parameter s, q = a + s e), f(x, u) = |q(u) - p(x, u)|; where the minimiser is unique its Hessian in x is
+    f_xx - f_xu B (B^T f_uu B)^+ B^T f_ux (the implicit function theorem on the inner minimum), B the directions of
+    u left free by the active feature (the weights above ``active_tol`` moving among themselves, s inside (0, 1)).
+    With v = q - p, n = v / |v| and P = (I - n n^T) / |v|: f_{x_i x_j} = w_i w_j P, f_{x_i w_j} = -delta_ij n +
+    w_i P x_j, f_{w_i w_j} = x_i^T P x_j, f_{x_i s} = -w_i P e, f_{w_i s} = -x_i^T P e, f_ss = e^T P e.
+
+    Parameters
+    ----------
+    xp : (N, k, 3) the primitives' vertices; grad : (N, k, 3) the distance's gradient there (autograd's of
+        :func:`core_distance`); rho : (N,) the unsigned distance (> 0); axis : None (the core a point), or (2, 3) the
+        segment's ends.  Where rho is 0 (the core touches the primitive) the Hessian is returned as 0.
+
+    Returns
+    -------
+    (N, 3k, 3k) float64.
+    """
+    N, k, _ = xp.shape
+    n = -grad.sum(1)  # the weights sum to 1
+    w = -(grad * n[:, None, :]).sum(-1)  # (N, k)
+    eye = torch.eye(3, dtype=xp.dtype, device=xp.device)
+    P = (eye - n[:, :, None] * n[:, None, :]) / torch.where(rho > 0, rho, torch.ones_like(rho))[:, None, None]
+    P = torch.where((rho > 0)[:, None, None], P, torch.zeros_like(P))  # touching: no unique closest pair, left at 0
+    f_xx = (w[:, :, None, None, None] * w[:, None, :, None, None] * P[:, None, None]).permute(0, 1, 3, 2, 4).reshape(N, 3 * k, 3 * k)
+    Px = torch.einsum("nab,njb->nja", P, xp)  # (N, k, 3): P x_j
+    f_xw = (w[:, :, None, None] * Px[:, None, :, :]).permute(0, 1, 3, 2)  # (N, k_i, 3, k_j): w_i P x_j
+    f_xw = f_xw - torch.eye(k, dtype=xp.dtype)[None, :, None, :] * n[:, None, :, None]
+    f_xw = f_xw.reshape(N, 3 * k, k)
+    f_ww = torch.einsum("nia,nja->nij", xp, Px)
+    active = w > active_tol
+    last = (active * torch.arange(1, k + 1)).argmax(-1)  # the last active weight: the others move against it
+    cols = active & (torch.arange(k)[None, :] != last[:, None])
+    B = torch.diag_embed(cols.to(xp.dtype))
+    B[torch.arange(N)[:, None], last[:, None], torch.arange(k)[None, :]] -= cols.to(xp.dtype)
+    if axis is not None:
+        a, b = axis[0], axis[1]
+        e = b - a
+        p = (w[:, :, None] * xp).sum(1)
+        s = ((p + rho[:, None] * n - a) * e).sum(-1) / (e * e).sum()
+        Pe = P @ e
+        f_xs = (-w[:, :, None] * Pe[:, None, :]).reshape(N, 3 * k, 1)
+        f_ws = -(xp * Pe[:, None, :]).sum(-1)[:, :, None]
+        f_ss = (e * Pe).sum(-1)[:, None, None]
+        f_xw = torch.cat([f_xw, f_xs], -1)
+        f_ww = torch.cat([torch.cat([f_ww, f_ws], -1), torch.cat([f_ws.transpose(1, 2), f_ss], -1)], 1)
+        free_s = ((s > active_tol) & (s < 1 - active_tol)).to(xp.dtype)
+        B = torch.cat([torch.cat([B, torch.zeros(N, k, 1, dtype=xp.dtype)], -1), torch.zeros(N, 1, k + 1, dtype=xp.dtype)], 1)
+        B[:, k, k] = free_s
+    M = B.transpose(1, 2) @ f_ww @ B
+    C = f_xw @ B
+    return f_xx - C @ torch.linalg.pinv(M) @ C.transpose(1, 2)

@@ -177,12 +177,12 @@ def pareto_front(times, errors) -> np.ndarray:
 
 def penetration(contact, positions, diag: float, diverged_frame: int, dirichlet_positions=None) -> dict:
     """How far a motion's vertices (a rollout's, or a reconstruction's) enter the scene's colliders, over the
-    frames before ``diverged_frame`` (-1: all): ``max_penetration`` (the deepest vertex of any frame / the rest bbox diagonal; 0 when none enters)
-    and ``penetrating_frames`` (frames with any vertex inside).  ``dirichlet_positions`` (T, m, 3), the
+    frames before ``diverged_frame`` (-1: all): ``max_penetration`` (the deepest point of the surface, vertex, edge or triangle, in any frame / the rest bbox
+    diagonal; 0 when none enters) and ``penetrating_frames`` (frames with any point of the surface inside).  ``dirichlet_positions`` (T, m, 3), the
     sequence's prescribed positions, place the colliders attached to them (needed with one)."""
     ok = positions[: len(positions) if diverged_frame < 0 else diverged_frame]
     if not len(ok):
         return {"max_penetration": float("nan"), "penetrating_frames": 0}
     targets = None if dirichlet_positions is None else np.asarray(dirichlet_positions)[: len(ok)]
-    d = contact.distances(torch.as_tensor(ok, dtype=torch.float64), targets).amin(-1).numpy()
+    d = contact.clearance(torch.as_tensor(ok, dtype=torch.float64), targets).numpy()
     return {"max_penetration": float(np.maximum(-d, 0.0).max() / diag), "penetrating_frames": int((d < 0).sum())}

@@ -29,8 +29,8 @@ from latentsim.config import ConfigError, check_d_hat
 from latentsim.io import atomic_h5, atomic_path, open_artefact, read_mesh_arrays, write_dataset
 from latentsim.mesh.geometry import tet_volumes
 from latentsim.report.paraview import cells_for, single_block_xdmf
-from latentsim.scene import (CONTACT_ATTR, MATERIAL_MODEL_ATTR, bc_parameters, build_potential, dirichlet_trajectory,
-                             initial_velocity, previous_positions)
+from latentsim.scene import (CONTACT_ATTR, MATERIAL_MODEL_ATTR, bc_parameters, build_potential, contact_settings, dirichlet_trajectory,
+                             initial_velocity, own_thickness, previous_positions)
 from latentsim.solve.implicit_euler import ImplicitEuler, NewtonFailed, NewtonSettings, StepInfo
 from latentsim.utils import progress_bar, working_directory
 
@@ -111,9 +111,8 @@ def simulate_scene(scene: str, mesh_h5, cfg: dict, out_h5, paraview_dir=None, pr
     contact = None  # the contact block with its defaults resolved, as the trajectories file records it
     if pot.contact is not None:
         _check_initial_penetration(scene, pot.contact, cfg["contact"]["colliders"], arrays)
-        contact = {"colliders": list(cfg["contact"]["colliders"]), "d_hat": pot.contact.d_hat, "kappa": pot.contact.kappa}
-        if pot.contact.friction > 0:
-            contact.update(friction=pot.contact.friction, friction_velocity=pot.contact.slip / float(cfg["dt"]))
+        contact = contact_settings(cfg["contact"], arrays["rest_positions"], pot.masses.numpy(), np.asarray(cfg["gravity"], dtype=float),
+                                   own_thickness(model, cfg["material"]))  # fmt: skip
         log.info("scene %s: %d collider(s), d_hat %.3g m, kappa %.3g", scene, len(pot.contact.colliders), pot.contact.d_hat, pot.contact.kappa)
     solver = ImplicitEuler(pot, NewtonSettings(**cfg["newton"]))
     rest = np.asarray(arrays["rest_positions"], dtype=np.float64)
@@ -136,10 +135,11 @@ def simulate_scene(scene: str, mesh_h5, cfg: dict, out_h5, paraview_dir=None, pr
             label, len(data["positions"]), data["frame_ms"][1:].mean(), it.mean(), {k: round(v, 3) for k, v in timings.items()},
         )
         if pot.contact is not None:
-            data["min_contact_distance"] = pot.contact.distances(torch.as_tensor(data["positions"]), data["dirichlet_positions"]).amin(-1).numpy()
+            data["min_contact_distance"] = pot.contact.clearance(torch.as_tensor(data["positions"]), data["dirichlet_positions"]).numpy()
             inside = np.flatnonzero(data["min_contact_distance"] <= 0)
             if inside.size:
-                raise SimulationError(f"{label}, frame {inside[0]}: a vertex lies inside a collider (signed distance {data['min_contact_distance'][inside[0]]:.3e} m)")
+                raise SimulationError(f"{label}, frame {inside[0]}: the surface (a vertex, edge or triangle) lies inside a collider (signed "
+                                      f"distance {data['min_contact_distance'][inside[0]]:.3e} m)")  # fmt: skip
             log.info("%s: nearest approach to a collider %.3e m (d_hat %.3e m)", label, data["min_contact_distance"].min(), pot.contact.d_hat)
         results[seq["name"]] = (seq, data)
     with atomic_h5(out_h5, config=cfg) as f:
@@ -182,7 +182,7 @@ def _check_initial_penetration(scene: str, barrier, colliders: list, arrays: dic
     for i, (count, deepest) in enumerate(barrier.penetrations(rest, rest[dirichlet] if barrier.moving else None)):
         if count:
             raise SimulationError(
-                f"scene '{scene}': initial penetration: {count} of the rest mesh's {len(rest)} vertices lie inside or on collider {i} "
+                f"scene '{scene}': initial penetration: {count} of the rest mesh's vertices, edges or triangles lie inside or on collider {i} "
                 f"({colliders[i]['type']}) of contact.colliders (config key 'scenes.{scene}.contact.colliders.{i}'; deepest "
                 f"{-deepest:.3g} m inside): move the collider or the mesh so that the rest shape starts outside every collider"
             )

@@ -1,0 +1,109 @@
+"""What contact on the whole surface costs the full space, against the vertices alone, in one process.
+
+For each named contact scene of the config: prepare its mesh, then simulate the first frames of its first sequence
+twice, with the contact the scene has now (every vertex, and a strand's edges or a shell's or solid's triangles
+against every curved collider, at the surface's thickness) and with the vertices alone at the mid-surface (the
+model before the primitives and thickness existed), alternating the two per repeat so that both see the same load.
+It prints ms per frame and Newton iterations per frame of each (medians over the repeats), the ratio, and each
+one's clearance: the least signed distance of any vertex, edge or triangle from the colliders over the frames,
+measured on the surface with thickness (negative: the surface went in).
+
+    python benchmarks/contact_cost.py [--config config/config.yaml] [--scenes cloth_sphere hair_head] [--frames 150]
+
+Run it on an otherwise idle machine, or say what ran beside it; the ratio of one run is the figure to compare.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+os.environ.setdefault("KMP_BLOCKTIME", "0")
+
+import numpy as np
+import torch
+
+from latentsim.config import load_config
+from latentsim.io import read_mesh_arrays
+from latentsim.physics.contact import ContactBarrier
+from latentsim.scene import bc_parameters, build_potential, dirichlet_trajectory
+from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings
+from latentsim.stages.mesh import prepare_mesh
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def vertices_only(barrier: ContactBarrier, colliders) -> ContactBarrier:
+    """The same barrier over the vertices alone, against the colliders as given (not grown by a thickness)."""
+    return ContactBarrier(len(barrier.stencils), colliders, barrier.d_hat, barrier.kappa, barrier.extend_below, barrier.attached,
+                          barrier.rest_dirichlet, barrier.friction, barrier.slip)  # fmt: skip
+
+
+def potentials(name: str, sc: dict, meshes: dict):
+    """The scene's mesh arrays and its two potentials: (surface, vertices only)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        prepare_mesh(name, sc["model"], sc["mesh"], sc["dirichlet"], meshes, Path(tmp) / "mesh.h5")
+        arrays = read_mesh_arrays(Path(tmp) / "mesh.h5")
+    surface = build_potential(sc["model"], arrays, sc["material"], sc["dt"], sc["gravity"], free_only=True, contact=sc["contact"])
+    bare = build_potential(sc["model"], arrays, sc["material"], sc["dt"], sc["gravity"], free_only=True, contact={**sc["contact"], "thickness": 0.0})
+    bare.contact = vertices_only(bare.contact, bare.contact.colliders)
+    return arrays, surface, bare
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--config", default=str(ROOT / "config" / "config.yaml"))
+    ap.add_argument("--scenes", nargs="+", default=["cloth_sphere"])
+    ap.add_argument("--frames", type=int, default=150)
+    ap.add_argument("--repeats", type=int, default=1)
+    args = ap.parse_args(argv)
+    cfg = load_config(args.config)
+    missing = [s for s in args.scenes if s not in cfg["scenes"] or not cfg["scenes"][s]["contact"]["colliders"]]
+    if missing:
+        print(f"contact_cost: no contact scene {', '.join(missing)} in {args.config}", file=sys.stderr)
+        return 1
+    torch.set_num_threads(1)
+    print("| scene | frames | surface: ms/frame | it/frame | vertices only: ms/frame | it/frame | ratio | clearance surface | clearance vertices only |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name in args.scenes:
+        sc = cfg["scenes"][name]
+        arrays, surface, bare = potentials(name, sc, cfg["meshes"])
+        rows = {"surface": [], "bare": []}
+        for _ in range(args.repeats):
+            for key, pot in (("surface", surface), ("bare", bare)):
+                rows[key].append(run_measured(sc, arrays, pot, args.frames, surface.contact))
+        (ms_s, it_s, cl_s), (ms_b, it_b, cl_b) = (np.median(np.asarray(rows[k]), axis=0) for k in ("surface", "bare"))
+        print(f"| {name} | {args.frames} | {ms_s:.1f} | {it_s:.2f} | {ms_b:.1f} | {it_b:.2f} | {ms_s / ms_b:.2f} | {cl_s:.2e} m | {cl_b:.2e} m |")
+    return 0
+
+
+def run_measured(sc: dict, arrays: dict, pot, frames: int, measure: ContactBarrier) -> tuple[float, float, float]:
+    """Simulate the first ``frames`` frames of the scene's first sequence: (ms per frame, Newton iterations per frame,
+    the least clearance over the frames by ``measure``, the surface's barrier, measured apart from the timing)."""
+    solver = ImplicitEuler(pot, NewtonSettings(**sc["newton"]))
+    seq = sc["sequences"][0]
+    T = min(int(seq["frames"]), frames + 1)
+    rest = np.asarray(arrays["rest_positions"], dtype=np.float64)
+    xD = dirichlet_trajectory(rest[solver.dirichlet], bc_parameters(seq, T), sc["dt"])
+    x2 = x1 = rest.copy()
+    iters, seconds, states = 0, 0.0, []
+    for t in range(1, T):
+        t0 = time.perf_counter()
+        x, info = solver.step(x1, x2, xD[t])
+        seconds += time.perf_counter() - t0
+        iters += info.iterations
+        states.append(x)
+        x2, x1 = x1, x
+    X = torch.as_tensor(np.asarray(states))
+    targets = torch.as_tensor(np.asarray(xD[1:T])) if measure.moving else None
+    clearance = float(measure.clearance(X, targets).min())
+    return 1e3 * seconds / (T - 1), iters / (T - 1), clearance
+
+
+if __name__ == "__main__":
+    sys.exit(main())
