@@ -389,9 +389,20 @@ def test_tiny_contact_stays_out_of_its_ball_in_the_full_space_and_every_method_i
         barrier = contact_from_artefact(f)
         near = f["sequences/line/min_contact_distance"][()]
         positions = f["sequences/line/positions"][()]
-    # it touches the ball (comes within the barrier's reach) and never enters it
+    # it touches the ball (comes within the barrier's reach) and never enters it, by every point of its surface
     assert barrier is not None and len(barrier.colliders) == 1 and (near > 0).all() and near.min() < barrier.d_hat
-    assert np.allclose(barrier.distances(torch.as_tensor(positions)).amin(-1).numpy(), near)
+    assert np.allclose(barrier.clearance(torch.as_tensor(positions)).numpy(), near)
+    # where it touches, the ball is against the inside of an edge or a triangle: no vertex is within the reach
+    touching = near < barrier.d_hat
+    vertices = barrier.distances(torch.as_tensor(positions)).amin(-1).numpy()
+    assert (vertices[touching] > 2 * barrier.d_hat).any()
+    # and a second measure, points sampled on every triangle against the ball (grown by the half thickness), agrees
+    ball = barrier.colliders[0]
+    tris = np.asarray(barrier.primitives)
+    i, j = np.meshgrid(np.arange(11), np.arange(11), indexing="ij")
+    w = np.stack([i[i + j <= 10], j[i + j <= 10], 10 - i[i + j <= 10] - j[i + j <= 10]], -1) / 10
+    sampled = np.linalg.norm(np.einsum("sk,ftkd->ftsd", w, positions[:, tris]) - np.asarray(ball.centre), axis=-1) - ball.radius
+    assert (sampled.reshape(len(positions), -1).min(-1) > 0).all()
     m = pd.read_csv(work / "results/evaluation/tiny_contact/metrics.csv").set_index("method")
     assert {"max_penetration", "penetrating_frames"} <= set(m.columns)
     # one full-space Newton iteration a frame keeps the line search's guarantee: nothing enters
@@ -401,9 +412,9 @@ def test_tiny_contact_stays_out_of_its_ball_in_the_full_space_and_every_method_i
     with h5py.File(work / "results/rollout/tiny_contact/self_supervised/seed0/rollout.h5") as f:
         g = f["sequences/line"]
         own, shown, projected, attrs = g["unprojected_positions"][()], g["positions"][()], g["projected"][()], dict(g.attrs)
-    assert projected.tolist() == (barrier.distances(torch.as_tensor(own)).amin(-1).numpy() < barrier.d_hat).tolist() and projected.any()
+    assert projected.tolist() == (barrier.clearance(torch.as_tensor(own)).numpy() < barrier.d_hat).tolist() and projected.any()
     assert np.array_equal(shown[~projected], own[~projected]) and not np.array_equal(shown, own)
-    assert (barrier.distances(torch.as_tensor(shown)).amin(-1).numpy() >= 0).all() and m.loc["self_supervised", "max_penetration"] == 0
+    assert (barrier.clearance(torch.as_tensor(shown)).numpy() >= 0).all() and m.loc["self_supervised", "max_penetration"] == 0
     assert attrs["projected_frames"] == projected.sum() and 0 < attrs["projection_ms"] <= attrs["step_ms"]
     assert m.loc["self_supervised", "latent_ms"] == pytest.approx(attrs["step_ms"], rel=1e-4)  # the table keeps 6 digits
     # the stress conditions' frames are projected too: the depth shown is the projected frames', the network's own beside it
@@ -434,7 +445,7 @@ def test_tiny_contact_stays_out_of_its_ball_in_the_full_space_and_every_method_i
     ae = load_autoencoder(ae_path)
     with torch.no_grad():
         xr = decode_latents(ae, coords, encode_positions(ae, coords, torch.as_tensor(positions), xD), xD).double()
-    d = barrier.distances(xr, xD).amin(-1).numpy()
+    d = barrier.clearance(xr, xD).numpy()
     assert rec.loc[(0, "line"), "max_penetration"] == pytest.approx(max(-d.min(), 0.0) / diag, rel=1e-4, abs=1e-9)
     assert rec.loc[(0, "line"), "penetrating_frames"] == (d < 0).sum()
     assert "max_penetration" not in pd.read_csv(work / "results/evaluation/tiny_cloth/reconstruction.csv").columns
@@ -473,7 +484,7 @@ def test_tiny_contacts_rollout_with_its_projection_fed_back_starts_each_step_fro
     with torch.no_grad():
         decoded = decode_latents(load_autoencoder(ae_path), coords, torch.as_tensor(Z), torch.as_tensor(xD)).double().numpy()
     np.testing.assert_allclose(decoded, X, atol=1e-12)  # the frames written are the states the rollout went on from
-    assert (barrier.distances(torch.as_tensor(X)).amin(-1).numpy() >= 0).all()
+    assert (barrier.clearance(torch.as_tensor(X)).numpy() >= 0).all()
     assert (depth >= 0).all() and (depth[~projected] == 0).all()
     assert stress and all(a["max_penetration"] == 0 and a["max_penetration_own"] >= 0 for a in stress.values())
 

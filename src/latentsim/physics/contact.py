@@ -580,9 +580,9 @@ class SurfaceBarrier(EnergyTerm):
     acts on the vertices only (:class:`ContactBarrier`).
 
     Everything but the stencils is the contact's: its colliders (posed with the prescribed vertices when
-    attached), ``d_hat``, ``kappa``, ``extend_below``.  Only the primitives that may lie within ``d_hat`` are
-    evaluated: a distance is 1-Lipschitz, so a primitive is no nearer than its nearest vertex less its longest edge,
-    and one farther than that bound contributes exactly nothing.  The gradient is b'(d) grad d, grad d by autograd of
+    attached), ``d_hat``, ``kappa``, ``extend_below``.  Only the primitives (of each state) that may lie within
+    ``d_hat`` are evaluated: a distance is 1-Lipschitz, so a primitive is no nearer than its nearest vertex less its
+    longest edge (:meth:`_bound`), and one farther than that contributes exactly nothing.  The gradient is b'(d) grad d, grad d by autograd of
     the closest-point distances (:mod:`latentsim.physics.primitives`; C1 wherever the closest pair is unique, where
     it is the closest point's barycentric weights times the unit normal, -w_i n).  The Hessian is b''(d) grad d
     grad d^T + b'(d) Hess d, Hess d in closed form from that gradient
@@ -612,26 +612,27 @@ class SurfaceBarrier(EnergyTerm):
             total = total + barrier(d, self.d_hat, self.kappa, self.extend_below)
         return total
 
-    def _within_reach(self, ye: torch.Tensor, col) -> torch.Tensor:
-        """The primitives (P,) that may come within d_hat of collider ``col`` in any state of ye (..., P, k, 3): those
-        whose nearest vertex less their longest edge is nearer (a bound below the primitive's distance)."""
+    def _bound(self, ye: torch.Tensor, col) -> torch.Tensor:
+        """A bound below each primitive's distance from collider ``col``, ye (..., P, k, 3) -> (..., P): its nearest
+        vertex's distance less its longest edge."""
         with torch.no_grad():
             edge = torch.linalg.vector_norm(ye - ye.roll(1, dims=-2), dim=-1).amax(-1)
-            bound = col.distance(ye).amin(-1) - edge
-            return (bound < self.d_hat).reshape(-1, bound.shape[-1]).any(0)
+            return col.distance(ye).amin(-1) - edge
 
     def energy(self, x: torch.Tensor, frame=None) -> torch.Tensor:
         """Total energy, x (..., n, 3) -> (...); with an attached collider, at its pose of the frame's ``targets``.
-        Only the primitives within reach of a collider are evaluated (the others' energy is exactly 0)."""
+        Only the pairs of a state and a primitive within reach of a collider are evaluated (the others' energy is 0)."""
         frames = self.contact._frames(x, None if frame is None else frame.targets)
-        total = torch.zeros(x.shape[:-2], dtype=x.dtype, device=x.device)
+        total = torch.zeros(x.shape[:-2], dtype=x.dtype, device=x.device).reshape(-1)
         for i in self.curved:
+            col = self.contact.colliders[i]
             ye = frames[i][..., self.stencils, :]
-            near = self._within_reach(ye, self.contact.colliders[i])
-            if bool(near.any()):
-                d = self.contact.colliders[i].primitive_distance(ye[..., near, :, :])
-                total = total + barrier(d, self.d_hat, self.kappa, self.extend_below).sum(-1)
-        return total
+            pairs = (self._bound(ye, col) < self.d_hat).reshape(-1).nonzero()[:, 0]  # (state, primitive) flattened
+            if len(pairs):
+                flat = ye.reshape(-1, *ye.shape[-2:])[pairs]
+                b = barrier(col.primitive_distance(flat), self.d_hat, self.kappa, self.extend_below)
+                total = total.index_add(0, pairs // ye.shape[-3], b)
+        return total.reshape(x.shape[:-2])
 
     def distances(self, x: torch.Tensor, targets=None) -> torch.Tensor:
         """The signed distance of every primitive from its nearest curved collider, x (..., n, 3) -> (..., P)."""
@@ -646,7 +647,7 @@ class SurfaceBarrier(EnergyTerm):
         H = torch.zeros(E, 3 * k, 3 * k, dtype=xe.dtype, device=xe.device) if hessian else None
         near = torch.zeros(E, dtype=torch.bool)
         for i in self.curved:
-            near |= self._within_reach(xe, self.contact.colliders[i])
+            near |= self._bound(xe, self.contact.colliders[i]) < self.d_hat
         idx = near.nonzero()[:, 0]
         if not len(idx):
             return g, H
@@ -683,9 +684,9 @@ class SurfaceBarrier(EnergyTerm):
         for i in self.curved:
             y, dy = starts[i]
             ye, dye = torch.as_tensor(y[st]), torch.as_tensor(dy[st])
-            # a primitive at least lb away (its nearest vertex less its longest edge) moving at most `speed` over the
-            # step cannot close 0.9 of its distance, the advancement's target, where 0.9 lb > speed: left out
-            lb = c.colliders[i].distance(ye).amin(-1) - torch.linalg.vector_norm(ye - ye.roll(1, dims=-2), dim=-1).amax(-1)
+            # a primitive at least lb away moving at most `speed` over the step cannot close 0.9 of its distance, the
+            # advancement's target, where 0.9 lb > speed: left out
+            lb = self._bound(ye, c.colliders[i])
             can = 0.9 * lb <= torch.linalg.vector_norm(dye, dim=-1).amax(-1)
             if bool(can.any()):
                 toi = primitive_toi(ye[can], dye[can], c.colliders[i].primitive_distance)
