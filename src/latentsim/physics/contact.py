@@ -1,5 +1,6 @@
-"""Contact with analytic colliders: each vertex against each collider through the log barrier of
-Incremental Potential Contact (Li et al. 2020, Eq. 6),
+"""Contact with analytic colliders: each vertex against each collider (and, by :class:`SurfaceBarrier`, each edge
+or triangle of the surface against each curved one) through the log barrier of Incremental Potential Contact
+(Li et al. 2020, Eq. 6),
 
     b(d) = -kappa (d - d_hat)^2 ln(d / d_hat)   for 0 < d < d_hat,   0 for d >= d_hat,
 

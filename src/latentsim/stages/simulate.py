@@ -174,9 +174,10 @@ def simulate_scene(scene: str, mesh_h5, cfg: dict, out_h5, paraview_dir=None, pr
 
 
 def _check_initial_penetration(scene: str, barrier, colliders: list, arrays: dict) -> None:
-    """Every sequence starts at the rest state: no vertex of it may lie inside or on a collider (where it stands at
-    rest), where the barrier has no finite energy and no step can start.  Raises a ``SimulationError`` naming the
-    collider (its index in ``contact.colliders`` and its type) and how many vertices it holds."""
+    """Every sequence starts at the rest state: no vertex, edge or triangle of it may lie inside or on a collider (where
+    it stands at rest, grown by the surface's thickness), where the barrier has no finite energy and no step can start.
+    Raises a ``SimulationError`` naming the collider (its index in ``contact.colliders`` and its type) and how many
+    vertices, edges or triangles it holds."""
     rest = np.asarray(arrays["rest_positions"], dtype=np.float64)
     dirichlet = np.asarray(arrays.get("dirichlet", ()), dtype=np.int64)
     for i, (count, deepest) in enumerate(barrier.penetrations(rest, rest[dirichlet] if barrier.moving else None)):
