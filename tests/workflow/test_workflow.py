@@ -1043,6 +1043,8 @@ def test_same_seed_gives_identical_artefacts(tiny_run, tmp_path):
 # setting; nothing else changed.  tiny_contact's integrator rollout is left out of the bitwise comparison since its
 # frames are projected out of the ball (downstream_of_contact_projection: the change was made on another processor than
 # the reference's, which it cannot re-record; on this one every other file was equal to the bit before and after).
+# Re-recorded when contact came to hold edges and triangles at the surface's thickness (c76c913, AMD EPYC): only
+# tiny_contact's files and its rows of the tables changed.
 # Re-record it (and say so in the commit) when a change is meant to change results.
 REFERENCE = ROOT / "tests" / "workflow" / "data" / "tiny_reference.json"
 
