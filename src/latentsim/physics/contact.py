@@ -556,16 +556,19 @@ class ContactBarrier(EnergyTerm):
         moving over the step from its pose at the frame's ``targets_prev`` to its pose at its ``targets``: each
         vertex's path taken straight in the collider's rest frame (exact for a translation; for a turn, a
         straight path between the carried-back ends, which a solver's step of a small rotation follows closely)."""
+        paths = self.paths(x, dx, frame)
+        return min((float(np.min(c.time_of_impact(*p), initial=np.inf)) for c, p in zip(self.colliders, paths)), default=np.inf)
+
+    def paths(self, x, dx, frame=None) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per collider, the step x -> x + dx (n, 3) as a start and a displacement in the frame it is tested in: as given,
+        or, for an attached collider with a ``frame``, straight between the ends carried back to its rest frame from its
+        poses at the frame's ``targets_prev`` and ``targets`` (:meth:`first_impact`)."""
         x, dx = np.asarray(x, dtype=float).reshape(-1, 3), np.asarray(dx, dtype=float).reshape(-1, 3)
         if frame is None or not self.moving:
-            return min((float(np.min(c.time_of_impact(x, dx), initial=np.inf)) for c in self.colliders), default=np.inf)
+            return [(x, dx)] * len(self.colliders)
         ends = ((x, frame.targets_prev), (x + dx, frame.targets))
         back = [self._to_rest(torch.as_tensor(y), np.asarray(targets, dtype=float)).numpy() for y, targets in ends]
-        t = np.inf
-        for col, a in zip(self.colliders, self.attached):
-            start, step = (back[0], back[1] - back[0]) if a else (x, dx)
-            t = min(t, float(np.min(col.time_of_impact(start, step), initial=np.inf)))
-        return t
+        return [(back[0], back[1] - back[0]) if a else (x, dx) for a in self.attached]
 
 
 class SurfaceBarrier(EnergyTerm):
@@ -673,13 +676,8 @@ class SurfaceBarrier(EnergyTerm):
         """The first fraction t of the step x -> x + dx (n, 3) at which a primitive comes to a tenth of its starting
         distance from a curved collider (:func:`~latentsim.physics.primitives.primitive_toi`, conservative: the true
         impact is later); inf if none does within the step.  Moving colliders as :meth:`ContactBarrier.first_impact`."""
-        x, dx = np.asarray(x, dtype=float).reshape(-1, 3), np.asarray(dx, dtype=float).reshape(-1, 3)
         c = self.contact
-        starts = [(x, dx)] * len(c.colliders)
-        if frame is not None and c.moving:
-            ends = ((x, frame.targets_prev), (x + dx, frame.targets))
-            back = [c._to_rest(torch.as_tensor(y), np.asarray(t, dtype=float)).numpy() for y, t in ends]
-            starts = [(back[0], back[1] - back[0]) if a else (x, dx) for a in c.attached]
+        starts = c.paths(x, dx, frame)
         st = self.stencils.numpy()
         t = math.inf
         for i in self.curved:
