@@ -48,3 +48,37 @@ def _module_torch_threads(request):
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+def _icosphere(levels: int = 2):
+    """A unit icosphere's closed outward surface about the origin: vertices (on the sphere) and 20 * 4**levels faces."""
+    import numpy as np
+
+    t = (1 + 5**0.5) / 2
+    v = [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t], [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]]
+    f = [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2], [10, 7, 6], [7, 1, 8],
+         [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]]  # fmt: skip
+    v = [np.array(p, float) / np.linalg.norm(p) for p in v]
+    for _ in range(levels):
+        mid, f2 = {}, []
+
+        def m(a, b):
+            key = (min(a, b), max(a, b))
+            if key not in mid:
+                p = v[a] + v[b]
+                v.append(p / np.linalg.norm(p))
+                mid[key] = len(v) - 1
+            return mid[key]
+
+        for a, b, c in f:
+            ab, bc, ca = m(a, b), m(b, c), m(c, a)
+            f2 += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
+        f = f2
+    return np.array(v), np.array(f, dtype=np.int64)
+
+
+@pytest.fixture
+def icosphere():
+    """``icosphere(levels)``: a unit icosphere's closed outward surface (vertices, faces), 20 * 4**levels faces."""
+    return _icosphere
+

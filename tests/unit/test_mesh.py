@@ -761,36 +761,11 @@ def test_missing_user_mesh_message_says_where_it_looked(tmp_path, monkeypatch):
 # tet quality: TetGen's bounds, the dihedral gate, the statistics
 # ---------------------------------------------------------------------------
 
-def _icosphere(levels: int = 2):
-    """A unit icosphere's closed outward surface (vertices on the sphere, 20 * 4**levels faces)."""
-    t = (1 + 5 ** 0.5) / 2
-    v = [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t], [0, -1, -t],
-         [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]]
-    f = [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4],
-         [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8],
-         [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]]
-    v = [np.array(p, float) / np.linalg.norm(p) for p in v]
-    for _ in range(levels):
-        mid, f2 = {}, []
-        def m(a, b):
-            key = (min(a, b), max(a, b))
-            if key not in mid:
-                p = v[a] + v[b]
-                v.append(p / np.linalg.norm(p))
-                mid[key] = len(v) - 1
-            return mid[key]
-        for a, b, c in f:
-            ab, bc, ca = m(a, b), m(b, c), m(c, a)
-            f2 += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
-        f = f2
-    return np.array(v), np.array(f, dtype=np.int64)
-
-
 @pytest.mark.parametrize("levels, quality", [(2, (2.0, 10.0)), (1, (1.5, 10.0))])
-def test_tetrahedralize_meets_the_dihedral_bound_on_a_small_closed_surface(levels, quality):
+def test_tetrahedralize_meets_the_dihedral_bound_on_a_small_closed_surface(levels, quality, icosphere):
     # TetGen's refinement plus optimisation meets the bounds on a well-shaped surface; with a
     # volume bound too (target_vertices) they are goals, not guarantees: check_mesh is the check
-    V, F = _icosphere(levels)
+    V, F = icosphere(levels)
     v, t = M.tetrahedralize(V, F, quality=quality)
     stats = M.check_mesh(v, tets=t, name="icosphere", min_dihedral_deg=quality[1])
     assert stats["problems"] == [] and stats["n_below_min_dihedral"] == 0
@@ -834,8 +809,8 @@ def test_check_mesh_rejects_a_sliver_by_name_with_its_angle():
     assert M.check_mesh(v2, tets=t2)["dihedral_min_deg"] == pytest.approx(angle)
 
 
-def test_scene_mesh_gate_from_config(tmp_path):
-    V, F = _icosphere(1)
+def test_scene_mesh_gate_from_config(tmp_path, icosphere):
+    V, F = icosphere(1)
     import meshio
     path = tmp_path / "ball.stl"
     meshio.write(str(path), meshio.Mesh(V, [("triangle", F)]))

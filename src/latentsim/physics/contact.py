@@ -35,42 +35,14 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from latentsim.physics.barrier import barrier, barrier_derivatives
 from latentsim.physics.base import EnergyTerm, project_psd
+from latentsim.physics.mesh_contact import MeshBarrier, mesh_barriers
 from latentsim.physics.primitives import closest_on_segment, core_distance, distance_hessian, plane_distance, primitive_toi
 
 
-def barrier(d: torch.Tensor, d_hat: float, kappa: float, extend_below: float | None = None) -> torch.Tensor:
-    """b(d) elementwise; 0 for d >= d_hat; +inf for d <= 0 (inside or on the surface), or, with
-    ``extend_below`` = d_e in (0, d_hat), below d_e its second-order Taylor expansion about d_e: finite
-    and C2 everywhere, growing quadratically into the collider (what a learned loss needs: a decoded
-    state that penetrates costs much, not infinity or NaN)."""
-    inside = d < d_hat
-    safe = torch.where(inside & (d > 0), d, torch.full_like(d, d_hat))
-    b = -kappa * (safe - d_hat) ** 2 * torch.log(safe / d_hat)
-    b = torch.where(inside, b, torch.zeros_like(d))
-    if extend_below is None:
-        return torch.where(d <= 0, torch.full_like(d, math.inf), b)
-    de = torch.full_like(d, float(extend_below))
-    b0 = barrier(de, d_hat, kappa)
-    b1, b2 = barrier_derivatives(de, d_hat, kappa)
-    return torch.where(d < de, b0 + b1 * (d - de) + 0.5 * b2 * (d - de) ** 2, b)
-
-
-def barrier_derivatives(d: torch.Tensor, d_hat: float, kappa: float, extend_below: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """b'(d) and b''(d) elementwise for d > 0 (0 for d >= d_hat); with ``extend_below`` = d_e, those of
-    :func:`barrier`'s quadratic continuation below d_e (b'(d_e) + b''(d_e) (d - d_e) and b''(d_e)), for every d."""
-    inside = (d < d_hat) & (d > 0)
-    s = torch.where(inside, d, torch.full_like(d, d_hat))
-    r = s - d_hat
-    db = -kappa * (2 * r * torch.log(s / d_hat) + r**2 / s)
-    d2b = -kappa * (2 * torch.log(s / d_hat) + 4 * r / s - r**2 / s**2)
-    zero = torch.zeros_like(d)
-    db, d2b = torch.where(inside, db, zero), torch.where(inside, d2b, zero)
-    if extend_below is None:
-        return db, d2b
-    e1, e2 = barrier_derivatives(torch.full_like(d, float(extend_below)), d_hat, kappa)
-    below = d < extend_below
-    return torch.where(below, e1 + e2 * (d - extend_below), db), torch.where(below, e2, d2b)
+#: how far (in d_hat) a mesh's distances are measured for :meth:`ContactBarrier.clearance`; beyond, "this or more"
+MESH_REACH = 10.0
 
 
 def primitive_barriers(x: torch.Tensor, edges, triangles, collider: "Collider", d_hat: float, kappa: float,
@@ -342,6 +314,9 @@ class ContactBarrier(EnergyTerm):
     primitives : None (vertices only), or the surface's edges (P, 2) or triangles (P, 3): each is then also
         kept out of every curved collider by a :class:`SurfaceBarrier` (:meth:`terms`), so that no point of the
         surface comes within the barrier's reach unseen (against a half-space the vertices are the nearest points).
+    meshes : static :class:`~latentsim.physics.mesh_contact.TriangleMesh` colliders (a body, a tool), each held off
+        every vertex, edge and triangle of the surface by the terms of :func:`~latentsim.physics.mesh_contact.mesh_barriers`
+        (:meth:`terms`; frictionless).
 
     With an attached collider the barrier depends on the frame: :meth:`energy` and :meth:`distances` take
     the frame's ``targets``, and :meth:`posed` gives the static barrier of one frame (what a solver's
@@ -352,7 +327,7 @@ class ContactBarrier(EnergyTerm):
 
     def __init__(self, n_vertices: int, colliders, d_hat: float, kappa: float, extend_below: float | None = None,
                  attached=None, rest_dirichlet=None, friction: float = 0.0, slip: float | None = None, anchors=None,
-                 primitives=None):  # fmt: skip
+                 primitives=None, meshes=()):  # fmt: skip
         if not (d_hat > 0 and kappa > 0):
             raise ValueError(f"contact barrier: d_hat {d_hat!r} and kappa {kappa!r} must be positive")
         if not (friction >= 0 and (friction == 0 or (slip is not None and slip > 0))):
@@ -378,13 +353,30 @@ class ContactBarrier(EnergyTerm):
         self.primitives = None if primitives is None else torch.as_tensor(np.asarray(primitives, dtype=np.int64))
         if self.primitives is not None and (self.primitives.ndim != 2 or self.primitives.shape[1] not in (2, 3)):
             raise ValueError(f"contact barrier: primitives of shape {tuple(self.primitives.shape)}: give edges (P, 2) or triangles (P, 3)")
+        self.meshes = tuple(meshes)
+        self._mesh_terms = None
 
     def terms(self) -> list:
-        """The terms of E_total this contact adds: this barrier (the vertices, and friction), then the
-        :class:`SurfaceBarrier` of its primitives where a collider is curved."""
-        if self.primitives is None or not any(c.curved for c in self.colliders):
-            return [self]
-        return [self, SurfaceBarrier(self)]
+        """The terms of E_total this contact adds: this barrier (the vertices against the analytic colliders, and
+        friction), the :class:`SurfaceBarrier` of its primitives where a collider is curved, and each mesh's."""
+        out = [self]
+        if self.primitives is not None and any(c.curved for c in self.colliders):
+            out.append(SurfaceBarrier(self))
+        return out + self.mesh_terms()
+
+    def mesh_terms(self) -> list:
+        """The terms holding the surface (its ``primitives``, or the vertices alone) off each of the ``meshes``."""
+        if self._mesh_terms is None:
+            n = len(self.stencils)
+            prim = self.primitives.numpy() if self.primitives is not None else None
+            self._mesh_terms = []
+            for mesh in self.meshes:
+                if prim is None:
+                    self._mesh_terms.append(MeshBarrier(mesh, np.arange(n)[:, None], self.d_hat, self.kappa, self.extend_below,
+                                                        surface=(np.zeros((0, 2), np.int64), np.zeros((0, 3), np.int64))))  # fmt: skip
+                else:
+                    self._mesh_terms += mesh_barriers(mesh, prim, n, self.d_hat, self.kappa, self.extend_below)
+        return self._mesh_terms
 
     @property
     def moving(self) -> bool:
@@ -397,7 +389,7 @@ class ContactBarrier(EnergyTerm):
         (:func:`barrier`'s ``extend_below``): finite inside the colliders, for learned losses."""
         d_hat = d_hat_factor * self.d_hat
         return ContactBarrier(len(self.stencils), self.colliders, d_hat, kappa_factor * self.kappa, fraction * d_hat, self.attached,
-                              self.rest_dirichlet, self.friction, self.slip, primitives=self.primitives)  # fmt: skip
+                              self.rest_dirichlet, self.friction, self.slip, primitives=self.primitives, meshes=self.meshes)  # fmt: skip
 
     def posed(self, targets) -> "ContactBarrier":
         """The static barrier of one frame: every attached collider carried to its pose at ``targets`` (m, 3),
@@ -406,7 +398,7 @@ class ContactBarrier(EnergyTerm):
             return self
         moved = posed_colliders(self.colliders, self.attached, self.rest_dirichlet, targets)
         return ContactBarrier(len(self.stencils), moved, self.d_hat, self.kappa, self.extend_below, friction=self.friction, slip=self.slip,
-                              primitives=self.primitives)  # fmt: skip
+                              primitives=self.primitives, meshes=self.meshes)  # fmt: skip
 
     def at(self, frame) -> "ContactBarrier":
         """The static barrier of a solver's step (:meth:`posed` at the frame's ``targets``) with its lagged
@@ -427,7 +419,7 @@ class ContactBarrier(EnergyTerm):
             anchors = [carried if a else x_prev for a in self.attached]
         anchors = [(a,) + self._lagged(col, a) for col, a in zip(step.colliders, anchors)]
         return ContactBarrier(len(self.stencils), step.colliders, self.d_hat, self.kappa, self.extend_below, friction=self.friction,
-                              slip=self.slip, anchors=anchors, primitives=self.primitives)  # fmt: skip
+                              slip=self.slip, anchors=anchors, primitives=self.primitives, meshes=self.meshes)  # fmt: skip
 
     def _lagged(self, col, y_prev: torch.Tensor):
         """lambda (...,) and the tangent projector (..., 3, 3) of collider ``col`` at the step's start y_prev."""
@@ -473,7 +465,8 @@ class ContactBarrier(EnergyTerm):
         if self.anchors is not None or (not self.moving and (self.friction == 0 or x_prev is None)):
             return super().energy(x)
         frames = self._frames(x, targets)
-        e = sum(barrier(col.distance(y), self.d_hat, self.kappa, self.extend_below).sum(-1) for col, y in zip(self.colliders, frames))
+        zero = torch.zeros(x.shape[:-2], dtype=x.dtype, device=x.device)  # (no analytic collider: only meshes)
+        e = sum((barrier(col.distance(y), self.d_hat, self.kappa, self.extend_below).sum(-1) for col, y in zip(self.colliders, frames)), zero)
         if self.friction > 0 and x_prev is not None:
             x_prev = torch.as_tensor(x_prev, dtype=x.dtype, device=x.device)
             for col, y, y_prev in zip(self.colliders, frames, self._frames(x_prev, targets_prev)):
@@ -493,16 +486,30 @@ class ContactBarrier(EnergyTerm):
     def distances(self, x: torch.Tensor, targets=None) -> torch.Tensor:
         """The signed distance of every vertex from its nearest collider, x (..., n, 3) -> (..., n);
         ``targets`` as in :meth:`energy`."""
+        if not self.colliders:
+            return torch.full(x.shape[:-1], math.inf, dtype=x.dtype, device=x.device)
         return torch.stack(self._signed_distances(x, targets)).amin(0)
 
     def _all_distances(self, x: torch.Tensor, targets) -> list[torch.Tensor]:
-        """Per collider, the signed distances of every vertex and then (a curved collider) of every primitive, (..., n [+ P])."""
+        """Per collider, the signed distances of every vertex and then (a curved collider) of every primitive, (..., n [+ P]);
+        then per mesh the least over its pairs (:data:`MESH_REACH` d_hat where none is nearer) and each vertex's, minus its depth
+        and the thickness where it is inside the mesh (:meth:`~latentsim.physics.mesh_contact.TriangleMesh.inside`), else inf,
+        (..., 1 + n)."""
         out = []
         for col, y in zip(self.colliders, self._frames(x, targets)):
             d = col.distance(y)
             if self.primitives is not None and col.curved:
                 d = torch.cat([d, col.primitive_distance(y[..., self.primitives, :])], -1)
             out.append(d)
+        terms = self.mesh_terms()
+        for mesh in self.meshes:
+            d = torch.stack([t.distances(x, MESH_REACH * self.d_hat) for t in terms if t.mesh is mesh]).amin(0)
+            # a vertex inside the body: its depth, the distance from the surface, less the thickness
+            pts = x.detach().reshape(-1, 3).cpu().numpy()
+            inside = np.flatnonzero(mesh.inside(pts))
+            v = torch.full((len(pts),), math.inf, dtype=x.dtype)
+            v[inside] = -torch.as_tensor(mesh.unsigned_distance(pts[inside]), dtype=x.dtype) - mesh.thickness
+            out.append(torch.cat([d[..., None], v.reshape(x.shape[:-1])], -1))
         return out
 
     def clearance(self, x: torch.Tensor, targets=None) -> torch.Tensor:
@@ -513,7 +520,8 @@ class ContactBarrier(EnergyTerm):
 
     def penetrations(self, x, targets=None) -> list[tuple[int, float]]:
         """Per collider, how many vertices (and, with ``primitives``, edges or triangles) of x (n, 3) lie inside it or
-        touch its surface (signed distance <= 0, where the barrier is infinite) and the smallest signed distance;
+        touch its surface (signed distance <= 0, where the barrier is infinite) and the smallest signed distance (per
+        mesh: 1 where a pair is within its thickness, and the least distance);
         ``targets`` as in :meth:`energy`."""
         x = torch.as_tensor(np.asarray(x, dtype=float))
         return [(int((d <= 0).sum()), float(d.min())) for d in self._all_distances(x, targets)]

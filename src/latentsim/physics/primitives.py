@@ -49,7 +49,7 @@ from typing import Callable
 import torch
 
 __all__ = ["closest_on_segment", "point_segment_distance", "point_triangle_distance", "segment_segment_distance",
-           "segment_triangle_distance", "core_distance", "plane_distance", "primitive_toi", "distance_hessian"]  # fmt: skip
+           "segment_triangle_distance", "core_distance", "plane_distance", "primitive_toi", "distance_hessian", "vertex_hessian"]  # fmt: skip
 
 #: squared sine below which two edges count as parallel, and a triangle's |n|^2 / (|e1|^2 |e2|^2) as zero area
 PARALLEL = 1e-12
@@ -193,13 +193,15 @@ _PAIRS: dict[tuple[int, int], Callable] = {
     (2, 1): lambda c, x: point_segment_distance(x[..., 0, :], c),
     (2, 2): segment_segment_distance,
     (2, 3): segment_triangle_distance,
+    (3, 1): lambda c, x: point_triangle_distance(x[..., 0, :], c),
 }
 
 
 def core_distance(core: torch.Tensor, xp: torch.Tensor) -> torch.Tensor:
     """The unsigned distance between a collider's core and a primitive: min |c - x| over c in the core (a point,
     m = 1, or a segment, m = 2) and x in the primitive (a vertex k = 1, an edge k = 2, a triangle k = 3), by the
-    function of the module's table; a sphere's or capsule's signed distance is this minus its radius.
+    function of the module's table; a sphere's or capsule's signed distance is this minus its radius.  A triangle
+    core (m = 3, a mesh collider's face) pairs with a vertex.
 
     core (..., m, 3), xp (..., k, 3) -> (...).
     """
@@ -290,7 +292,7 @@ def distance_hessian(xp: torch.Tensor, grad: torch.Tensor, rho: torch.Tensor, ax
     ----------
     xp : (N, k, 3) the primitives' vertices; grad : (N, k, 3) the distance's gradient there (autograd's of
         :func:`core_distance`); rho : (N,) the unsigned distance (> 0); axis : None (the core a point), or (2, 3) the
-        segment's ends.  Where rho is 0 (the core touches the primitive) the Hessian is returned as 0.
+        segment's ends (or (N, 2, 3), one segment per primitive).  Where rho is 0 (the core touches the primitive) the Hessian is returned as 0.
 
     Returns
     -------
@@ -314,11 +316,11 @@ def distance_hessian(xp: torch.Tensor, grad: torch.Tensor, rho: torch.Tensor, ax
     B = torch.diag_embed(cols.to(xp.dtype))
     B[torch.arange(N)[:, None], last[:, None], torch.arange(k)[None, :]] -= cols.to(xp.dtype)
     if axis is not None:
-        a, b = axis[0], axis[1]
+        a, b = axis[..., 0, :], axis[..., 1, :]
         e = b - a
         p = (w[:, :, None] * xp).sum(1)
-        s = ((p + rho[:, None] * n - a) * e).sum(-1) / (e * e).sum()
-        Pe = P @ e
+        s = ((p + rho[:, None] * n - a) * e).sum(-1) / (e * e).sum(-1)
+        Pe = P @ e if e.ndim == 1 else (P @ e[:, :, None])[:, :, 0]
         f_xs = (-w[:, :, None] * Pe[:, None, :]).reshape(N, 3 * k, 1)
         f_ws = -(xp * Pe[:, None, :]).sum(-1)[:, :, None]
         f_ss = (e * Pe).sum(-1)[:, None, None]
@@ -330,3 +332,29 @@ def distance_hessian(xp: torch.Tensor, grad: torch.Tensor, rho: torch.Tensor, ax
     M = B.transpose(1, 2) @ f_ww @ B
     C = f_xw @ B
     return f_xx - C @ torch.linalg.pinv(M) @ C.transpose(1, 2)
+
+
+def vertex_hessian(x: torch.Tensor, grad: torch.Tensor, rho: torch.Tensor, core: torch.Tensor, active_tol: float = 1e-12) -> torch.Tensor:
+    """The Hessian in the vertex x of its distance rho = min |x - q| from a static core (a point, segment or triangle,
+    q its closest point), from the distance's gradient n = (x - q) / rho: (I - n n^T - Q) / rho, Q the projector onto
+    the directions of the core's feature that holds q (none for a corner, the edge's for an edge, the plane's for a
+    face: there the distance is a plane's, and its Hessian 0).  Those directions are orthogonal to n.
+
+    x (N, 3), grad (N, 3), rho (N,) > 0 (where 0 the Hessian is returned as 0), core (N, m, 3) -> (N, 3, 3) float64.
+    """
+    N, m, _ = core.shape
+    q = x - rho[:, None] * grad
+    # the closest point's weights on the core: least squares in the core's own frame (exact where q lies on it)
+    base = core[:, :1, :]
+    D = (core[:, 1:, :] - base).transpose(1, 2)  # (N, 3, m - 1)
+    u = (torch.linalg.pinv(D) @ (q - base[:, 0, :])[:, :, None])[:, :, 0] if m > 1 else q.new_zeros(N, 0)
+    w = torch.cat([1 - u.sum(-1, keepdim=True), u], -1)  # (N, m)
+    active = w > active_tol
+    last = (active * torch.arange(1, m + 1)).argmax(-1)
+    # the feature's directions: each other active corner less the last active one
+    dirs = (core - core[torch.arange(N), last][:, None, :]) * (active & (torch.arange(m)[None, :] != last[:, None]))[:, :, None]
+    E = dirs.transpose(1, 2)  # (N, 3, m)
+    Q = E @ torch.linalg.pinv(E)
+    eye = torch.eye(3, dtype=x.dtype, device=x.device)
+    H = (eye - grad[:, :, None] * grad[:, None, :] - Q) / torch.where(rho > 0, rho, torch.ones_like(rho))[:, None, None]
+    return torch.where((rho > 0)[:, None, None], H, torch.zeros_like(H))
