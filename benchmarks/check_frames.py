@@ -3,7 +3,9 @@ solver: the incremental potential is rebuilt from each trajectories.h5 (its mode
 gradient recomputed at every frame by autograd of the PyTorch energies (not the solver's compiled kernels), and
 the largest free-DoF residual compared with the solver's tolerance (a scene with colliders: the barrier's
 gradient included).  Tet scenes also report the frames that end with an inverted tet; scenes with colliders the
-nearest approach of any vertex, edge or triangle to one over every frame (negative: inside).
+nearest approach of any vertex, edge or triangle to one over every frame (negative: inside); scenes with a mesh
+collider, by the IPC Toolkit as a second implementation, the frames where the surface crosses it (its intersection
+test) and the least distance between them less the thickness (its distances over the pairs within 1 cm).
 
     python benchmarks/check_frames.py [results/sim]
 
@@ -30,6 +32,7 @@ def check(path: Path) -> dict:
         free = np.setdiff1d(np.arange(len(f["rest_positions"])), f["dirichlet"][()])
         law = str(f.attrs.get(MATERIAL_MODEL_ATTR, "stvk"))
         worst, frames, inverted, nearest = 0.0, 0, 0, float("inf")
+        crossing, mesh_nearest = 0, float("inf")
         for name, grp in f["sequences"].items():
             if name.endswith("_train") and name[: -len("_train")] in f["sequences"]:
                 continue  # the first frames of a sequence stored whole
@@ -44,9 +47,37 @@ def check(path: Path) -> dict:
             frames += len(X) - 1
             if pot.contact is not None:
                 nearest = min(nearest, float(pot.contact.clearance(X, XD).min()))
+                for mesh in pot.contact.meshes:
+                    c, d = _toolkit_check(mesh, pot.contact.primitives.numpy(), X.numpy())
+                    crossing, mesh_nearest = crossing + c, min(mesh_nearest, d)
             if "inverted_tets" in grp:
                 inverted += int((grp["inverted_tets"][1:] > 0).sum())
-    return dict(law=law, frames=frames, worst=worst, inverted=inverted, nearest=nearest)
+    return dict(law=law, frames=frames, worst=worst, inverted=inverted, nearest=nearest, crossing=crossing, mesh_nearest=mesh_nearest)
+
+
+def _toolkit_check(mesh, primitives, X) -> tuple[int, float]:
+    """The frames of X (T, n, 3) whose surface (``primitives``, edges or triangles) crosses ``mesh``, and the least
+    distance between them less the mesh's thickness, by the IPC Toolkit."""
+    import ipctk
+
+    from latentsim.physics.mesh_contact import unique_edges
+
+    n = X.shape[1]
+    tris = primitives if primitives.shape[1] == 3 else np.zeros((0, 3), np.int64)
+    edges = primitives if primitives.shape[1] == 2 else unique_edges(primitives)
+    E = np.vstack([edges, mesh.edges + n]).astype(np.int32)
+    F = np.vstack([tris, mesh.faces + n]).astype(np.int32)
+    cm = ipctk.CollisionMesh(np.asfortranarray(np.vstack([X[0], mesh.vertices])), np.asfortranarray(E), np.asfortranarray(F))
+    cm.can_collide = ipctk.make_static_obstacle_filter(n)
+    crossing, nearest = 0, float("inf")
+    for x in X:
+        W = np.asfortranarray(np.vstack([x, mesh.vertices]))
+        crossing += bool(ipctk.has_intersections(cm, W))
+        pairs = ipctk.NormalCollisions()
+        pairs.build(cm, W, 0.01)
+        if len(pairs):
+            nearest = min(nearest, float(np.sqrt(pairs.compute_minimum_distance(cm, W))) - mesh.thickness)
+    return crossing, nearest
 
 
 def main(argv=None) -> None:
@@ -58,12 +89,14 @@ def main(argv=None) -> None:
     if not paths:
         found = "no such folder" if not root.is_dir() else "no <scene>/trajectories.h5 in it"
         parser.exit(1, f"check_frames: {root}: {found}; nothing to check (a run's simulations are in results/sim)\n")
-    print("| scene | material | frames | max residual / tolerance (autograd) | frames ending with an inverted tet | nearest approach to a collider [m] |")
-    print("|---|---|---|---|---|---|")
+    print("| scene | material | frames | max residual / tolerance (autograd) | frames ending with an inverted tet | nearest approach to a collider [m] "
+          "| mesh collider (IPC Toolkit): frames crossing, nearest [m] |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|")
     for path in paths:
         r = check(path)
         near = "-" if r["nearest"] == float("inf") else f"{r['nearest']:.3g}"
-        print(f"| {path.parent.name} | {r['law']} | {r['frames']} | {r['worst']:.2f} | {r['inverted']} | {near} |", flush=True)
+        mesh = "-" if r["mesh_nearest"] == float("inf") else f"{r['crossing']}, {r['mesh_nearest']:.3g}"
+        print(f"| {path.parent.name} | {r['law']} | {r['frames']} | {r['worst']:.2f} | {r['inverted']} | {near} | {mesh} |", flush=True)
 
 
 if __name__ == "__main__":

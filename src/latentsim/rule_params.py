@@ -55,12 +55,14 @@ def mesh_sources(config: dict) -> dict:
 
 def sim_params(config: dict, scene: str) -> dict:
     """The scene's simulation settings (its contact block only where it has colliders, so that a scene
-    without any keeps the params it had before contact existed)."""
+    without any keeps the params it had before contact existed; the mesh sources only where a collider is a mesh)."""
     sc = config["scenes"][scene]
     keys = ("model", "material", "dt", "gravity", "newton", "sequences")
     out = {k: sc[k] for k in keys}
     if sc["contact"]["colliders"]:
         out["contact"] = sc["contact"]
+    if any(q["type"] == "mesh" for q in sc["contact"]["colliders"]):  # where a mesh collider's file is found
+        out["mesh_sources"] = config["meshes"]
     return canonical(out)
 
 

@@ -27,10 +27,12 @@ import json
 import numpy as np
 import torch
 
+from latentsim.mesh.build import collider_mesh
 from latentsim.mesh.surface import surface_of
 from latentsim.physics import rods, shells, tets
 from latentsim.physics.materials import MATERIALS, MODEL_STENCILS, materials_of
 from latentsim.physics.contact import Capsule, ContactBarrier, HalfSpace, Sphere, posed_colliders
+from latentsim.physics.mesh_contact import TriangleMesh
 from latentsim.physics.incremental_potential import ElasticPotential, IncrementalPotential
 
 BC_DIM = 6
@@ -247,7 +249,8 @@ def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity
     barrier = None
     if contact and contact.get("colliders"):
         c = contact_settings(contact, arrays["rest_positions"], elastic.masses.numpy(), g.numpy(), own_thickness(model, material))
-        barrier = contact_barrier(c, elastic.n_vertices, arrays["rest_positions"], arrays.get("dirichlet", ()), dt, surface_primitives(model, arrays))
+        barrier = contact_barrier(c, elastic.n_vertices, arrays["rest_positions"], arrays.get("dirichlet", ()), dt, surface_primitives(model, arrays),
+                                  collider_meshes(arrays))  # fmt: skip
     return IncrementalPotential(
         terms=elastic.terms,
         masses=elastic.masses,
@@ -272,6 +275,31 @@ def collider(q: dict):
     return cls(*(q[k] for k in keys))
 
 
+#: a mesh collider's surface, as a scene's arrays (and its trajectories file) hold it: the entry's index in ``contact.colliders``
+COLLIDER_MESH_KEYS = ("collider{}_vertices", "collider{}_triangles")
+
+
+def collider_meshes(arrays) -> dict:
+    """The mesh colliders' surfaces that ``arrays`` (a dict, or an open h5py.File) hold, {index in contact.colliders: (V, F)}."""
+    out = {}
+    for key in arrays.keys():
+        if key.startswith("collider") and key.endswith("_vertices"):
+            i = int(key[len("collider") : -len("_vertices")])
+            out[i] = tuple(np.asarray(arrays[k.format(i)][()]) for k in COLLIDER_MESH_KEYS)
+    return out
+
+
+def load_collider_meshes(contact: dict | None, sources: dict, scene: str) -> dict:
+    """The arrays of a scene's mesh colliders (:data:`COLLIDER_MESH_KEYS`), each read from its ``file``
+    (:func:`~latentsim.mesh.collider_mesh`); none for a scene without."""
+    out = {}
+    for i, q in enumerate((contact or {}).get("colliders") or ()):
+        if q["type"] == "mesh":
+            V, F = collider_mesh(q, sources, where=f"scenes.{scene}.contact.colliders.{i}")
+            out.update(zip((k.format(i) for k in COLLIDER_MESH_KEYS), (V, F)))
+    return out
+
+
 def own_thickness(model: str, material: dict) -> float:
     """How far a scene's surface reaches beyond its vertices, where ``contact.thickness`` is unset: half a
     shell's ``material.thickness``, a strand's ``material.radius``, 0 for a solid (its vertices are its surface)."""
@@ -294,20 +322,29 @@ def surface_primitives(model: str, arrays: dict):
     return surface_of(np.asarray(arrays["tets"], dtype=np.int64))
 
 
-def contact_barrier(contact: dict, n_vertices: int, rest_positions, dirichlet, dt: float, primitives=None) -> ContactBarrier:
+def contact_barrier(contact: dict, n_vertices: int, rest_positions, dirichlet, dt: float, primitives=None, meshes=None) -> ContactBarrier:
     """The barrier of a resolved ``contact`` block (:func:`contact_settings`): its colliders, thickened by its
     ``thickness`` (absent: 0; :meth:`~latentsim.physics.contact.Collider.thickened`), those with
     ``attached: true`` moving rigidly with the prescribed vertices ``dirichlet`` (indices into
     ``rest_positions``), its friction (static below a slip of ``friction_velocity`` times the time step
-    ``dt``), and the surface's ``primitives`` (:func:`surface_primitives`; None: the vertices alone)."""
-    attached = [bool(q.get("attached", False)) for q in contact["colliders"]]
+    ``dt``), and the surface's ``primitives`` (:func:`surface_primitives`; None: the vertices alone).  A ``mesh`` entry's
+    surface is ``meshes`` {its index: (V, F)} (:func:`collider_meshes`); the barrier lists the analytic colliders, then the meshes."""
+    analytic = [q for q in contact["colliders"] if q["type"] != "mesh"]
+    attached = [bool(q.get("attached", False)) for q in analytic]
     rest_D = np.asarray(rest_positions, dtype=float)[np.asarray(dirichlet, dtype=np.int64)] if any(attached) else None
     mu = float(contact.get("friction", 0.0))
     slip = float(contact.get("friction_velocity", FRICTION_VELOCITY)) * float(dt) if mu > 0 else None
     try:
-        shapes = [collider(q).thickened(float(contact.get("thickness", 0.0))) for q in contact["colliders"]]
+        thickness = float(contact.get("thickness", 0.0))
+        shapes = [collider(q).thickened(thickness) for q in analytic]
+        bodies = []
+        for i, q in enumerate(contact["colliders"]):
+            if q["type"] == "mesh":
+                if i not in (meshes or {}):
+                    raise ValueError(f"entry {i} is a mesh ({q.get('file')}) whose surface was not read (its arrays {COLLIDER_MESH_KEYS[0].format(i)})")
+                bodies.append(TriangleMesh(*meshes[i], thickness=thickness))
         return ContactBarrier(n_vertices, shapes, contact["d_hat"], contact["kappa"], attached=attached, rest_dirichlet=rest_D,
-                              friction=mu, slip=slip, primitives=primitives)  # fmt: skip
+                              friction=mu, slip=slip, primitives=primitives, meshes=bodies)  # fmt: skip
     except ValueError as e:
         raise ValueError(f"contact.colliders: {e}") from None
 
@@ -319,8 +356,13 @@ def posed_collider_entries(entries, rest_dirichlet, targets) -> list[dict]:
     attached = [bool(q.get("attached")) for q in entries]
     if not any(attached):
         return list(entries)
-    moved = posed_colliders([collider(q) for q in entries], attached, rest_dirichlet, targets)
-    return [{**q, **{k: list(getattr(m, k)) for k in m.points + m.directions}} if a else q for q, m, a in zip(entries, moved, attached)]
+    moved = iter(posed_colliders([collider(q) for q in entries if q["type"] != "mesh"], [a for q, a in zip(entries, attached) if q["type"] != "mesh"],
+                                 rest_dirichlet, targets))  # fmt: skip
+    out = []
+    for q, a in zip(entries, attached):
+        m = next(moved) if q["type"] != "mesh" else None
+        out.append({**q, **{k: list(getattr(m, k)) for k in m.points + m.directions}} if a else q)
+    return out
 
 
 def contact_settings(contact: dict, rest_positions, masses, gravity, own: float = 0.0) -> dict:
@@ -358,7 +400,7 @@ def contact_from_artefact(f) -> ContactBarrier | None:
     c = json.loads(str(f.attrs[CONTACT_ATTR]))
     arrays = {k: f[k][()] for k in ELEMENT_KEYS + ("surface",) if k in f}
     return contact_barrier(c, len(f["rest_positions"]), f["rest_positions"][()], f["dirichlet"][()] if "dirichlet" in f else (), float(f.attrs["dt"]),
-                           surface_primitives(str(f.attrs["model"]), arrays))  # fmt: skip
+                           surface_primitives(str(f.attrs["model"]), arrays), collider_meshes(f))  # fmt: skip
 
 
 def potential_from_artefact(f, w_bc: float = 1e5, free_only: bool = False) -> IncrementalPotential:
@@ -368,6 +410,7 @@ def potential_from_artefact(f, w_bc: float = 1e5, free_only: bool = False) -> In
     full-space solver does (see :func:`build_potential`).
     """
     arrays = {k: f[k][()] for k in ("rest_positions", "dirichlet") + ELEMENT_KEYS if k in f}
+    arrays.update({k: f[k][()] for k in f.keys() if k.startswith("collider")})
     material = {k: float(f.attrs[k]) for k in MATERIAL_KEYS if k in f.attrs}
     if MATERIAL_MODEL_ATTR in f.attrs:
         material["model"] = str(f.attrs[MATERIAL_MODEL_ATTR])

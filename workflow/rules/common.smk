@@ -37,6 +37,9 @@ try:
                 config["meshes"],
                 f"config key 'scenes.{_name}.mesh.file'",
             )
+        for _i, _q in enumerate(_scene["contact"]["colliders"]):
+            if _q["type"] == "mesh":
+                check_user_mesh(_q["file"], config["meshes"], f"config key 'scenes.{_name}.contact.colliders.{_i}.file'")
 except (ConfigError, MeshError) as e:
     raise WorkflowError(f"invalid config: {e}")
 
@@ -102,6 +105,13 @@ def user_mesh(wildcards):
         return []
     path = user_mesh_path(mesh["file"], config["meshes"])
     return [] if path is None else [str(path)]
+
+
+def collider_files(wildcards):
+    """Input function: a scene's own mesh colliders' files (not pinned ones), so that editing one reruns the scene."""
+    colliders = config["scenes"][wildcards.scene]["contact"]["colliders"]
+    paths = [user_mesh_path(q["file"], config["meshes"]) for q in colliders if q["type"] == "mesh"]
+    return [str(p) for p in paths if p is not None]
 
 
 def autoencoder_params(wildcards):

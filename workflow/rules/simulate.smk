@@ -2,6 +2,7 @@
 rule simulate:
     input:
         mesh="results/mesh/{scene}/mesh.h5",
+        colliders=collider_files,
     output:
         trajectories="results/sim/{scene}/trajectories.h5",
         paraview=directory("results/sim/{scene}/paraview"),

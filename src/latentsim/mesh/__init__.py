@@ -21,7 +21,7 @@ Modules, one job each:
 * :mod:`~latentsim.mesh.transform`: :func:`rotation_matrix`, :func:`normalise`, :func:`place`;
 * :mod:`~latentsim.mesh.selection`: :func:`select_vertices`, :func:`select_dirichlet`;
 * :mod:`~latentsim.mesh.quality`: :func:`check_mesh`;
-* :mod:`~latentsim.mesh.build`: a scene's mesh from its config (:func:`build_mesh`, :func:`scene_mesh`).
+* :mod:`~latentsim.mesh.build`: a scene's mesh from its config (:func:`build_mesh`, :func:`scene_mesh`), a mesh collider's (:func:`collider_mesh`).
 
 Conventions
 -----------
@@ -45,7 +45,7 @@ way.
 
 from __future__ import annotations
 
-from latentsim.mesh.build import build_mesh, scene_mesh
+from latentsim.mesh.build import build_mesh, collider_mesh, scene_mesh
 from latentsim.mesh.generators import beam_tets, cloth_grid, rod_bundle, rod_stencils
 from latentsim.mesh.geometry import (
     enclosed_volume,
@@ -107,5 +107,6 @@ __all__ = [
     "select_dirichlet",
     "check_mesh",
     "build_mesh",
+    "collider_mesh",
     "scene_mesh",
 ]

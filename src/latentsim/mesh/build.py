@@ -199,3 +199,17 @@ def scene_mesh(scene: str, model: str, mesh_cfg: dict, dirichlet_rule: dict,
     logger.info("scene %s: %d vertices, %d Dirichlet; quality %s", scene,
                 len(arrays["rest_positions"]), len(arrays["dirichlet"]), quality)
     return arrays, quality
+
+
+def collider_mesh(entry: dict, sources: dict, where: str = "contact.colliders") -> tuple[np.ndarray, np.ndarray]:
+    """A mesh collider's surface where it stands, vertices (m, 3) [m] and triangles (f, 3): its ``file`` (a pinned mesh's
+    name or the user's own, found as ``mesh.file`` is) read, a tet mesh's boundary taken, and placed by its ``scale``,
+    ``rotate_axis`` / ``rotate_degrees`` and ``translate`` (:func:`~latentsim.mesh.transform.place`)."""
+    path = mesh_file(entry["file"], sources, sha256=entry.get("sha256"), where=f"{where}.file")
+    m = read_mesh(path)
+    triangles = m.triangles if m.triangles is not None else (surface_of(m.tets) if m.tets is not None else None)
+    if triangles is None or not len(triangles):
+        raise MeshError(f"{path} ({where}): a mesh collider needs triangles (or tets), the file has neither")
+    V, triangles, _ = remove_unreferenced(m.vertices, triangles)
+    V = place(V, float(entry.get("scale", 1.0)), entry.get("rotate_axis"), float(entry.get("rotate_degrees", 0.0)), entry.get("translate"))
+    return V, np.asarray(triangles, dtype=np.int64)

@@ -127,8 +127,8 @@ def _frame_of(axis) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def collider_segments(colliders, limits) -> np.ndarray:
     """(S, 2, 3) line segments of a wireframe of each collider (a scene's ``contact.colliders`` entries:
-    dicts of ``type`` half_space, sphere or capsule and their parameters); a half-space's plane as a grid
-    across the axis ``limits`` (3, 2)."""
+    dicts of ``type`` half_space, sphere, capsule or mesh and their parameters, a mesh's with its surface's ``vertices``
+    and ``triangles``); a half-space's plane as a grid across the axis ``limits`` (3, 2), a mesh's edges."""
     segs = []
     span = float(np.max(limits[:, 1] - limits[:, 0]))
     for c in colliders:
@@ -159,6 +159,10 @@ def collider_segments(colliders, limits) -> np.ndarray:
             for t in np.linspace(-span, span, 9):
                 segs.append(np.array([[base + t * e1 - span * e2, base + t * e1 + span * e2]]))
                 segs.append(np.array([[base + t * e2 - span * e1, base + t * e2 + span * e1]]))
+        elif kind == "mesh":  # its edges (the entry carries its surface, ``vertices`` and ``triangles``)
+            V, F = np.asarray(c["vertices"], float), np.asarray(c["triangles"], np.int64)
+            e = np.unique(np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1), axis=0)
+            segs.append(V[e])
         else:
             raise ValueError(f"collider_segments: unknown collider type {kind!r}")
     return np.concatenate(segs) if segs else np.zeros((0, 2, 3))

@@ -49,7 +49,7 @@ from latentsim.report.tables import (
     table2,
     write_table,
 )
-from latentsim.scene import CONTACT_ATTR, contact_from_artefact, posed_collider_entries
+from latentsim.scene import CONTACT_ATTR, collider_meshes, contact_from_artefact, posed_collider_entries
 
 __all__ = ["evaluate_scene", "render_scene", "summarise", "write_scene_evaluation"]
 
@@ -299,6 +299,8 @@ def render_scene(scene: str, trajectories, rollouts, frames_png, clip_gif, parav
         g = require(f["sequences"], sequence)
         T = g["positions"].shape[0]
         colliders = json.loads(str(f.attrs[CONTACT_ATTR]))["colliders"] if CONTACT_ATTR in f.attrs else []
+        meshes = collider_meshes(f)  # a mesh collider is drawn from the surface the file holds
+        colliders = [dict(q, vertices=meshes[i][0], triangles=meshes[i][1]) if q["type"] == "mesh" else q for i, q in enumerate(colliders)]
         if any(q.get("attached") for q in colliders):  # drawn where the sequence's program carries them at each frame
             colliders = functools.partial(_posed_at, colliders, f["rest_positions"][()][f["dirichlet"][()]], g["dirichlet_positions"][()])
         # with colliders, the second picture is the ground truth's nearest approach to one

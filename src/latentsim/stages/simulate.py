@@ -28,9 +28,10 @@ import torch
 from latentsim.config import ConfigError, check_d_hat
 from latentsim.io import atomic_h5, atomic_path, open_artefact, read_mesh_arrays, write_dataset
 from latentsim.mesh.geometry import tet_volumes
+from latentsim.mesh.validation import MeshError
 from latentsim.report.paraview import cells_for, single_block_xdmf
 from latentsim.scene import (CONTACT_ATTR, MATERIAL_MODEL_ATTR, bc_parameters, build_potential, contact_settings, dirichlet_trajectory,
-                             initial_velocity, own_thickness, previous_positions)
+                             initial_velocity, load_collider_meshes, own_thickness, previous_positions)
 from latentsim.solve.implicit_euler import ImplicitEuler, NewtonFailed, NewtonSettings, StepInfo
 from latentsim.utils import progress_bar, working_directory
 
@@ -105,6 +106,10 @@ def simulate_scene(scene: str, mesh_h5, cfg: dict, out_h5, paraview_dir=None, pr
         except ConfigError as e:
             raise SimulationError(f"scene '{scene}' ({mesh_h5}): {e}") from None
     try:
+        arrays.update(load_collider_meshes(cfg.get("contact"), cfg.get("mesh_sources") or {}, scene))
+    except MeshError as e:
+        raise SimulationError(f"scene '{scene}': {e}") from None
+    try:
         pot = build_potential(model, arrays, cfg["material"], cfg["dt"], cfg["gravity"], free_only=True, contact=cfg.get("contact"))
     except ValueError as e:  # e.g. a collider attached to a prescribed set that does not fix a pose
         raise SimulationError(f"scene '{scene}': {e}") from None
@@ -113,7 +118,8 @@ def simulate_scene(scene: str, mesh_h5, cfg: dict, out_h5, paraview_dir=None, pr
         _check_initial_penetration(scene, pot.contact, cfg["contact"]["colliders"], arrays)
         contact = contact_settings(cfg["contact"], arrays["rest_positions"], pot.masses.numpy(), np.asarray(cfg["gravity"], dtype=float),
                                    own_thickness(model, cfg["material"]))  # fmt: skip
-        log.info("scene %s: %d collider(s), d_hat %.3g m, kappa %.3g", scene, len(pot.contact.colliders), pot.contact.d_hat, pot.contact.kappa)
+        log.info("scene %s: %d collider(s), d_hat %.3g m, kappa %.3g", scene, len(pot.contact.colliders) + len(pot.contact.meshes), pot.contact.d_hat,
+                 pot.contact.kappa)  # fmt: skip
     solver = ImplicitEuler(pot, NewtonSettings(**cfg["newton"]))
     rest = np.asarray(arrays["rest_positions"], dtype=np.float64)
     log.info("scene %s: %d DoF, %d free, linear solver %s", scene, 3 * len(rest), len(solver.free_dofs), solver.linear.method)
@@ -159,7 +165,7 @@ def simulate_scene(scene: str, mesh_h5, cfg: dict, out_h5, paraview_dir=None, pr
                 f.attrs[k] = float(v)
         write_dataset(f, "rest_positions", rest)
         write_dataset(f, "masses", pot.masses.numpy())
-        for k in ("dirichlet", "edges", "triples", "root_of", "triangles", "tets", "surface"):
+        for k in ("dirichlet", "edges", "triples", "root_of", "triangles", "tets", "surface") + tuple(k for k in arrays if k.startswith("collider")):
             if k in arrays:
                 write_dataset(f, k, arrays[k])
         grp = f.create_group("sequences", track_order=True)
@@ -180,7 +186,8 @@ def _check_initial_penetration(scene: str, barrier, colliders: list, arrays: dic
     vertices, edges or triangles it holds."""
     rest = np.asarray(arrays["rest_positions"], dtype=np.float64)
     dirichlet = np.asarray(arrays.get("dirichlet", ()), dtype=np.int64)
-    for i, (count, deepest) in enumerate(barrier.penetrations(rest, rest[dirichlet] if barrier.moving else None)):
+    order = [i for i, q in enumerate(colliders) if q["type"] != "mesh"] + [i for i, q in enumerate(colliders) if q["type"] == "mesh"]
+    for i, (count, deepest) in zip(order, barrier.penetrations(rest, rest[dirichlet] if barrier.moving else None)):
         if count:
             raise SimulationError(
                 f"scene '{scene}': initial penetration: {count} of the rest mesh's vertices, edges or triangles lie inside or on collider {i} "
