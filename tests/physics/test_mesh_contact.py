@@ -222,3 +222,18 @@ def test_the_simulation_stage_reads_a_mesh_collider_from_its_file_and_records_it
     entry["file"] = "missing.obj"
     with pytest.raises(SimulationError, match=r"scenes\.cloth\.contact\.colliders\.0\.file.*missing\.obj"):
         simulate_scene("cloth", mesh_h5, cfg, tmp_path / "t3.h5")
+
+
+def test_a_surface_of_vertices_alone_is_held_off_the_mesh_and_its_impacts_found():
+    """Without primitives (the vertices alone) one term: the vertices against the faces, with the line search's impacts."""
+    V, F = ball(0.05, (0.0, 0.0, 0.0))
+    contact = ContactBarrier(3, [], 0.001, 1.0, meshes=[TriangleMesh(V, F)])
+    (term,) = contact.mesh_terms()
+    x = np.array([[0.0, 0.06, 0.0], [0.2, 0.2, 0.2], [0.3, 0.3, 0.3]])
+    dx = np.zeros_like(x)
+    dx[0, 1] = -0.05  # into the ball
+    t = term.first_impact(x, dx)
+    gap = float(term.distances(torch.as_tensor(x), 1.0))
+    assert 0.8 * 0.9 * gap / 0.05 < t < gap / 0.05
+    dx[0, 1] = 0.05  # away from it: free
+    assert term.first_impact(x, dx) == math.inf

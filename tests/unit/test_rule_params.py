@@ -59,4 +59,6 @@ def test_each_rule_gets_only_what_it_reads(config):
     assert not set(rp.STUDY_SETS) & set(sheet["neural_modes"])
     assert sheet["seed"] == scene_seeds(config, "nm_sheet")[0]
     assert "contact" not in rp.sim_params(config, "cantilever") and "contact" in rp.sim_params(config, "cantilever_floor")
+    # where a mesh collider's file is found: in a mesh scene's params only (the others' are as before meshes existed)
+    assert "mesh_sources" not in rp.sim_params(config, "cloth_sphere") and rp.sim_params(config, "cloth_drape")["mesh_sources"] == rp.mesh_sources(config)
     assert rp.sweep_prune_params(config, "cantilever", scene_seeds(config, "cantilever")[0]) == {}  # the first seed always runs

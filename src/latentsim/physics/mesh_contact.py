@@ -278,11 +278,18 @@ class MeshBarrier(EnergyTerm):
             return math.inf
         import ipctk
 
+        # a step along which no primitive's bounding sphere, swept, comes within the thickness of a face's is free
+        edges, faces = self.surface
+        prim = np.asarray(faces if len(faces) else edges if len(edges) else np.arange(len(x))[:, None], dtype=np.int64)
+        c, r = _spheres(np.asarray(x, dtype=np.float64)[prim])
+        tree, r_max = self.mesh._trees[1]
+        sweep = float(np.sqrt((np.asarray(dx, dtype=np.float64) ** 2).sum(-1).max(initial=0.0)))
+        if not any(map(len, tree.query_ball_point(c, r + r_max + self.mesh.thickness + sweep))):
+            return math.inf
         n = len(x)
         V0 = np.asfortranarray(np.concatenate([np.asarray(x, dtype=np.float64), self.mesh.vertices]))
         V1 = np.asfortranarray(np.concatenate([np.asarray(x, dtype=np.float64) + dx, self.mesh.vertices]))
         if self._ccd_mesh is None or self._ccd_mesh[0] != n:  # (the toolkit's mesh of both surfaces, built once)
-            edges, faces = self.surface
             E = np.concatenate([np.asarray(edges, dtype=np.int64).reshape(-1, 2), self.mesh.edges + n]).astype(np.int32)
             F = np.concatenate([np.asarray(faces, dtype=np.int64).reshape(-1, 3), self.mesh.faces + n]).astype(np.int32)
             cm = ipctk.CollisionMesh(V0, np.asfortranarray(E), np.asfortranarray(F))
