@@ -84,6 +84,17 @@ def test_each_kind_of_pair_has_autograds_derivatives_and_its_candidates_miss_not
             ge, He = autograd_gradient_hessian(t, xe, project=project)
             assert torch.allclose(g, ge, rtol=1e-10, atol=1e-13 * float(ge.abs().max()))
             assert torch.allclose(H, He, rtol=1e-8, atol=1e-11 * float(He.abs().max())), (t.k, project)
+    # every pair nearer than the reach is a candidate, at reaches from a hair to beyond the cells
+    for t in terms:
+        ye = t.gather(x).numpy()
+        M = len(mesh.cores(t.k))
+        I, J = np.repeat(np.arange(len(ye)), M), np.tile(np.arange(M), len(ye))
+        d = mesh.distance(torch.as_tensor(ye[I]), J).numpy() + mesh.thickness
+        for reach in (1e-4, 3e-3, 0.01, 0.05):
+            i, j = mesh.candidates(ye, reach)
+            within = set(zip(I[d < reach], J[d < reach]))
+            assert within <= set(zip(i, j)), (t.k, reach)
+        assert len(within) > 10  # (at the largest reach)
     # batched states, the sum of each state's own
     xs = torch.stack([x, x + 0.003])
     for t in terms:

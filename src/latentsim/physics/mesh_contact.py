@@ -68,10 +68,11 @@ class TriangleMesh:
         self.edges = unique_edges(self.faces)
         V = self.vertices
         self._cores = {1: V[self.faces], 2: V[self.edges], 3: V[:, None, :]}
-        self._trees = {}
+        self._box = (self.vertices.min(0), self.vertices.max(0))
+        self._trees, self._bounds = {}, {}
         for k, pts in self._cores.items():
             c, r = _spheres(pts)
-            self._trees[k] = (cKDTree(c), float(r.max()))
+            self._trees[k], self._bounds[k] = (cKDTree(c), float(r.max())), (c, r)
         self._torch = {k: torch.as_tensor(v) for k, v in self._cores.items()}
 
     def thickened(self, offset: float) -> "TriangleMesh":
@@ -84,16 +85,43 @@ class TriangleMesh:
 
     def candidates(self, ye: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
         """The pairs (i, j) of a primitive i of ye (N, k, 3) and a mesh primitive j of :meth:`cores` (k) that may lie
-        within ``reach`` of each other (their bounding spheres do); every pair nearer than ``reach`` is among them."""
+        within ``reach`` of each other; every pair nearer than ``reach`` is among them.  The mesh's bounding box and each
+        primitive's nearest mesh centre first (a primitive beyond either's reach has none), then the mesh primitives whose
+        bounding spheres come within reach of its own, kept where a bound of the pair's distance is below ``reach``:
+        that of the mesh edge's centre from the edge (an edge), of the mesh vertex from the triangle's plane (a triangle)."""
         N, k, _ = ye.shape
         tree, r_max = self._trees[k]
+        none = np.zeros(0, np.int64), np.zeros(0, np.int64)
         if N == 0:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+            return none
         c, r = _spheres(ye)
-        hits = tree.query_ball_point(c, r + r_max + reach)
-        counts = np.fromiter(map(len, hits), dtype=np.int64, count=N)
-        i = np.repeat(np.arange(N), counts)
+        grow = (r + reach)[:, None]  # within reach of the mesh's bounding box, then of its nearest primitive's sphere
+        near = np.flatnonzero(((c > self._box[0] - grow) & (c < self._box[1] + grow)).all(1))
+        if not len(near):
+            return none
+        nearest, _ = tree.query(c[near], distance_upper_bound=float(r[near].max()) + r_max + reach)
+        near = near[nearest < r[near] + r_max + reach]
+        if not len(near):
+            return none
+        hits = tree.query_ball_point(c[near], r[near] + r_max + reach)
+        counts = np.fromiter(map(len, hits), dtype=np.int64, count=len(near))
+        i = np.repeat(near, counts)
         j = np.fromiter(itertools.chain.from_iterable(hits), dtype=np.int64, count=int(counts.sum()))
+        cj, rj = self._bounds[k]
+        keep = np.linalg.norm(c[i] - cj[j], axis=-1) < r[i] + rj[j] + reach
+        i, j = i[keep], j[keep]
+        if k == 2:  # the mesh edge's centre within its half length (and reach) of the edge
+            a, e = ye[i, 0], ye[i, 1] - ye[i, 0]
+            s = np.clip(((cj[j] - a) * e).sum(-1) / np.maximum((e * e).sum(-1), 1e-300), 0.0, 1.0)
+            keep = np.linalg.norm(a + s[:, None] * e - cj[j], axis=-1) < rj[j] + reach
+            i, j = i[keep], j[keep]
+        elif k == 3:  # the mesh vertex within reach of the triangle's plane
+            n = np.cross(ye[i, 1] - ye[i, 0], ye[i, 2] - ye[i, 0])
+            length = np.linalg.norm(n, axis=-1)
+            flat = length > 0
+            off = np.abs(((cj[j] - ye[i, 0]) * n).sum(-1)) / np.where(flat, length, 1.0)
+            keep = ~flat | (off < reach)
+            i, j = i[keep], j[keep]
         return i, j
 
     def inside(self, points: np.ndarray) -> np.ndarray:
