@@ -39,7 +39,11 @@ try:
             )
         for _i, _q in enumerate(_scene["contact"]["colliders"]):
             if _q["type"] == "mesh":
-                check_user_mesh(_q["file"], config["meshes"], f"config key 'scenes.{_name}.contact.colliders.{_i}.file'")
+                check_user_mesh(
+                    _q["file"],
+                    config["meshes"],
+                    f"config key 'scenes.{_name}.contact.colliders.{_i}.file'",
+                )
 except (ConfigError, MeshError) as e:
     raise WorkflowError(f"invalid config: {e}")
 
@@ -110,7 +114,11 @@ def user_mesh(wildcards):
 def collider_files(wildcards):
     """Input function: a scene's own mesh colliders' files (not pinned ones), so that editing one reruns the scene."""
     colliders = config["scenes"][wildcards.scene]["contact"]["colliders"]
-    paths = [user_mesh_path(q["file"], config["meshes"]) for q in colliders if q["type"] == "mesh"]
+    paths = [
+        user_mesh_path(q["file"], config["meshes"])
+        for q in colliders
+        if q["type"] == "mesh"
+    ]
     return [str(p) for p in paths if p is not None]
 
 
