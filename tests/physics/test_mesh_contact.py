@@ -22,12 +22,15 @@ from latentsim.physics.primitives import core_distance, distance_hessian, vertex
 F64 = torch.float64
 
 
-def ball(radius: float, centre, levels: int = 1):
-    """An icosphere (the tests' ``conftest``) of ``radius`` about ``centre``."""
-    from conftest import _icosphere
+@pytest.fixture
+def ball(icosphere):
+    """``ball(radius, centre, levels=1)``: an icosphere (the tests' ``icosphere`` fixture) of ``radius`` about ``centre``."""
 
-    V, F = _icosphere(levels)
-    return np.asarray(centre, float) + radius * V, F
+    def make(radius: float, centre, levels: int = 1):
+        V, F = icosphere(levels)
+        return np.asarray(centre, float) + radius * V, F
+
+    return make
 
 
 @pytest.mark.parametrize("m", [1, 2, 3])
@@ -59,7 +62,7 @@ def test_the_closed_form_hessian_takes_one_segment_per_primitive():
     assert torch.allclose(H[:4], He, rtol=1e-8, atol=1e-9)
 
 
-def _cloth_over(mesh_centre=(0.0, -0.05, 0.0), seed=0, n=5):
+def _cloth_over(ball, mesh_centre=(0.0, -0.05, 0.0), seed=0, n=5):
     """A small crumpled sheet of triangles just over an icosphere (some of its pairs within reach, most not)."""
     from latentsim.mesh import cloth_grid
 
@@ -70,8 +73,8 @@ def _cloth_over(mesh_centre=(0.0, -0.05, 0.0), seed=0, n=5):
     return torch.as_tensor(X), np.asarray(tris, np.int64), TriangleMesh(V, F, thickness=0.002)
 
 
-def test_each_kind_of_pair_has_autograds_derivatives_and_its_candidates_miss_nothing():
-    x, tris, mesh = _cloth_over()
+def test_each_kind_of_pair_has_autograds_derivatives_and_its_candidates_miss_nothing(ball):
+    x, tris, mesh = _cloth_over(ball)
     terms = mesh_barriers(mesh, tris, len(x), d_hat=0.01, kappa=1.0)
     assert [t.k for t in terms] == [1, 2, 3]
     for t in terms:
@@ -101,10 +104,10 @@ def test_each_kind_of_pair_has_autograds_derivatives_and_its_candidates_miss_not
         assert torch.allclose(t.energy(xs), torch.stack([t.energy(x), t.energy(x + 0.003)]), rtol=1e-14, atol=0)
 
 
-def test_the_pairs_energy_is_the_ipc_toolkits_distances_barrier():
+def test_the_pairs_energy_is_the_ipc_toolkits_distances_barrier(ball):
     """ipctk's squared distance of each vertex-face, edge-edge and face-vertex pair, brute force over all pairs."""
     ipctk = pytest.importorskip("ipctk")
-    x, tris, mesh = _cloth_over(seed=2)
+    x, tris, mesh = _cloth_over(ball, seed=2)
     d_hat, kappa = 0.01, 1.0
     total = sum(float(t.energy(x)) for t in mesh_barriers(mesh, tris, len(x), d_hat, kappa))
     X, V = x.numpy(), mesh.vertices
@@ -116,11 +119,11 @@ def test_the_pairs_energy_is_the_ipc_toolkits_distances_barrier():
     assert oracle > 0 and math.isclose(total, oracle, rel_tol=1e-10)
 
 
-def test_the_time_of_impact_stops_the_surface_at_its_thickness():
+def test_the_time_of_impact_stops_the_surface_at_its_thickness(ball):
     """A sheet pushed straight down into the mesh: stopped before any point comes within the thickness, and not long
     before (the toolkit's additive CCD stops at a fraction of the distance left)."""
     ipctk = pytest.importorskip("ipctk")
-    x, tris, mesh = _cloth_over(mesh_centre=(0.013, -0.07, -0.007))
+    x, tris, mesh = _cloth_over(ball, mesh_centre=(0.013, -0.07, -0.007))
     lead = mesh_barriers(mesh, tris, len(x), 0.01, 1.0)[0]
     X = x.numpy()
     gap = min(float(t.distances(x, 1.0)) for t in mesh_barriers(mesh, tris, len(x), 0.01, 1.0))
@@ -133,7 +136,7 @@ def test_the_time_of_impact_stops_the_surface_at_its_thickness():
     assert mesh_barriers(mesh, tris, len(x), 0.01, 1.0)[1].first_impact(X, dx) == math.inf  # the vertices' term holds it
 
 
-def test_a_cloth_dropped_on_a_ball_mesh_rests_on_it_with_no_point_within_its_half_thickness():
+def test_a_cloth_dropped_on_a_ball_mesh_rests_on_it_with_no_point_within_its_half_thickness(ball):
     """The sheet held at its corners falls onto a coarse icosphere (80 faces, edges longer than the cloth's cells) under
     its middle: it reaches the mesh's barrier, and on no frame does any pair of the cloth's and the mesh's primitives come
     within the half thickness (the toolkit's distances, brute force) or cross (its intersection test); every step converges."""
@@ -173,7 +176,7 @@ def test_a_cloth_dropped_on_a_ball_mesh_rests_on_it_with_no_point_within_its_hal
     assert x1[:, 1].min() < V[:, 1].max() - 0.005  # the cloth drapes over the ball (not held flat above it)
 
 
-def test_inside_is_the_balls_inside_and_a_vertex_in_the_body_is_measured_by_its_depth():
+def test_inside_is_the_balls_inside_and_a_vertex_in_the_body_is_measured_by_its_depth(ball):
     V, F = ball(0.05, (0.01, 0.02, 0.03), levels=3)
     mesh = TriangleMesh(V, F, thickness=0.001)
     P = np.random.default_rng(3).uniform(-0.08, 0.08, (20000, 3)) + [0.01, 0.02, 0.03]
@@ -184,7 +187,7 @@ def test_inside_is_the_balls_inside_and_a_vertex_in_the_body_is_measured_by_its_
     d = mesh.unsigned_distance(P[:500])
     assert np.all((d >= np.abs(r[:500] - 0.05) - 0.05 * (1 - np.cos(0.2)) - 1e-12) & (d <= np.abs(r[:500] - inner) + 0.05 * (1 - np.cos(0.2))))
     # a sheet with one vertex 2 cm inside the ball: the clearance is that depth (and the thickness); penetrations count it
-    x, tris, _ = _cloth_over(mesh_centre=(0.0, -0.08, 0.0))
+    x, tris, _ = _cloth_over(ball, mesh_centre=(0.0, -0.08, 0.0))
     contact = ContactBarrier(len(x), [], 0.002, 1.0, primitives=tris, meshes=[mesh])
     x = x.clone()
     x[:, 1] += 0.1  # all well above the ball
@@ -198,7 +201,7 @@ def test_inside_is_the_balls_inside_and_a_vertex_in_the_body_is_measured_by_its_
     assert float(contact.energy(x)) + sum(float(t.energy(x)) for t in contact.mesh_terms()) == math.inf
 
 
-def test_the_simulation_stage_reads_a_mesh_collider_from_its_file_and_records_it(tmp_path):
+def test_the_simulation_stage_reads_a_mesh_collider_from_its_file_and_records_it(tmp_path, ball):
     """A user's own OBJ under the cloth: read, placed, its surface in the trajectories file, from which the barrier is
     rebuilt; a mesh the rest cloth starts inside is named by its config key."""
     import h5py
@@ -235,7 +238,7 @@ def test_the_simulation_stage_reads_a_mesh_collider_from_its_file_and_records_it
         simulate_scene("cloth", mesh_h5, cfg, tmp_path / "t3.h5")
 
 
-def test_a_surface_of_vertices_alone_is_held_off_the_mesh_and_its_impacts_found():
+def test_a_surface_of_vertices_alone_is_held_off_the_mesh_and_its_impacts_found(ball):
     """Without primitives (the vertices alone) one term: the vertices against the faces, with the line search's impacts."""
     V, F = ball(0.05, (0.0, 0.0, 0.0))
     contact = ContactBarrier(3, [], 0.001, 1.0, meshes=[TriangleMesh(V, F)])
