@@ -251,7 +251,9 @@ def test_a_divergence_bound_at_or_below_the_rest_shape_is_named_on_load(tiny, bo
 
 # --- a collider with a bad field ------------------------------------------------------------------
 
-KINDS = r"'type' one of \['half_space', 'sphere', 'capsule'\] and its fields: half_space \(point, normal; optional: attached\); sphere \(centre, radius; optional: attached\); capsule \(a, b, radius; optional: attached\)"
+KINDS = (r"'type' one of \['half_space', 'sphere', 'capsule', 'mesh'\] and its fields: half_space \(point, normal; optional: attached\); sphere "
+         r"\(centre, radius; optional: attached\); capsule \(a, b, radius; optional: attached\); mesh \(file; optional: sha256, scale, rotate_axis, "
+         r"rotate_degrees, translate\)")
 
 
 @pytest.mark.parametrize(
