@@ -37,7 +37,7 @@ import torch
 
 from latentsim.physics.barrier import barrier, barrier_derivatives
 from latentsim.physics.base import EnergyTerm, project_psd
-from latentsim.physics.mesh_contact import MeshBarrier, mesh_barriers
+from latentsim.physics.mesh_contact import mesh_barriers
 from latentsim.physics.primitives import closest_on_segment, core_distance, distance_hessian, plane_distance, primitive_toi
 
 
@@ -367,15 +367,8 @@ class ContactBarrier(EnergyTerm):
     def mesh_terms(self) -> list:
         """The terms holding the surface (its ``primitives``, or the vertices alone) off each of the ``meshes``."""
         if self._mesh_terms is None:
-            n = len(self.stencils)
-            prim = self.primitives.numpy() if self.primitives is not None else None
-            self._mesh_terms = []
-            for mesh in self.meshes:
-                if prim is None:
-                    self._mesh_terms.append(MeshBarrier(mesh, np.arange(n)[:, None], self.d_hat, self.kappa, self.extend_below,
-                                                        surface=(np.zeros((0, 2), np.int64), np.zeros((0, 3), np.int64))))  # fmt: skip
-                else:
-                    self._mesh_terms += mesh_barriers(mesh, prim, n, self.d_hat, self.kappa, self.extend_below)
+            prim = None if self.primitives is None else self.primitives.numpy()
+            self._mesh_terms = [t for m in self.meshes for t in mesh_barriers(m, prim, len(self.stencils), self.d_hat, self.kappa, self.extend_below)]
         return self._mesh_terms
 
     @property

@@ -185,7 +185,7 @@ class TriangleMesh:
         P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         if not len(P):
             return np.zeros(0)
-        d_v, _ = cKDTree(self.vertices).query(P)
+        d_v, _ = self._trees[3][0].query(P)  # (the tree over the vertices)
         tree, r_max = self._trees[1]
         hits = tree.query_ball_point(P, d_v + r_max)
         counts = np.fromiter(map(len, hits), dtype=np.int64, count=len(P))
@@ -331,7 +331,10 @@ def mesh_barriers(mesh: TriangleMesh, primitives, n_vertices: int, d_hat: float,
                   extend_below: float | None = None) -> list[MeshBarrier]:  # fmt: skip
     """The terms that hold a surface off ``mesh``: its vertices against the faces, its edges against the edges and (a
     surface of triangles) its triangles against the vertices.  ``primitives``: the surface's edges (P, 2) (a strand)
-    or triangles (P, 3); its vertices are those the primitives use, of ``n_vertices``."""
+    or triangles (P, 3), its vertices those they use; None: every one of the ``n_vertices`` alone, against the faces."""
+    if primitives is None:
+        none = (np.zeros((0, 2), np.int64), np.zeros((0, 3), np.int64))
+        return [MeshBarrier(mesh, np.arange(n_vertices)[:, None], d_hat, kappa, extend_below, surface=none)]
     prim = np.asarray(primitives, dtype=np.int64)
     if prim.ndim != 2 or prim.shape[1] not in (2, 3) or (len(prim) and (prim.min() < 0 or prim.max() >= n_vertices)):
         raise ValueError(f"mesh contact: primitives of shape {prim.shape} over {n_vertices} vertices (give edges or triangles)")
