@@ -528,3 +528,47 @@ def test_ground_truth_solves_in_the_order_given_and_returns_the_rows_order(sheet
     assert np.abs(x1 - x0).max() <= 1e-3 * np.abs(x0 - V).max() and np.allclose(e1, e0, rtol=1e-5)
     with pytest.raises(ValueError, match="permutation"):
         ground_truth(pot, V, lm.modes, z, rigid=R, order=[0, 0, 1])
+
+
+def test_a_killed_ground_truth_resumes_from_its_checkpoint_to_the_same_result(sheet_setup, tmp_path, monkeypatch):
+    """Sets solved in one go, and the same job killed in its second set and run again on its checkpoint: the
+    second run solves only the samples the first did not finish, and every position, energy, residual and
+    iteration count equals the uninterrupted ones to the bit (the resumed sample starts from the correction
+    of the one before, as in one go).  A checkpoint of other settings is ignored and the result is the same."""
+    from latentsim.neural_modes import sheet
+    from latentsim.solve.constrained import ConstrainedNewton
+
+    pot, V, lm, R = sheet_setup
+    sets = {
+        "a": modal_samples("grid", 2, 0.1, resolution=2).double().numpy(),
+        "b": modal_samples("grid", 2, 0.15, resolution=3).double().numpy(),
+    }
+    ref = sheet.solve_sets(pot, V, lm.modes, sets, rigid=R)
+    calls = []
+    solve = ConstrainedNewton.solve
+
+    def counted(self, *a, **kw):
+        if len(calls) == kill_after:
+            raise KeyboardInterrupt("killed")
+        calls.append(1)
+        return solve(self, *a, **kw)
+
+    monkeypatch.setattr(ConstrainedNewton, "solve", counted)
+    monkeypatch.setattr(sheet, "CHECKPOINT_SECONDS", 0.0)  # written after every sample
+    path = tmp_path / "gt.checkpoint.npz"
+    kill_after = len(sets["a"]) + 3
+    with pytest.raises(KeyboardInterrupt):
+        sheet.solve_sets(pot, V, lm.modes, sets, rigid=R, checkpoint=path, fingerprint="f")
+    assert path.exists()
+    calls.clear()
+    kill_after = -1
+    resumed = sheet.solve_sets(pot, V, lm.modes, sets, rigid=R, checkpoint=path, fingerprint="f")
+    assert len(calls) == len(sets["b"]) - 3  # only the samples not solved before the kill
+    calls.clear()
+    other = sheet.solve_sets(pot, V, lm.modes, sets, rigid=R, checkpoint=path, fingerprint="another")
+    assert len(calls) == len(sets["a"]) + len(sets["b"])
+    for got in (resumed, other):
+        for name in sets:
+            for key in ("x", "energy", "residual", "iterations"):
+                np.testing.assert_array_equal(got[name][key], ref[name][key], err_msg=f"{name} {key}")
+            assert got[name]["seconds"] > 0

@@ -71,6 +71,7 @@ rule nm_summary:
 
 
 # Ground truth of Eq. 9 on a study's sample sets (constrained Newton per sample); retraining never re-solves it.
+# A killed job resumes from its checkpoint (the samples solved so far).
 rule nm_ground_truth:
     input:
         mesh="results/mesh/{scene}/mesh.h5",
@@ -92,6 +93,7 @@ rule nm_ground_truth:
     params:
         gt=nm_ground_truth_params,
         study="{study}",
+        checkpoint="results/neural_modes/{scene}/{study}/ground_truth.checkpoint.npz",
     script:
         "../scripts/nm_ground_truth.py"
 

@@ -11,6 +11,7 @@ def main(smk):
         smk.params.gt,
         smk.output.ground_truth,
         progress=progress_enabled(smk.config.get("progress", True)),
+        checkpoint=smk.params.checkpoint,
     )
 
 

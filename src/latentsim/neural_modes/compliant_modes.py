@@ -20,7 +20,7 @@ __all__ = ["ground_truth"]
 
 def ground_truth(
     potential, rest_positions, modes, z, free_dofs=None, rigid=None, metric="euclidean", rtol=1e-5, etol=1e-7, max_iter=60, progress=None,
-    order=None,
+    order=None, resume=None, solved=None,
 ):  # fmt: skip
     """Eq. 9 for every row of z (N, m): positions (N, n, 3), energies (N,), infos (in the rows' order).
 
@@ -36,6 +36,11 @@ def ground_truth(
     decides which one a sample lands in (``benchmarks/nm_ground_truth_order.py`` measures it: on the
     sheet a nearest-neighbour order's solutions lie a median 19% of the displacement from the rows'
     order's), so the order is part of the ground truth's definition, not only of its cost.
+
+    ``resume``: (x, infos) of the first k samples of the order, solved before (a killed job's
+    checkpoint): they are taken as they are and the solve goes on at the (k+1)-th, from the correction
+    of the k-th, so that a resumed set equals one solved in one go.  ``solved(done, x, info)`` is called
+    after each sample (x flat) with the number of samples done, for a checkpoint.
     """
     solver = ConstrainedNewton(potential, rest_positions, free_dofs, rigid, metric)
     E = np.asarray(modes, dtype=np.float64)
@@ -45,8 +50,19 @@ def ground_truth(
     visit = np.arange(len(z)) if order is None else np.asarray(order, dtype=np.int64)
     if sorted(visit.tolist()) != list(range(len(z))):
         raise ValueError(f"ground_truth: order must be a permutation of the {len(z)} rows of z")
-    y_prev = None
-    for done, i in enumerate(visit):
+    y_prev, start = None, 0
+    if resume is not None:
+        x_done, infos_done = resume
+        start = len(infos_done)
+        if start > len(z) or len(x_done) != start:
+            raise ValueError(f"ground_truth: resume holds {len(x_done)} positions and {start} infos for {len(z)} samples")
+        for k in range(start):
+            out[visit[k]], infos[visit[k]] = np.asarray(x_done[k], dtype=np.float64).reshape(-1), infos_done[k]
+        if start:
+            last = visit[start - 1]
+            y_prev = out[last] - X - E @ z[last]
+    for done in range(start, len(visit)):
+        i = visit[done]
         l = E @ z[i]
         y0 = None
         if y_prev is not None and solver.energy(X + l + y_prev) < solver.energy(X + l):
@@ -60,6 +76,8 @@ def ground_truth(
         out[i] = x
         infos[i] = info
         y_prev = x - X - l
+        if solved is not None:
+            solved(done + 1, x, info)
         if progress is not None:
             progress(done, info)
     return out.reshape(len(z), -1, 3), np.array([i.energy for i in infos]), infos

@@ -21,22 +21,26 @@ import copy
 import logging
 import sys
 import time
+import typing
+from pathlib import Path
 
 import numpy as np
 import torch
 from tqdm.auto import tqdm
 
 from latentsim.config import with_defaults
+from latentsim.io import atomic_path
 from latentsim.neural_modes.baselines import SHARP, autoencoder_along_training, mode_collapse, train_l2_supervised
 from latentsim.neural_modes.compliant_modes import ground_truth
 from latentsim.neural_modes.metrics import METRICS, STOPPING, checkpoints, metric_vector, stopping_index
 from latentsim.neural_modes.network import from_config
 from latentsim.neural_modes.symmetry import half_turn, latent_walk, symmetry_error
 from latentsim.neural_modes.training import modal_samples, train_neural_modes
+from latentsim.solve.constrained import CompliantInfo
 
 log = logging.getLogger(__name__)
 
-__all__ = ["AUTOENCODERS", "SHEET_METHODS", "SUPERVISED", "TRAIN_SET", "WALKS", "run_sheet_study", "sample_sets", "solve_sets"]
+__all__ = ["AUTOENCODERS", "GroundTruthCheckpoint", "SHEET_METHODS", "SUPERVISED", "TRAIN_SET", "WALKS", "run_sheet_study", "sample_sets", "solve_sets"]
 
 
 def sample_sets(m: int, box: float, train_grid=9, val_grid=7, test_grid=11, random_count=729, seed=0) -> dict:
@@ -50,24 +54,108 @@ def sample_sets(m: int, box: float, train_grid=9, val_grid=7, test_grid=11, rand
     }
 
 
-def solve_sets(potential, X, modes, sets: dict, free_dofs=None, rigid=None, metric="euclidean", max_iter=40, progress=False) -> dict:
+def solve_sets(
+    potential, X, modes, sets: dict, free_dofs=None, rigid=None, metric="euclidean", max_iter=40, progress=False, checkpoint=None, fingerprint="",
+) -> dict:  # fmt: skip
     """Ground truth (Eq. 9) for every set: {name: {z, x (N,n,3), energy, residual, iterations, seconds}}.
 
     ``free_dofs`` (Dirichlet modes: the prescribed DoFs stay at rest) and ``rigid`` (free-floating:
     the correction is held M-orthogonal to the rigid modes) as :func:`compliant_modes.ground_truth`.
+    ``checkpoint``: a file the samples solved so far are written to (:class:`GroundTruthCheckpoint`,
+    tagged ``fingerprint``), from which a killed job resumes to the same result; None, none.
     """
+    saved = GroundTruthCheckpoint(checkpoint, fingerprint) if checkpoint is not None else None
     out = {}
     for name, z in sets.items():
+        x_done, infos_done, seconds_before = saved.resume(name) if saved is not None else ([], [], 0.0)
         t0 = time.perf_counter()
-        with tqdm(total=len(z), desc=f"ground truth {name}", disable=not progress, file=sys.stderr, leave=False) as bar:
+        with tqdm(total=len(z), initial=len(infos_done), desc=f"ground truth {name}", disable=not progress, file=sys.stderr, leave=False) as bar:
             x, e, infos = ground_truth(
-                potential, X, modes, z, free_dofs=free_dofs, rigid=rigid, metric=metric, max_iter=max_iter, progress=lambda i, info: bar.update(1)
-            )
+                potential, X, modes, z, free_dofs=free_dofs, rigid=rigid, metric=metric, max_iter=max_iter,
+                progress=lambda i, info: bar.update(1), resume=(x_done, infos_done) if infos_done else None,
+                solved=None if saved is None else saved.recorder(name, seconds_before - t0),
+            )  # fmt: skip
+        seconds = seconds_before + time.perf_counter() - t0
+        if saved is not None:
+            saved.write()
         res = np.array([i.residual for i in infos])
         its = np.array([i.iterations for i in infos])
-        out[name] = {"z": np.asarray(z), "x": x, "energy": e, "residual": res, "iterations": its, "seconds": time.perf_counter() - t0}
-        log.info("ground truth %s: %d samples in %.0f s, median KKT residual %.1e, iterations %.1f", name, len(z), out[name]["seconds"], np.median(res), its.mean())
+        out[name] = {"z": np.asarray(z), "x": x, "energy": e, "residual": res, "iterations": its, "seconds": seconds}
+        log.info("ground truth %s: %d samples in %.0f s, median KKT residual %.1e, iterations %.1f", name, len(z), seconds, np.median(res), its.mean())
     return out
+
+
+CHECKPOINT_SECONDS = 300.0  # how often a ground truth's checkpoint is rewritten while a set is solved
+
+
+class GroundTruthCheckpoint:
+    """The samples of a ground truth solved so far, per set, in a file rewritten whole (atomically) every
+    ``every`` seconds and at the end of each set, so that a killed ``nm_ground_truth`` job resumes where it
+    stopped instead of from the first sample (its largest set takes hours on the armadillo).  The file
+    holds ``fingerprint`` (what the job computes: settings and inputs); one that does not match is
+    ignored, with a warning.  The stage removes it once the ground truth is written.
+    """
+
+    def __init__(self, path, fingerprint: str, every: float | None = None):
+        self.path, self.fingerprint = Path(path), str(fingerprint)
+        self.every = CHECKPOINT_SECONDS if every is None else float(every)
+        self.sets = self._read()  # name -> {"x": [flat positions], "infos": [CompliantInfo], "seconds": float}
+        self.last_write = time.monotonic()
+
+    def _read(self) -> dict:
+        if not self.path.exists():
+            return {}
+        with np.load(self.path) as f:
+            if str(f["fingerprint"]) != self.fingerprint:
+                log.warning("%s belongs to another ground truth (settings or inputs): starting over", self.path)
+                return {}
+            sets = {}
+            for name in f["names"].tolist():
+                rows = f[f"{name}__info"]
+                infos = [CompliantInfo(**{k: cast(v) for (k, cast), v in zip(_INFO_FIELDS, row)}) for row in rows]
+                sets[name] = {"x": list(f[f"{name}__x"]), "infos": infos, "seconds": float(f[f"{name}__seconds"])}
+        return sets
+
+    def resume(self, name: str) -> tuple[list, list, float]:
+        """The positions, infos and seconds of the samples of set ``name`` solved before."""
+        s = self.sets.get(name)
+        if s is None or not s["infos"]:
+            return [], [], 0.0
+        log.info("ground truth %s: resuming after %d samples (%.0f s) from %s", name, len(s["infos"]), s["seconds"], self.path)
+        return s["x"], s["infos"], s["seconds"]
+
+    def recorder(self, name: str, offset: float):
+        """The ``solved`` callback of :func:`ground_truth` for set ``name``: a set's seconds are ``offset``
+        plus the clock (its earlier seconds less the start of this job's solve)."""
+        s = self.sets.setdefault(name, {"x": [], "infos": [], "seconds": 0.0})
+
+        def solved(done, x, info):
+            s["x"].append(np.asarray(x, dtype=np.float64).reshape(-1))
+            s["infos"].append(info)
+            s["seconds"] = offset + time.perf_counter()
+            if len(s["infos"]) != done:
+                raise RuntimeError(f"ground truth {name}: {len(s['infos'])} samples recorded for {done} solved")
+            if time.monotonic() - self.last_write >= self.every:
+                self.write()
+
+        return solved
+
+    def write(self) -> None:
+        arrays = {"fingerprint": np.array(self.fingerprint), "names": np.array(list(self.sets))}
+        for name, s in self.sets.items():
+            arrays[f"{name}__x"] = np.array(s["x"]) if s["x"] else np.empty((0, 0))
+            arrays[f"{name}__info"] = np.array([[float(getattr(i, k)) for k, _ in _INFO_FIELDS] for i in s["infos"]]).reshape(-1, len(_INFO_FIELDS))
+            arrays[f"{name}__seconds"] = np.array(s["seconds"])
+        with atomic_path(self.path) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, **arrays)
+        self.last_write = time.monotonic()
+
+    def remove(self) -> None:
+        self.path.unlink(missing_ok=True)
+
+
+_INFO_FIELDS = tuple(typing.get_type_hints(CompliantInfo).items())  # (name, type) of each field, in order
 
 
 # --------------------------------------------------------------------------------------------------

@@ -20,6 +20,7 @@ Each stage reads its inputs, calls the package and writes its artefacts atomical
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import logging
 import shutil
@@ -33,6 +34,7 @@ import pandas as pd
 import torch
 
 from latentsim import neural_modes as nm
+from latentsim.checksum import KEY as CHECKSUM_KEY
 from latentsim.config import with_defaults
 from latentsim.io import ArtefactError, atomic_h5, atomic_path, open_artefact, read_mesh_arrays, read_tree, require, write_dataset, write_tree
 from latentsim.latent import save_module
@@ -238,19 +240,29 @@ def study_sets(study: str, m: int, box: float, sets: dict, seed: int) -> dict:
     raise ValueError(f"study {study!r} has no ground truth; studies with one: {sorted(SET_KEYS)}")
 
 
-def ground_truth_stage(mesh_h5, modes_h5, study: str, params: dict, out_h5, progress: bool = False):
-    """Stage ``nm_ground_truth``: Eq. 9 for every sample of a study's sets (``ground_truth.h5``)."""
+def ground_truth_stage(mesh_h5, modes_h5, study: str, params: dict, out_h5, progress: bool = False, checkpoint=None):
+    """Stage ``nm_ground_truth``: Eq. 9 for every sample of a study's sets (``ground_truth.h5``).
+
+    ``checkpoint``: where the samples solved so far are kept while the job runs
+    (:class:`~latentsim.neural_modes.sheet.GroundTruthCheckpoint`), so that a killed job resumes; removed
+    once the ground truth is written."""
     pot, _ = scene_potential(mesh_h5, params["model"], params["material"])
     basis = read_linear_modes(modes_h5)
     nmc = params["neural_modes"]
     sets = study_sets(study, basis["modes"].shape[1], float(nmc["box"]), params["sets"], params["seed"])
+    what = hashlib.sha256(json.dumps({"study": study, "params": params}, sort_keys=True, default=str).encode())
+    for path in (mesh_h5, modes_h5):
+        with open_artefact(path) as f:
+            what.update(str(f.attrs[CHECKSUM_KEY]).encode())
     gt = nm_sheet.solve_sets(
         pot, basis["X"], basis["modes"], sets, free_dofs=basis["free_dofs"], rigid=basis["rigid"], metric=nmc["metric"],
-        max_iter=int(params["max_iterations"]), progress=progress,
+        max_iter=int(params["max_iterations"]), progress=progress, checkpoint=checkpoint, fingerprint=what.hexdigest(),
     )  # fmt: skip
     tree = {name: {k: (float(v) if k == "seconds" else np.asarray(v)) for k, v in s.items()} for name, s in gt.items()}
     with atomic_h5(out_h5, config=params, seed=params["seed"]) as f:
         write_tree(f.create_group("sets", track_order=True), tree)
+    if checkpoint is not None:
+        Path(checkpoint).unlink(missing_ok=True)
 
 
 # --------------------------------------------------------------------------------------------------
