@@ -5,7 +5,8 @@ the largest free-DoF residual compared with the solver's tolerance (a scene with
 gradient included).  Tet scenes also report the frames that end with an inverted tet; scenes with colliders the
 nearest approach of any vertex, edge or triangle to one over every frame (negative: inside); scenes with a mesh
 collider, by the IPC Toolkit as a second implementation, the frames where the surface crosses it (its intersection
-test) and the least distance between them less the thickness (its distances over the pairs within 1 cm).
+test) and the least distance between them less the thickness (its distances over the pairs within 1 cm); scenes with
+self-contact, the same of the surface against itself (less its thickness there, twice the colliders').
 
     python benchmarks/check_frames.py [results/sim]
 
@@ -32,7 +33,7 @@ def check(path: Path) -> dict:
         free = np.setdiff1d(np.arange(len(f["rest_positions"])), f["dirichlet"][()])
         law = str(f.attrs.get(MATERIAL_MODEL_ATTR, "stvk"))
         worst, frames, inverted, nearest = 0.0, 0, 0, float("inf")
-        crossing, mesh_nearest = 0, float("inf")
+        crossing, mesh_nearest, self_crossing, self_nearest = 0, float("inf"), 0, float("inf")
         for name, grp in f["sequences"].items():
             if name.endswith("_train") and name[: -len("_train")] in f["sequences"]:
                 continue  # the first frames of a sequence stored whole
@@ -48,16 +49,20 @@ def check(path: Path) -> dict:
             if pot.contact is not None:
                 nearest = min(nearest, float(pot.contact.clearance(X, XD).min()))
                 for mesh in pot.contact.meshes:
-                    c, d = _toolkit_check(mesh, pot.contact.primitives.numpy(), X.numpy())
+                    c, d = _toolkit_check(pot.contact.primitives.numpy(), X.numpy(), mesh)
                     crossing, mesh_nearest = crossing + c, min(mesh_nearest, d)
+                if pot.contact.self_contact is not None:
+                    c, d = _toolkit_check(pot.contact.primitives.numpy(), X.numpy(), None, pot.contact.self_contact)
+                    self_crossing, self_nearest = self_crossing + c, min(self_nearest, d)
             if "inverted_tets" in grp:
                 inverted += int((grp["inverted_tets"][1:] > 0).sum())
-    return dict(law=law, frames=frames, worst=worst, inverted=inverted, nearest=nearest, crossing=crossing, mesh_nearest=mesh_nearest)
+    return dict(law=law, frames=frames, worst=worst, inverted=inverted, nearest=nearest, crossing=crossing, mesh_nearest=mesh_nearest,
+                self_crossing=self_crossing, self_nearest=self_nearest)  # fmt: skip
 
 
-def _toolkit_check(mesh, primitives, X) -> tuple[int, float]:
-    """The frames of X (T, n, 3) whose surface (``primitives``, edges or triangles) crosses ``mesh``, and the least
-    distance between them less the mesh's thickness, by the IPC Toolkit."""
+def _toolkit_check(primitives, X, mesh=None, thickness: float = 0.0) -> tuple[int, float]:
+    """The frames of X (T, n, 3) whose surface (``primitives``, edges or triangles) crosses ``mesh`` (None: itself), and
+    the least distance between them less the mesh's thickness (itself: less ``thickness``), by the IPC Toolkit."""
     import ipctk
 
     from latentsim.physics.mesh_contact import unique_edges
@@ -65,18 +70,20 @@ def _toolkit_check(mesh, primitives, X) -> tuple[int, float]:
     n = X.shape[1]
     tris = primitives if primitives.shape[1] == 3 else np.zeros((0, 3), np.int64)
     edges = primitives if primitives.shape[1] == 2 else unique_edges(primitives)
-    E = np.vstack([edges, mesh.edges + n]).astype(np.int32)
-    F = np.vstack([tris, mesh.faces + n]).astype(np.int32)
-    cm = ipctk.CollisionMesh(np.asfortranarray(np.vstack([X[0], mesh.vertices])), np.asfortranarray(E), np.asfortranarray(F))
-    cm.can_collide = ipctk.make_static_obstacle_filter(n)
+    V = np.zeros((0, 3)) if mesh is None else mesh.vertices
+    if mesh is not None:
+        edges, tris, thickness = np.vstack([edges, mesh.edges + n]), np.vstack([tris, mesh.faces + n]), mesh.thickness
+    cm = ipctk.CollisionMesh(np.asfortranarray(np.vstack([X[0], V])), np.asfortranarray(edges.astype(np.int32)), np.asfortranarray(tris.astype(np.int32)))
+    if mesh is not None:
+        cm.can_collide = ipctk.make_static_obstacle_filter(n)
     crossing, nearest = 0, float("inf")
     for x in X:
-        W = np.asfortranarray(np.vstack([x, mesh.vertices]))
+        W = np.asfortranarray(np.vstack([x, V]))
         crossing += bool(ipctk.has_intersections(cm, W))
         pairs = ipctk.NormalCollisions()
         pairs.build(cm, W, 0.01)
         if len(pairs):
-            nearest = min(nearest, float(np.sqrt(pairs.compute_minimum_distance(cm, W))) - mesh.thickness)
+            nearest = min(nearest, float(np.sqrt(pairs.compute_minimum_distance(cm, W))) - thickness)
     return crossing, nearest
 
 
@@ -90,13 +97,14 @@ def main(argv=None) -> None:
         found = "no such folder" if not root.is_dir() else "no <scene>/trajectories.h5 in it"
         parser.exit(1, f"check_frames: {root}: {found}; nothing to check (a run's simulations are in results/sim)\n")
     print("| scene | material | frames | max residual / tolerance (autograd) | frames ending with an inverted tet | nearest approach to a collider [m] "
-          "| mesh collider (IPC Toolkit): frames crossing, nearest [m] |")  # fmt: skip
-    print("|---|---|---|---|---|---|---|")
+          "| mesh collider (IPC Toolkit): frames crossing, nearest [m] | self-contact (IPC Toolkit): frames crossing, nearest [m] |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|")
     for path in paths:
         r = check(path)
         near = "-" if r["nearest"] == float("inf") else f"{r['nearest']:.3g}"
         mesh = "-" if r["mesh_nearest"] == float("inf") else f"{r['crossing']}, {r['mesh_nearest']:.3g}"
-        print(f"| {path.parent.name} | {r['law']} | {r['frames']} | {r['worst']:.2f} | {r['inverted']} | {near} | {mesh} |", flush=True)
+        own = "-" if r["self_nearest"] == float("inf") else f"{r['self_crossing']}, {r['self_nearest']:.3g}"
+        print(f"| {path.parent.name} | {r['law']} | {r['frames']} | {r['worst']:.2f} | {r['inverted']} | {near} | {mesh} | {own} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -422,8 +422,12 @@ def _train_frames(scene: dict) -> list[int]:
 
 
 def _check_contact_projection(config: dict) -> None:
-    """A scene whose rollouts are projected out of its colliders has colliders."""
+    """A scene whose rollouts are projected out of its colliders, or whose surface is held off itself, has colliders
+    (contact is on in a scene with colliders)."""
     for name, scene in config.get("scenes", {}).items():
+        if (scene.get("contact") or {}).get("self_contact") and not scene["contact"].get("colliders"):
+            raise ConfigError(f"config key 'scenes.{name}.contact.self_contact': contact is on in a scene with colliders, and this one "
+                              f"has none (give at least one under 'scenes.{name}.contact.colliders', a floor for example)")  # fmt: skip
         if (scene.get("rollout") or {}).get("contact_projection", {}).get("enabled") and not (scene.get("contact") or {}).get("colliders"):
             raise ConfigError(f"config key 'scenes.{name}.rollout.contact_projection.enabled': the scene has no colliders to project its "
                               f"frames out of (give them under 'scenes.{name}.contact.colliders', or leave the projection off)")  # fmt: skip

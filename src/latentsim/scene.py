@@ -31,7 +31,8 @@ from latentsim.mesh.build import collider_mesh
 from latentsim.mesh.surface import surface_of
 from latentsim.physics import rods, shells, tets
 from latentsim.physics.materials import MATERIALS, MODEL_STENCILS, materials_of
-from latentsim.physics.contact import Capsule, ContactBarrier, HalfSpace, Sphere, posed_colliders
+from latentsim.physics.colliders import Capsule, HalfSpace, Sphere, posed_colliders
+from latentsim.physics.contact import ContactBarrier
 from latentsim.physics.mesh_contact import TriangleMesh
 from latentsim.physics.incremental_potential import ElasticPotential, IncrementalPotential
 
@@ -324,11 +325,12 @@ def surface_primitives(model: str, arrays: dict):
 
 def contact_barrier(contact: dict, n_vertices: int, rest_positions, dirichlet, dt: float, primitives=None, meshes=None) -> ContactBarrier:
     """The barrier of a resolved ``contact`` block (:func:`contact_settings`): its colliders, thickened by its
-    ``thickness`` (absent: 0; :meth:`~latentsim.physics.contact.Collider.thickened`), those with
+    ``thickness`` (absent: 0; :meth:`~latentsim.physics.colliders.Collider.thickened`), those with
     ``attached: true`` moving rigidly with the prescribed vertices ``dirichlet`` (indices into
     ``rest_positions``), its friction (static below a slip of ``friction_velocity`` times the time step
     ``dt``), and the surface's ``primitives`` (:func:`surface_primitives`; None: the vertices alone).  A ``mesh`` entry's
-    surface is ``meshes`` {its index: (V, F)} (:func:`collider_meshes`); the barrier lists the analytic colliders, then the meshes."""
+    surface is ``meshes`` {its index: (V, F)} (:func:`collider_meshes`); the barrier lists the analytic colliders, then the meshes.
+    ``self_contact: true``: the surface is also held off itself, its parts twice the thickness apart."""
     analytic = [q for q in contact["colliders"] if q["type"] != "mesh"]
     attached = [bool(q.get("attached", False)) for q in analytic]
     rest_D = np.asarray(rest_positions, dtype=float)[np.asarray(dirichlet, dtype=np.int64)] if any(attached) else None
@@ -343,8 +345,11 @@ def contact_barrier(contact: dict, n_vertices: int, rest_positions, dirichlet, d
                 if i not in (meshes or {}):
                     raise ValueError(f"entry {i} is a mesh ({q.get('file')}) whose surface was not read (its arrays {COLLIDER_MESH_KEYS[0].format(i)})")
                 bodies.append(TriangleMesh(*meshes[i], thickness=thickness))
+        own = 2 * thickness if contact.get("self_contact") else None  # two parts of the surface, each reaching out its thickness
+        if own is not None and primitives is None:
+            raise ValueError("self_contact: the scene's model has no surface of edges or triangles to hold off itself")
         return ContactBarrier(n_vertices, shapes, contact["d_hat"], contact["kappa"], attached=attached, rest_dirichlet=rest_D,
-                              friction=mu, slip=slip, primitives=primitives, meshes=bodies)  # fmt: skip
+                              friction=mu, slip=slip, primitives=primitives, meshes=bodies, self_contact=own)  # fmt: skip
     except ValueError as e:
         raise ValueError(f"contact.colliders: {e}") from None
 
@@ -352,7 +357,7 @@ def contact_barrier(contact: dict, n_vertices: int, rest_positions, dirichlet, d
 def posed_collider_entries(entries, rest_dirichlet, targets) -> list[dict]:
     """A scene's ``contact.colliders`` entries where they stand when the prescribed vertices (rest positions
     ``rest_dirichlet`` (m, 3)) are at ``targets`` (m, 3): every attached one carried by their rigid motion
-    (:func:`~latentsim.physics.contact.posed_colliders`), the static ones as they are."""
+    (:func:`~latentsim.physics.colliders.posed_colliders`), the static ones as they are."""
     attached = [bool(q.get("attached")) for q in entries]
     if not any(attached):
         return list(entries)
@@ -379,6 +384,8 @@ def contact_settings(contact: dict, rest_positions, masses, gravity, own: float 
     thickness = own if contact.get("thickness") is None else float(contact["thickness"])
     if thickness or own:
         out["thickness"] = float(thickness)
+    if contact.get("self_contact"):  # (likewise without self-contact)
+        out["self_contact"] = True
     if contact.get("friction"):  # (a frictionless block resolves as it did before friction existed)
         out.update(friction=float(contact["friction"]), friction_velocity=float(contact.get("friction_velocity") or FRICTION_VELOCITY))
     return out

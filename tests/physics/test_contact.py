@@ -8,7 +8,9 @@ import pytest
 import torch
 
 from latentsim.physics.base import autograd_gradient_hessian
-from latentsim.physics.contact import Capsule, ContactBarrier, HalfSpace, Sphere, barrier, barrier_derivatives
+from latentsim.physics.barrier import barrier, barrier_derivatives
+from latentsim.physics.colliders import Capsule, HalfSpace, Sphere
+from latentsim.physics.contact import ContactBarrier
 from latentsim.physics.frame import Frame
 from latentsim.solve.newton import max_step
 
@@ -404,7 +406,7 @@ REST_D = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.0, 0.1], [0.1, 0.02
 
 
 def test_rigid_pose_recovers_a_rigid_motion_of_the_prescribed_vertices_batched():
-    from latentsim.physics.contact import rigid_pose
+    from latentsim.physics.colliders import rigid_pose
 
     motions = [_rigid(s) for s in range(4)]
     c0 = REST_D.mean(0)

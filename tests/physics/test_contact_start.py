@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from latentsim.config import with_defaults
-from latentsim.physics.contact import ContactBarrier, HalfSpace, Sphere
+from latentsim.physics.colliders import HalfSpace, Sphere
+from latentsim.physics.contact import ContactBarrier
 from latentsim.stages.mesh import prepare_mesh
 from latentsim.stages.simulate import SimulationError, simulate_scene
 
@@ -62,13 +63,29 @@ def test_a_collider_the_rest_mesh_starts_inside_is_named_before_any_frame(tmp_pa
     assert (tmp_path / "trajectories.h5").exists()
 
 
+def test_a_rest_mesh_within_its_own_self_contact_thickness_is_named_before_any_frame(tmp_path):
+    """With self-contact the cloth's parts keep twice contact.thickness apart: at 2 cm (4 cm) the rest grid's nearest
+    primitives sharing no vertex, 2.83 cm apart (a vertex and the cell diagonal beside it), are within it; at 5 mm it runs."""
+    mesh_h5, cfg = _cloth(tmp_path, [30, 35])
+    cfg["contact"] = {"colliders": [FLOOR], "self_contact": True, "thickness": 0.02}
+    _refused_then_run(tmp_path, mesh_h5, cfg, r"scene 'cloth': initial self-contact: two parts of the rest mesh lie 0\.0283 m apart, within the "
+                                              r"thickness 0\.04 m they keep \(config key 'scenes\.cloth\.contact\.self_contact'", "thickness", 0.005)  # fmt: skip
+
+
+def _refused_then_run(tmp_path, mesh_h5, cfg, match: str, key: str, value) -> None:
+    """The simulation stage refuses ``cfg`` with an error matching ``match``, writing nothing; with contact.``key`` set to
+    ``value`` it runs."""
+    with pytest.raises(SimulationError, match=match):
+        simulate_scene("cloth", mesh_h5, cfg, tmp_path / "trajectories.h5")
+    assert not (tmp_path / "trajectories.h5").exists()
+    cfg["contact"][key] = value
+    simulate_scene("cloth", mesh_h5, cfg, tmp_path / "trajectories.h5")
+    assert (tmp_path / "trajectories.h5").exists()
+
+
 def test_a_d_hat_too_large_for_the_built_mesh_stops_the_simulation(tmp_path):
     """The issue's case, 1.0 m on a 0.2 m cloth (thrown 1.75 diagonals in frame 1): above 0.05 of the rest diagonal."""
     mesh_h5, cfg = _cloth(tmp_path, [30, 35])
     cfg["contact"] = {"colliders": [FLOOR], "d_hat": 1.0}
-    with pytest.raises(SimulationError, match=rf"scene 'cloth' \({re.escape(str(mesh_h5))}\): config key 'scenes\.cloth\.contact\.d_hat': 1\.0 m is 3\.54 times the "
-                                              r"rest bounding-box diagonal \(0\.283 m\).*at most 0\.05 of the diagonal \(0\.0141 m\)"):  # fmt: skip
-        simulate_scene("cloth", mesh_h5, cfg, tmp_path / "trajectories.h5")
-    assert not (tmp_path / "trajectories.h5").exists()
-    cfg["contact"]["d_hat"] = 0.01
-    simulate_scene("cloth", mesh_h5, cfg, tmp_path / "trajectories.h5")
+    _refused_then_run(tmp_path, mesh_h5, cfg, rf"scene 'cloth' \({re.escape(str(mesh_h5))}\): config key 'scenes\.cloth\.contact\.d_hat': 1\.0 m is 3\.54 times the "
+                                              r"rest bounding-box diagonal \(0\.283 m\).*at most 0\.05 of the diagonal \(0\.0141 m\)", "d_hat", 0.01)  # fmt: skip

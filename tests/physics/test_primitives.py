@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from latentsim.physics.contact import Capsule, HalfSpace, Sphere, barrier, barrier_derivatives, primitive_barriers
+from latentsim.physics.barrier import barrier, barrier_derivatives
+from latentsim.physics.colliders import Capsule, HalfSpace, Sphere, primitive_barriers
 from latentsim.physics.primitives import (core_distance, plane_distance, point_segment_distance, point_triangle_distance,
                                           primitive_toi, segment_segment_distance, segment_triangle_distance)  # fmt: skip
 

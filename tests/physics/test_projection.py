@@ -7,7 +7,8 @@ import torch
 
 from latentsim.config import with_defaults
 from latentsim.latent.projection import ContactProjection
-from latentsim.physics.contact import ContactBarrier, Sphere
+from latentsim.physics.colliders import Sphere
+from latentsim.physics.contact import ContactBarrier
 
 
 class _Lift:

@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from latentsim.physics.base import autograd_gradient_hessian
-from latentsim.physics.contact import Capsule, ContactBarrier, HalfSpace, Sphere
+from latentsim.physics.colliders import Capsule, HalfSpace, Sphere
+from latentsim.physics.contact import ContactBarrier
 from latentsim.physics.primitives import core_distance, distance_hessian, primitive_toi
 
 F64 = torch.float64

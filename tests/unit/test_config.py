@@ -3,6 +3,7 @@
 import copy
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -62,6 +63,19 @@ def test_a_contact_projection_without_colliders_is_named(tiny):
     with pytest.raises(ConfigError, match=r"scenes\.tiny_cloth\.rollout\.contact_projection\.enabled.*no colliders"):
         validate_config(tiny)
     validate_config(copy.deepcopy(yaml.safe_load((ROOT / "config" / "tiny.yaml").read_text())))  # tiny_contact's, with its ball, passes
+
+
+def test_self_contact_without_colliders_is_named_and_a_solid_without_a_surface_is_refused_by_the_barrier(tiny):
+    tiny["scenes"]["tiny_cloth"]["contact"] = {"self_contact": True}
+    with pytest.raises(ConfigError, match=r"scenes\.tiny_cloth\.contact\.self_contact.*has none"):
+        validate_config(tiny)
+    from latentsim.scene import contact_barrier
+
+    block = {"colliders": [{"type": "half_space", "point": [0, -1, 0], "normal": [0, 1, 0]}], "d_hat": 1e-3, "kappa": 1.0, "self_contact": True}
+    with pytest.raises(ValueError, match="self_contact: the scene's model has no surface"):
+        contact_barrier(block, 4, np.zeros((4, 3)), [], 0.03, primitives=None)
+    barrier = contact_barrier({**block, "thickness": 0.002}, 4, np.zeros((4, 3)), [], 0.03, primitives=np.array([[0, 1, 2], [1, 3, 2]]))
+    assert [t.name for t in barrier.terms()] == ["contact_barrier", "self_contact"] and barrier.self_term().thickness == 0.004
 
 
 def test_enum_lists_allowed_values(tiny):

@@ -103,7 +103,8 @@ def _still_shape(T):
 def test_with_colliders_a_stress_rollout_reports_how_deep_it_entered_one_before_it_failed():
     """The deepest entry of any surviving frame, over the diagonal: a half-space cutting through the decoded
     states gives their deepest vertex; one below every frame gives 0; frames after the failure do not count."""
-    from latentsim.physics.contact import ContactBarrier, HalfSpace
+    from latentsim.physics.colliders import HalfSpace
+    from latentsim.physics.contact import ContactBarrier
 
     T = 40
     ae, coords, rest, cond, diag, x = _still_shape(T)
@@ -127,7 +128,8 @@ def test_where_the_rollout_projects_its_frames_the_stress_rollouts_are_projected
     from latentsim.config import with_defaults
     from latentsim.latent.projection import ContactProjection
     from latentsim.latent.subspaces import DecoderSubspace
-    from latentsim.physics.contact import ContactBarrier, HalfSpace
+    from latentsim.physics.colliders import HalfSpace
+    from latentsim.physics.contact import ContactBarrier
 
     T = 30
     ae, coords, rest, cond, diag, x = _still_shape(T)
@@ -166,7 +168,8 @@ def test_a_projection_fed_back_is_the_state_the_next_step_starts_from():
     from latentsim.config import with_defaults
     from latentsim.latent.projection import ContactProjection
     from latentsim.latent.subspaces import DecoderSubspace
-    from latentsim.physics.contact import ContactBarrier, HalfSpace
+    from latentsim.physics.colliders import HalfSpace
+    from latentsim.physics.contact import ContactBarrier
 
     T = 12
     ae, coords, rest, cond, diag, x = _still_shape(T)

@@ -209,7 +209,7 @@ def test_dry_run_of_the_cape_example_plans_a_cloth_against_a_body_that_moves_wit
     clear of the cloth, and the test half walks at speeds between the training half's (its run:
     docs/measurements.md#contact)."""
     from latentsim.mesh import cloth_grid
-    from latentsim.physics.contact import Capsule
+    from latentsim.physics.colliders import Capsule
     from latentsim.scene import bc_parameters
 
     config = ROOT / "config" / "examples" / "cape.yaml"

@@ -25,6 +25,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import scipy.sparse
 import torch
 
 from latentsim.solve.newton import LineSearch, minimise
@@ -58,6 +59,11 @@ class _Problem:
             Jn = J.reshape(-1, 3, J.shape[-1])[near]
             Hq += (Jn.transpose(0, 2, 1) @ Hb.numpy() @ Jn).sum(0)
         for term in self.barrier.terms()[1:]:  # the surface's primitives within reach: their 3k x 3k blocks
+            if getattr(term, "dynamic", False):  # self-contact: its gradient and its sparse Hessian over every DoF
+                _, gs, U = term.energy_gradient_hessian(x, project=True)
+                g += gs.reshape(-1, 3)
+                Hq += J.T @ ((U + scipy.sparse.triu(U, 1).T) @ J)
+                continue
             st = term.stencils.numpy()
             gs, Hs = term.local_gradient_hessian(term.gather(torch.as_tensor(x)), project=True)
             on = np.flatnonzero(gs.abs().amax(-1).numpy() > 0)

@@ -8,7 +8,7 @@ with d the signed distance of the vertex from the collider's surface.  b, b' and
 d = d_hat (b is C2 there, as IPC requires of its barrier), b grows without bound as d -> 0+, and
 b' < 0 < b'' on (0, d_hat): the barrier only ever pushes a vertex away.
 
-The colliders are analytic shapes (:class:`HalfSpace`, :class:`Sphere`, :class:`Capsule`), each with
+The colliders are analytic shapes (:mod:`latentsim.physics.colliders`: half-spaces, spheres, capsules), each with
 its signed distance, the distance's gradient and Hessian in closed form, and the time of impact along a
 straight step (continuous collision detection against an analytic shape is a closed-form root), which a
 line search uses to keep every iterate outside.  A collider is static, or *attached* to the prescribed
@@ -28,9 +28,7 @@ short of :meth:`ContactBarrier.first_impact`.
 
 from __future__ import annotations
 
-import dataclasses
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -38,55 +36,13 @@ import torch
 from latentsim.physics.barrier import barrier, barrier_derivatives
 from latentsim.physics.base import EnergyTerm, project_psd
 from latentsim.physics.mesh_contact import mesh_barriers
-from latentsim.physics.primitives import closest_on_segment, core_distance, distance_hessian, plane_distance, primitive_toi
+from latentsim.physics.colliders import Capsule, posed_colliders, rigid_pose
+from latentsim.physics.primitives import distance_hessian, primitive_toi
+from latentsim.physics.self_contact import SelfContact
 
 
 #: how far (in d_hat) a mesh's distances are measured for :meth:`ContactBarrier.clearance`; beyond, "this or more"
 MESH_REACH = 10.0
-
-
-def primitive_barriers(x: torch.Tensor, edges, triangles, collider: "Collider", d_hat: float, kappa: float,
-                       extend_below: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
-    """Per-primitive barrier energies of a surface against one collider: b(d_e) for each edge and b(d_t) for each
-    triangle (:func:`barrier` of :meth:`Collider.primitive_distance`), x (..., n, 3), edges (E, 2) and triangles
-    (T, 3) vertex indices -> ((..., E), (..., T)).  Against a :class:`HalfSpace` each is its nearest vertex's."""
-    out = []
-    for idx in (edges, triangles):
-        idx = torch.as_tensor(np.asarray(idx), dtype=torch.int64, device=x.device)
-        out.append(barrier(collider.primitive_distance(x[..., idx, :]), d_hat, kappa, extend_below))
-    return out[0], out[1]
-
-
-def rigid_pose(rest: np.ndarray, targets) -> tuple[torch.Tensor, torch.Tensor]:
-    """The rigid motion x -> R (x - c_0) + c that best carries ``rest`` (m, 3) onto ``targets`` (..., m, 3)
-    in least squares (Kabsch: c_0 and c the centroids, R from the SVD of the cross-covariance, a proper
-    rotation), exact when the targets are a rigid motion of the rest positions, as a boundary-condition
-    program's are.  Returns R (..., 3, 3) and c (..., 3) in the targets' dtype (float64 for numpy input)."""
-    targets = torch.as_tensor(targets)
-    if not targets.is_floating_point():
-        targets = targets.to(torch.float64)
-    rest = torch.as_tensor(np.asarray(rest, dtype=float), dtype=targets.dtype, device=targets.device)
-    c0, c = rest.mean(0), targets.mean(-2)
-    cov = (rest - c0).transpose(0, 1) @ (targets - c[..., None, :])  # (..., 3, 3): sum_i p_i q_i^T
-    U, _, Vh = torch.linalg.svd(cov)
-    V = Vh.transpose(-1, -2)
-    sign = torch.sign(torch.linalg.det(V @ U.transpose(-1, -2)))
-    sign = torch.where(sign == 0, torch.ones_like(sign), sign)
-    D = torch.ones(sign.shape + (3,), dtype=targets.dtype, device=targets.device)
-    D[..., 2] = sign
-    return (V * D[..., None, :]) @ U.transpose(-1, -2), c
-
-
-def posed_colliders(colliders, attached, rest_dirichlet, targets) -> list:
-    """The colliders where they stand when the prescribed vertices (rest positions ``rest_dirichlet``
-    (m, 3)) are at ``targets`` (m, 3): each ``attached`` one carried by their rigid motion
-    (:func:`rigid_pose`), the static ones as they are."""
-    if not any(attached):
-        return list(colliders)
-    rest = np.asarray(rest_dirichlet, dtype=float)
-    R, c = rigid_pose(rest, np.asarray(targets, dtype=float))
-    R, c0, c = R.numpy(), rest.mean(0), c.numpy()
-    return [col.moved(R, c0, c) if a else col for col, a in zip(colliders, attached)]
 
 
 def friction_f0(s: torch.Tensor, eps: float) -> torch.Tensor:
@@ -99,194 +55,6 @@ def friction_f0(s: torch.Tensor, eps: float) -> torch.Tensor:
 def friction_f1_over_s(s: torch.Tensor, eps: float) -> torch.Tensor:
     """f0'(s) / s: 2 / eps - s / eps^2 below eps (finite at s = 0), 1 / s above."""
     return torch.where(s < eps, 2 / eps - s / (eps * eps), 1 / torch.where(s < eps, torch.ones_like(s), s))
-
-
-class Collider:
-    """An analytic shape: signed distance (positive outside), its gradient and Hessian, the time of
-    impact along a straight step, and the shape carried by a rigid motion (:meth:`moved`)."""
-
-    #: the fields that are points (carried by the whole motion) and directions (turned only)
-    points: tuple = ()
-    directions: tuple = ()
-
-    def moved(self, R, c0, c) -> "Collider":
-        """The shape carried by the rigid motion x -> R (x - c0) + c (R (3, 3), c0 and c (3,))."""
-        R, c0, c = (np.asarray(v, dtype=float) for v in (R, c0, c))
-        new = {k: tuple(R @ (np.asarray(getattr(self, k)) - c0) + c) for k in self.points}
-        new.update({k: tuple(R @ np.asarray(getattr(self, k))) for k in self.directions})
-        return dataclasses.replace(self, **new)
-
-    def distance(self, x: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
-        """x (..., 3) -> signed distance (...)."""
-        raise NotImplementedError
-
-    def distance_derivatives(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:  # pragma: no cover - abstract
-        """x (..., 3) -> gradient (..., 3) and Hessian (..., 3, 3) of the signed distance."""
-        raise NotImplementedError
-
-    def time_of_impact(self, x: np.ndarray, dx: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
-        """The first t >= 0 at which x + t dx reaches the surface, per vertex (x, dx (n, 3), points
-        outside); inf where the straight line never does, 0 for a point on or inside the surface."""
-        raise NotImplementedError
-
-    def primitive_distance(self, xp: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
-        """xp (..., k, 3), vertices (k = 1), edges (k = 2) or triangles (k = 3) -> the signed distance of each
-        one's closest point from the surface (...) (:mod:`latentsim.physics.primitives`)."""
-        raise NotImplementedError
-
-    def thickened(self, offset: float) -> "Collider":
-        """The shape grown by ``offset`` >= 0 along its outward normal (each signed distance less by ``offset``):
-        a collider as a surface of that half-thickness sees it (a shell's half thickness, a strand's radius)."""
-        if not offset > 0:
-            return self
-        if isinstance(self, HalfSpace):
-            return dataclasses.replace(self, point=tuple(np.asarray(self.point) + float(offset) * np.asarray(self.normal)))
-        return dataclasses.replace(self, radius=float(self.radius) + float(offset))
-
-    @property
-    def curved(self) -> bool:
-        """Whether a surface's edge or triangle can come nearer than its vertices (not against a plane)."""
-        return not isinstance(self, HalfSpace)
-
-
-@dataclass(frozen=True)
-class HalfSpace(Collider):
-    """The half-space below the plane through ``point`` with unit outward ``normal``: d = n . (x - p)."""
-
-    point: tuple
-    normal: tuple
-    points = ("point",)
-    directions = ("normal",)
-
-    def __post_init__(self):
-        n = np.asarray(self.normal, dtype=float)
-        if n.shape != (3,) or not np.linalg.norm(n) > 0:
-            raise ValueError(f"half-space normal {self.normal!r}: give a non-zero 3-vector")
-        object.__setattr__(self, "normal", tuple(n / np.linalg.norm(n)))
-        object.__setattr__(self, "point", tuple(float(v) for v in self.point))
-
-    def distance(self, x):
-        n, p = (torch.as_tensor(v, dtype=x.dtype, device=x.device) for v in (self.normal, self.point))
-        return ((x - p) * n).sum(-1)
-
-    def distance_derivatives(self, x):
-        n = torch.as_tensor(self.normal, dtype=x.dtype, device=x.device)
-        return n.expand(x.shape), torch.zeros(x.shape + (3,), dtype=x.dtype, device=x.device)
-
-    def time_of_impact(self, x, dx):
-        n, p = np.asarray(self.normal), np.asarray(self.point)
-        d, rate = (x - p) @ n, dx @ n
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = np.where(rate < 0, d / -rate, np.inf)
-        return t
-
-    def primitive_distance(self, xp):
-        """The least vertex's distance (:func:`~latentsim.physics.primitives.plane_distance`): against a plane an
-        edge or triangle is no nearer than its nearest vertex."""
-        n, p = (torch.as_tensor(v, dtype=xp.dtype, device=xp.device) for v in (self.normal, self.point))
-        return plane_distance(xp, p, n)
-
-
-def _sphere_toi(rel: np.ndarray, dx: np.ndarray, r: float) -> np.ndarray:
-    """The first t >= 0 with |rel + t dx| = r for points outside (|rel| >= r), per row; inf if none."""
-    a = (dx * dx).sum(-1)
-    b = 2 * (rel * dx).sum(-1)
-    c = (rel * rel).sum(-1) - r * r
-    disc = b * b - 4 * a * c
-    with np.errstate(divide="ignore", invalid="ignore"):
-        q = np.sqrt(np.maximum(disc, 0.0))
-        t = np.where((disc >= 0) & (b < 0) & (a > 0), (2 * c) / (-b + q), np.inf)  # the smaller root, stably
-    return np.where(c <= 0, 0.0, t)
-
-
-@dataclass(frozen=True)
-class Sphere(Collider):
-    """A ball of ``radius`` about ``centre``: d = |x - c| - r."""
-
-    centre: tuple
-    radius: float
-    points = ("centre",)
-
-    def __post_init__(self):
-        if not float(self.radius) > 0:
-            raise ValueError(f"sphere radius {self.radius!r}: give a positive number")
-        object.__setattr__(self, "centre", tuple(float(v) for v in self.centre))
-
-    def distance(self, x):
-        c = torch.as_tensor(self.centre, dtype=x.dtype, device=x.device)
-        return torch.linalg.vector_norm(x - c, dim=-1) - float(self.radius)
-
-    def distance_derivatives(self, x):
-        c = torch.as_tensor(self.centre, dtype=x.dtype, device=x.device)
-        rel = x - c
-        rho = torch.linalg.vector_norm(rel, dim=-1, keepdim=True)
-        n = rel / rho
-        eye = torch.eye(3, dtype=x.dtype, device=x.device)
-        return n, (eye - n[..., :, None] * n[..., None, :]) / rho[..., None]
-
-    def time_of_impact(self, x, dx):
-        return _sphere_toi(x - np.asarray(self.centre), dx, float(self.radius))
-
-    def primitive_distance(self, xp):
-        """d = dist(c, primitive) - r (:func:`~latentsim.physics.primitives.core_distance`, the core the centre)."""
-        c = torch.as_tensor(self.centre, dtype=xp.dtype, device=xp.device)
-        return core_distance(c[None, :], xp) - float(self.radius)
-
-
-@dataclass(frozen=True)
-class Capsule(Collider):
-    """The points within ``radius`` of the segment from ``a`` to ``b``: d = dist(x, [a, b]) - r."""
-
-    a: tuple
-    b: tuple
-    radius: float
-    points = ("a", "b")
-
-    def __post_init__(self):
-        if not float(self.radius) > 0:
-            raise ValueError(f"capsule radius {self.radius!r}: give a positive number")
-        if not np.linalg.norm(np.subtract(self.b, self.a)) > 0:
-            raise ValueError(f"capsule from {self.a!r} to {self.b!r}: its ends must differ")
-        object.__setattr__(self, "a", tuple(float(v) for v in self.a))
-        object.__setattr__(self, "b", tuple(float(v) for v in self.b))
-
-    def _closest(self, x):
-        a, b = (torch.as_tensor(v, dtype=x.dtype, device=x.device) for v in (self.a, self.b))
-        return closest_on_segment(x, a, b)
-
-    def distance(self, x):
-        q, _ = self._closest(x)
-        return torch.linalg.vector_norm(x - q, dim=-1) - float(self.radius)
-
-    def distance_derivatives(self, x):
-        q, s = self._closest(x)
-        rel = x - q
-        rho = torch.linalg.vector_norm(rel, dim=-1, keepdim=True)
-        n = rel / rho
-        eye = torch.eye(3, dtype=x.dtype, device=x.device)
-        H = (eye - n[..., :, None] * n[..., None, :]) / rho[..., None]
-        # along the segment's inside the distance does not change with the axial coordinate
-        e = torch.as_tensor(np.subtract(self.b, self.a) / np.linalg.norm(np.subtract(self.b, self.a)), dtype=x.dtype, device=x.device)
-        axial = ((s > 0) & (s < 1)).to(x.dtype)[..., None, None]
-        H = H - axial * (e[:, None] * e[None, :]) / rho[..., None]
-        return n, H
-
-    def time_of_impact(self, x, dx):
-        a, b, r = np.asarray(self.a), np.asarray(self.b), float(self.radius)
-        e = (b - a) / np.linalg.norm(b - a)
-        length = np.linalg.norm(b - a)
-        # the two end caps (balls), then the side (an infinite cylinder, its hits kept where they fall on the segment)
-        t = np.minimum(_sphere_toi(x - a, dx, r), _sphere_toi(x - b, dx, r))
-        rel, d_perp = x - a, dx - np.outer(dx @ e, e)
-        rel_perp = rel - np.outer(rel @ e, e)
-        side = _sphere_toi(rel_perp, d_perp, r)
-        along = (rel @ e) + np.where(np.isfinite(side), side, 0.0) * (dx @ e)
-        return np.minimum(t, np.where(np.isfinite(side) & (along >= 0) & (along <= length), side, np.inf))
-
-    def primitive_distance(self, xp):
-        """d = dist([a, b], primitive) - r (:func:`~latentsim.physics.primitives.core_distance`, the core the axis)."""
-        axis = torch.as_tensor((self.a, self.b), dtype=xp.dtype, device=xp.device)
-        return core_distance(axis, xp) - float(self.radius)
 
 
 class ContactBarrier(EnergyTerm):
@@ -317,6 +85,8 @@ class ContactBarrier(EnergyTerm):
     meshes : static :class:`~latentsim.physics.mesh_contact.TriangleMesh` colliders (a body, a tool), each held off
         every vertex, edge and triangle of the surface by the terms of :func:`~latentsim.physics.mesh_contact.mesh_barriers`
         (:meth:`terms`; frictionless).
+    self_contact : None, or the thickness [m] two parts of the surface (its ``primitives``) keep apart: its parts are
+        then held off each other by a :class:`~latentsim.physics.self_contact.SelfContact` term (:meth:`terms`).
 
     With an attached collider the barrier depends on the frame: :meth:`energy` and :meth:`distances` take
     the frame's ``targets``, and :meth:`posed` gives the static barrier of one frame (what a solver's
@@ -327,7 +97,7 @@ class ContactBarrier(EnergyTerm):
 
     def __init__(self, n_vertices: int, colliders, d_hat: float, kappa: float, extend_below: float | None = None,
                  attached=None, rest_dirichlet=None, friction: float = 0.0, slip: float | None = None, anchors=None,
-                 primitives=None, meshes=()):  # fmt: skip
+                 primitives=None, meshes=(), self_contact: float | None = None):  # fmt: skip
         if not (d_hat > 0 and kappa > 0):
             raise ValueError(f"contact barrier: d_hat {d_hat!r} and kappa {kappa!r} must be positive")
         if not (friction >= 0 and (friction == 0 or (slip is not None and slip > 0))):
@@ -355,14 +125,31 @@ class ContactBarrier(EnergyTerm):
             raise ValueError(f"contact barrier: primitives of shape {tuple(self.primitives.shape)}: give edges (P, 2) or triangles (P, 3)")
         self.meshes = tuple(meshes)
         self._mesh_terms = None
+        if self_contact is not None and (self.primitives is None or not self_contact >= 0):
+            raise ValueError(f"contact barrier: self-contact (thickness {self_contact!r}) needs the surface's primitives and a thickness >= 0")
+        self.self_contact, self._self_term = self_contact, None
 
     def terms(self) -> list:
         """The terms of E_total this contact adds: this barrier (the vertices against the analytic colliders, and
-        friction), the :class:`SurfaceBarrier` of its primitives where a collider is curved, and each mesh's."""
+        friction), the :class:`SurfaceBarrier` of its primitives where a collider is curved, each mesh's and the
+        surface's against itself (``self_contact``)."""
         out = [self]
         if self.primitives is not None and any(c.curved for c in self.colliders):
             out.append(SurfaceBarrier(self))
-        return out + self.mesh_terms()
+        return out + self.mesh_terms() + ([self.self_term()] if self.self_contact is not None else [])
+
+    def self_term(self):
+        """The :class:`~latentsim.physics.self_contact.SelfContact` of the surface (``self_contact`` set)."""
+        if self._self_term is None:
+            n, prim = len(self.stencils), self.primitives.numpy()
+            self._self_term = SelfContact(n, prim, self.d_hat, self.kappa, self.self_contact, self.extend_below)
+        return self._self_term
+
+    def _like(self, **changes) -> "ContactBarrier":
+        """A barrier of this one's settings but ``changes`` (the constructor's keyword arguments)."""
+        kw = dict(colliders=self.colliders, d_hat=self.d_hat, kappa=self.kappa, extend_below=self.extend_below, friction=self.friction,
+                  slip=self.slip, primitives=self.primitives, meshes=self.meshes, self_contact=self.self_contact)  # fmt: skip
+        return ContactBarrier(len(self.stencils), **{**kw, **changes})
 
     def mesh_terms(self) -> list:
         """The terms holding the surface (its ``primitives``, or the vertices alone) off each of the ``meshes``."""
@@ -381,17 +168,14 @@ class ContactBarrier(EnergyTerm):
         kappa, continued below ``fraction`` of that distance by its quadratic Taylor expansion
         (:func:`barrier`'s ``extend_below``): finite inside the colliders, for learned losses."""
         d_hat = d_hat_factor * self.d_hat
-        return ContactBarrier(len(self.stencils), self.colliders, d_hat, kappa_factor * self.kappa, fraction * d_hat, self.attached,
-                              self.rest_dirichlet, self.friction, self.slip, primitives=self.primitives, meshes=self.meshes)  # fmt: skip
+        return self._like(d_hat=d_hat, kappa=kappa_factor * self.kappa, extend_below=fraction * d_hat, attached=self.attached, rest_dirichlet=self.rest_dirichlet)
 
     def posed(self, targets) -> "ContactBarrier":
         """The static barrier of one frame: every attached collider carried to its pose at ``targets`` (m, 3),
         the prescribed vertices' positions; this barrier itself when none is attached."""
         if not self.moving:
             return self
-        moved = posed_colliders(self.colliders, self.attached, self.rest_dirichlet, targets)
-        return ContactBarrier(len(self.stencils), moved, self.d_hat, self.kappa, self.extend_below, friction=self.friction, slip=self.slip,
-                              primitives=self.primitives, meshes=self.meshes)  # fmt: skip
+        return self._like(colliders=posed_colliders(self.colliders, self.attached, self.rest_dirichlet, targets))
 
     def at(self, frame) -> "ContactBarrier":
         """The static barrier of a solver's step (:meth:`posed` at the frame's ``targets``) with its lagged
@@ -411,8 +195,7 @@ class ContactBarrier(EnergyTerm):
             carried = (back - c0) @ R.transpose(-1, -2) + c
             anchors = [carried if a else x_prev for a in self.attached]
         anchors = [(a,) + self._lagged(col, a) for col, a in zip(step.colliders, anchors)]
-        return ContactBarrier(len(self.stencils), step.colliders, self.d_hat, self.kappa, self.extend_below, friction=self.friction,
-                              slip=self.slip, anchors=anchors, primitives=self.primitives, meshes=self.meshes)  # fmt: skip
+        return self._like(colliders=step.colliders, anchors=anchors)
 
     def _lagged(self, col, y_prev: torch.Tensor):
         """lambda (...,) and the tangent projector (..., 3, 3) of collider ``col`` at the step's start y_prev."""
@@ -487,7 +270,7 @@ class ContactBarrier(EnergyTerm):
         """Per collider, the signed distances of every vertex and then (a curved collider) of every primitive, (..., n [+ P]);
         then per mesh the least over its pairs (:data:`MESH_REACH` d_hat where none is nearer) and each vertex's, minus its depth
         and the thickness where it is inside the mesh (:meth:`~latentsim.physics.mesh_contact.TriangleMesh.inside`), else inf,
-        (..., 1 + n)."""
+        (..., 1 + n); with ``self_contact``, last, the least distance between two parts of the surface (..., 1)."""
         out = []
         for col, y in zip(self.colliders, self._frames(x, targets)):
             d = col.distance(y)
@@ -503,6 +286,8 @@ class ContactBarrier(EnergyTerm):
             v = torch.full((len(pts),), math.inf, dtype=x.dtype)
             v[inside] = -torch.as_tensor(mesh.unsigned_distance(pts[inside]), dtype=x.dtype) - mesh.thickness
             out.append(torch.cat([d[..., None], v.reshape(x.shape[:-1])], -1))
+        if self.self_contact is not None:  # the surface against itself, as a mesh: the least over its pairs
+            out.append(self.self_term().distances(x, MESH_REACH * self.d_hat)[..., None])
         return out
 
     def clearance(self, x: torch.Tensor, targets=None) -> torch.Tensor:
@@ -514,7 +299,7 @@ class ContactBarrier(EnergyTerm):
     def penetrations(self, x, targets=None) -> list[tuple[int, float]]:
         """Per collider, how many vertices (and, with ``primitives``, edges or triangles) of x (n, 3) lie inside it or
         touch its surface (signed distance <= 0, where the barrier is infinite) and the smallest signed distance (per
-        mesh: 1 where a pair is within its thickness, and the least distance);
+        mesh, and for the surface against itself: 1 where a pair is within the thickness, and the least distance);
         ``targets`` as in :meth:`energy`."""
         x = torch.as_tensor(np.asarray(x, dtype=float))
         return [(int((d <= 0).sum()), float(d.min())) for d in self._all_distances(x, targets)]
@@ -575,7 +360,7 @@ class ContactBarrier(EnergyTerm):
 class SurfaceBarrier(EnergyTerm):
     """The edges or triangles of a surface against the curved colliders of a :class:`ContactBarrier`:
     sum_p sum_c b(d_c(p)), d_c(p) the signed distance of primitive p's closest point from collider c
-    (:meth:`Collider.primitive_distance`), one primitive per stencil.
+    (:meth:`~latentsim.physics.colliders.Collider.primitive_distance`), one primitive per stencil.
 
     A vertex-only barrier lets a ball or a capsule into the inside of an edge or a triangle where no vertex is
     near it; this term holds every point of the surface out.  A primitive's distance is at most its vertices',

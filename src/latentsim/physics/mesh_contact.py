@@ -32,7 +32,7 @@ from latentsim.physics.barrier import barrier, barrier_derivatives
 from latentsim.physics.base import EnergyTerm, project_psd
 from latentsim.physics.primitives import core_distance, distance_hessian, vertex_hessian
 
-__all__ = ["TriangleMesh", "MeshBarrier", "mesh_barriers", "unique_edges"]
+__all__ = ["TriangleMesh", "MeshBarrier", "bounding_spheres", "mesh_barriers", "unique_edges"]
 
 
 def unique_edges(triangles: np.ndarray) -> np.ndarray:
@@ -42,7 +42,7 @@ def unique_edges(triangles: np.ndarray) -> np.ndarray:
     return np.unique(e, axis=0)
 
 
-def _spheres(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def bounding_spheres(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Centre (N, 3) and radius (N,) of a sphere around each primitive's vertices points (N, k, 3)."""
     c = points.mean(1)
     return c, np.linalg.norm(points - c[:, None, :], axis=-1).max(1)
@@ -71,7 +71,7 @@ class TriangleMesh:
         self._box = (self.vertices.min(0), self.vertices.max(0))
         self._trees, self._bounds = {}, {}
         for k, pts in self._cores.items():
-            c, r = _spheres(pts)
+            c, r = bounding_spheres(pts)
             self._trees[k], self._bounds[k] = (cKDTree(c), float(r.max())), (c, r)
         self._torch = {k: torch.as_tensor(v) for k, v in self._cores.items()}
 
@@ -94,7 +94,7 @@ class TriangleMesh:
         none = np.zeros(0, np.int64), np.zeros(0, np.int64)
         if N == 0:
             return none
-        c, r = _spheres(ye)
+        c, r = bounding_spheres(ye)
         grow = (r + reach)[:, None]  # within reach of the mesh's bounding box, then of its nearest primitive's sphere
         near = np.flatnonzero(((c > self._box[0] - grow) & (c < self._box[1] + grow)).all(1))
         if not len(near):
@@ -309,7 +309,7 @@ class MeshBarrier(EnergyTerm):
         # a step along which no primitive's bounding sphere, swept, comes within the thickness of a face's is free
         edges, faces = self.surface
         prim = np.asarray(faces if len(faces) else edges if len(edges) else np.arange(len(x))[:, None], dtype=np.int64)
-        c, r = _spheres(np.asarray(x, dtype=np.float64)[prim])
+        c, r = bounding_spheres(np.asarray(x, dtype=np.float64)[prim])
         tree, r_max = self.mesh._trees[1]
         sweep = float(np.sqrt((np.asarray(dx, dtype=np.float64) ** 2).sum(-1).max(initial=0.0)))
         if not any(map(len, tree.query_ball_point(c, r + r_max + self.mesh.thickness + sweep))):

@@ -28,7 +28,7 @@ __all__ = ["AutogradKernel", "CompiledAssembly"]
 
 def stencil_dofs(stencils) -> np.ndarray:
     """The degrees of freedom of each stencil, (E, 3k), vertex-major as the per-stencil gradients."""
-    return (3 * stencils[:, :, None] + np.arange(3)).reshape(len(stencils), -1)
+    return (3 * stencils[:, :, None] + np.arange(3)).reshape(len(stencils), 3 * stencils.shape[1])
 
 
 def add_stencil_blocks(grad, data, dofs, slots, g, H=None):
@@ -108,13 +108,19 @@ class CompiledAssembly:
             self._target_size = (pattern.bandwidth + 1) * pattern.shape[0]
 
         self.step_terms, self._step_slots, self._step_dofs = [], [], []
+        self._extra = []  # the dynamic terms' Hessians of the last evaluation (upper CSR over the free DoFs)
 
     def with_frame_terms(self, terms) -> "CompiledAssembly":
         """Add terms that depend on the step's frame (``EnergyTerm.at``; their stencils among the pattern's) to
         every evaluation, by their own per-stencil gradient and (projected or exact) Hessian.  ``step_terms``
-        holds them as they stand over the current step (a solver sets it per step, in the same order)."""
+        holds them as they stand over the current step (a solver sets it per step, in the same order).  A
+        ``dynamic`` term (its pairs change with x: self-contact) gives its gradient and its Hessian as a sparse
+        matrix of its own (``energy_gradient_hessian(x, free_dofs, project, hessian)``), added to the pattern's:
+        the matrix's pattern then changes between evaluations, so the banded storage cannot hold it."""
         self.step_terms = list(terms)
         self._step_slots, self._step_dofs = [], []
+        if self.banded and any(getattr(t, "dynamic", False) for t in self.step_terms):
+            raise ValueError("a dynamic term (self-contact) needs a general sparse Hessian, not the banded storage")
         for term in self.step_terms:
             st = term.stencils.cpu().numpy()
             slots = self.pattern.stencil_slots(st)
@@ -130,6 +136,13 @@ class CompiledAssembly:
         xt = torch.as_tensor(np.asarray(x, dtype=np.float64))
         total = 0.0
         for term, slots, dofs in zip(self.step_terms, self._step_slots, self._step_dofs):
+            if getattr(term, "dynamic", False) and grad is not None:
+                e, g, U = term.energy_gradient_hessian(x, self.pattern.free_dofs, project, hessian=data is not None)
+                total += e
+                grad += g
+                if data is not None:
+                    self._extra.append(U)
+                continue
             e = float(term.energy(xt))
             total += e
             if grad is None or not np.isfinite(e):
@@ -170,6 +183,7 @@ class CompiledAssembly:
         grad = np.zeros(3 * self.n)
         data = np.zeros(self._target_size)
         e = 0.0
+        self._extra = []
         for k, slots in zip(self.kernels, self.slots):
             e += k.accumulate(x, grad, data, slots, project)
         if self.step_terms:
@@ -178,4 +192,7 @@ class CompiledAssembly:
         p = self.pattern
         if self.banded:
             return e, grad, BandedUpper(data, p)
-        return e, grad, scipy.sparse.csr_matrix((data, p.indices, p.indptr), shape=p.shape)
+        U = scipy.sparse.csr_matrix((data, p.indices, p.indptr), shape=p.shape)
+        for extra in self._extra:
+            U = U + extra
+        return e, grad, U

@@ -172,7 +172,7 @@ class ImplicitEuler:
         self.frame_terms = list(getattr(potential, "frame_terms", ()))
         # their blocks too (a reduced solver's cubature terms may not touch every vertex)
         self.pattern = HessianPattern(n, self.stencils + [t.stencils.cpu().numpy() for t in self.frame_terms], self.free_dofs)
-        self.linear = LinearSolver(self.pattern, self.settings.linear_solver)
+        self.linear = LinearSolver(self.pattern, self.settings.linear_solver, dynamic=any(getattr(t, "dynamic", False) for t in self.frame_terms))
         m_free = self.masses[free_v]
         self.f_ref = float(np.linalg.norm(m_free) * max(np.linalg.norm(self.g), 1.0))
         self.m3 = np.repeat(self.masses, 3)

@@ -52,7 +52,7 @@ class HessianPattern:
         rows, cols, self._keep = [], [], []
         for st in stencil_sets:
             st = np.asarray(st, dtype=np.int64)
-            dofs = (3 * st[:, :, None] + np.arange(3)).reshape(len(st), -1)  # (E, 3k)
+            dofs = (3 * st[:, :, None] + np.arange(3)).reshape(len(st), 3 * st.shape[1])  # (E, 3k)
             ld = local[dofs]
             r = np.broadcast_to(ld[:, :, None], ld.shape + (ld.shape[1],)).reshape(-1)
             c = np.broadcast_to(ld[:, None, :], ld.shape[:1] + (ld.shape[1],) * 2).reshape(-1)
@@ -202,16 +202,22 @@ class LinearSolver:
     """Solve A x = b for the SPD Newton systems of one scene.
 
     ``method`` is one of 'auto', 'banded', 'pardiso', 'splu'.  'auto' resolves
-    once, from the pattern's bandwidth, to the fastest method available.
+    once, from the pattern's bandwidth, to the fastest method available.  ``dynamic``: the matrices
+    hold entries beyond ``pattern`` that change between solves (self-contact's pairs): never banded,
+    and PARDISO's symbolic analysis is redone whenever the matrix's pattern is not the last one's.
     """
 
     BANDED_MAX = 64
 
-    def __init__(self, pattern: HessianPattern, method: str = "auto"):
+    def __init__(self, pattern: HessianPattern, method: str = "auto", dynamic: bool = False):
         if method not in ("auto", "banded", "pardiso", "splu"):
             raise ValueError(f"linear solver '{method}': use one of auto, banded, pardiso, splu")
+        if dynamic and method == "banded":
+            raise ValueError("linear solver 'banded': a matrix whose pattern changes (self-contact) needs pardiso or splu")
+        self.dynamic = bool(dynamic)
+        self._analysed: dict = {}  # matrix type -> the (indptr, indices) PARDISO analysed (dynamic only)
         if method == "auto":
-            if pattern.bandwidth <= self.BANDED_MAX:
+            if pattern.bandwidth <= self.BANDED_MAX and not dynamic:
                 method = "banded"
             else:
                 method = "pardiso" if _pardiso_available() else "splu"
@@ -238,20 +244,27 @@ class LinearSolver:
 
     def _pardiso(self, mtype: int, U, b):
         # PARDISO of matrix type ``mtype`` (2: real SPD, -2: real symmetric indefinite) on the upper
-        # triangle.  The pattern never changes within a scene, so the symbolic analysis (phase 11,
-        # fill-in reducing ordering) runs once per type; each call only refactors numerically and
+        # triangle.  The pattern never changes within a scene (unless ``dynamic``), so the symbolic analysis
+        # (phase 11, fill-in reducing ordering) runs once per type; each call only refactors numerically and
         # solves (phase 23).  Raises pypardiso's PyPardisoError.
         import pypardiso  # here, not at the top: an optional dependency that loads MKL (heavy)
 
         b = np.asfortranarray(b, dtype=np.float64)
         p = self._pardiso_by_type.get(mtype)
+        analyse = p is None
         if p is None:
             p = pypardiso.PyPardisoSolver(mtype=mtype)
             p.msglvl = 0
+            self._pardiso_by_type[mtype] = p
+        if self.dynamic:
+            last = self._analysed.get(mtype)
+            analyse = last is None or not (np.array_equal(last[0], U.indptr) and np.array_equal(last[1], U.indices))
+        if analyse:
             p._check_A(U)
             p.set_phase(11)
             p._call_pardiso(U, b)
-            self._pardiso_by_type[mtype] = p
+            if self.dynamic:
+                self._analysed[mtype] = (U.indptr.copy(), U.indices.copy())
             if mtype == -2:
                 self.indefinite_counts["analyses"] += 1
         p.set_phase(23)

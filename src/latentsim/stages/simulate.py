@@ -183,11 +183,18 @@ def _check_initial_penetration(scene: str, barrier, colliders: list, arrays: dic
     """Every sequence starts at the rest state: no vertex, edge or triangle of it may lie inside or on a collider (where
     it stands at rest, grown by the surface's thickness), where the barrier has no finite energy and no step can start.
     Raises a ``SimulationError`` naming the collider (its index in ``contact.colliders`` and its type) and how many
-    vertices, edges or triangles it holds."""
+    vertices, edges or triangles it holds; with self-contact, two parts of the surface within its thickness of each other."""
     rest = np.asarray(arrays["rest_positions"], dtype=np.float64)
     dirichlet = np.asarray(arrays.get("dirichlet", ()), dtype=np.int64)
     order = [i for i, q in enumerate(colliders) if q["type"] != "mesh"] + [i for i, q in enumerate(colliders) if q["type"] == "mesh"]
-    for i, (count, deepest) in zip(order, barrier.penetrations(rest, rest[dirichlet] if barrier.moving else None)):
+    found = barrier.penetrations(rest, rest[dirichlet] if barrier.moving else None)
+    if barrier.self_contact is not None and found[-1][0]:
+        raise SimulationError(
+            f"scene '{scene}': initial self-contact: two parts of the rest mesh lie {found[-1][1] + barrier.self_contact:.3g} m apart, within "
+            f"the thickness {barrier.self_contact:.3g} m they keep (config key 'scenes.{scene}.contact.self_contact'; twice contact.thickness): "
+            f"give a rest shape whose parts stand farther apart, a smaller thickness, or leave self-contact off"
+        )
+    for i, (count, deepest) in zip(order, found):
         if count:
             raise SimulationError(
                 f"scene '{scene}': initial penetration: {count} of the rest mesh's vertices, edges or triangles lie inside or on collider {i} "
