@@ -572,3 +572,29 @@ def test_a_killed_ground_truth_resumes_from_its_checkpoint_to_the_same_result(sh
             for key in ("x", "energy", "residual", "iterations"):
                 np.testing.assert_array_equal(got[name][key], ref[name][key], err_msg=f"{name} {key}")
             assert got[name]["seconds"] > 0
+
+
+def test_a_sample_whose_warm_start_fails_is_solved_from_rest(sheet_setup, monkeypatch):
+    """Where the solve from the previous sample's correction raises on the way (a non-finite gradient, a singular
+    system), the sample is solved from X + l: its solution is the one from rest alone; a failure from rest is raised."""
+    from latentsim.neural_modes import ground_truth
+    from latentsim.solve.constrained import ConstrainedNewton
+
+    pot, V, lm, R = sheet_setup
+    z = modal_samples("grid", 2, 0.1, resolution=3).double().numpy()
+    solve, l4 = ConstrainedNewton.solve, np.asarray(lm.modes, dtype=np.float64) @ z[4]
+
+    def failing_warm(self, l, y0=None, **kw):
+        if y0 is not None and np.allclose(l, l4):
+            raise FloatingPointError("constrained Newton: a non-finite gradient")
+        return solve(self, l, y0, **kw)
+
+    monkeypatch.setattr(ConstrainedNewton, "solve", failing_warm)
+    x, _, infos = ground_truth(pot, V, lm.modes, z, rigid=R)
+    monkeypatch.setattr(ConstrainedNewton, "solve", solve)
+    alone, _, alone_infos = ground_truth(pot, V, lm.modes, z[4:5], rigid=R)  # the first sample: from rest
+    np.testing.assert_array_equal(x[4], alone[0])
+    assert infos[4] == alone_infos[0]
+    monkeypatch.setattr(ConstrainedNewton, "solve", lambda self, l, y0=None, **kw: (_ for _ in ()).throw(FloatingPointError("from rest")))
+    with pytest.raises(FloatingPointError, match="from rest"):
+        ground_truth(pot, V, lm.modes, z[:1], rigid=R)

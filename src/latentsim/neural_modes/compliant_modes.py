@@ -30,6 +30,9 @@ def ground_truth(
     tetrahedra from inverting (``CompliantInfo.blocked``: on the armadillo such a start can lie next to
     collapsed elements, and its energy-study samples are not neighbours), the sample is solved again from X + l and
     the converged solve (else the one with the smaller residual) is kept; its ``iterations`` count both.
+    Where the solve from that correction fails on the way (a non-finite gradient, a singular system: on the
+    sheet a grid's wrap, from one corner of the box to the opposite, starts next to a collapsed element), the
+    sample is solved from X + l alone.
     ``order``: the row indices in the order to
     solve them (a permutation); None, the pipeline's: the rows' order (a grid's rows are neighbours but for
     the wraps).  Eq. 9 has more than one minimum where the shape buckles: the start, and so the order,
@@ -67,7 +70,13 @@ def ground_truth(
         y0 = None
         if y_prev is not None and solver.energy(X + l + y_prev) < solver.energy(X + l):
             y0 = y_prev  # made feasible by solve()
-        x, info = solver.solve(l, y0, rtol=rtol, etol=etol, max_iter=max_iter)
+        try:
+            x, info = solver.solve(l, y0, rtol=rtol, etol=etol, max_iter=max_iter)
+        except (ArithmeticError, RuntimeError, np.linalg.LinAlgError):
+            if y0 is None:
+                raise
+            y0 = None
+            x, info = solver.solve(l, None, rtol=rtol, etol=etol, max_iter=max_iter)
         if y0 is not None and not info.converged and info.blocked:
             x_rest, info_rest = solver.solve(l, None, rtol=rtol, etol=etol, max_iter=max_iter)
             if info_rest.converged or info_rest.residual < info.residual:

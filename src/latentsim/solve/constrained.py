@@ -261,6 +261,8 @@ class _KKTProblem:
     def stop(self, x, it) -> bool:
         g, self.H = self.solver.grad_hess(x, project=False)
         gf = self.gf = g[self.solver.free]
+        if not np.isfinite(gf).all():  # a finite energy whose gradient is not (a shell folded flat on itself)
+            raise FloatingPointError(f"constrained Newton: a non-finite gradient at iteration {it} (the energy there {self.solver.energy(x):.6g})")
         C = self.C
         self.residual = r = float(np.linalg.norm(gf - C @ np.linalg.solve(self.CtC, C.T @ gf))) if C.shape[1] else float(np.linalg.norm(gf))
         return r <= self.tolerance or self.stalls >= 3
