@@ -3,12 +3,18 @@
 For each named contact scene of the config: prepare its mesh, then simulate the first frames of its first sequence
 twice, with the contact the scene has now (every vertex, and a strand's edges or a shell's or solid's triangles
 against every curved collider, at the surface's thickness) and with the vertices alone at the mid-surface (the
-model before the primitives and thickness existed), alternating the two per repeat so that both see the same load.
-It prints ms per frame and Newton iterations per frame of each (medians over the repeats), the ratio, and each
+model before the primitives and thickness existed), alternating the two per repeat so that both see the same load
+(after two frames of each, untimed, that take the kernels' compilation).  It prints ms per frame and Newton iterations per frame of each (medians over the repeats), the ratio, and each
 one's clearance: the least signed distance of any vertex, edge or triangle from the colliders over the frames,
 measured on the surface with thickness (negative: the surface went in).
 
     python benchmarks/contact_cost.py [--config config/config.yaml] [--scenes cloth_sphere hair_head] [--frames 150]
+
+With ``--against unkept`` the second of the two is the same contact with no pairs kept from one state to the next
+(:mod:`latentsim.physics.kept_pairs`), and the last column the largest difference of a vertex's position between the
+two runs (they differ only in the order their sums are taken).
+
+    python benchmarks/contact_cost.py --scenes cloth_fold --frames 150 --against unkept
 
 Run it on an otherwise idle machine, or say what ran beside it; the ratio of one run is the figure to compare.
 """
@@ -30,6 +36,7 @@ import torch
 
 from latentsim.config import load_config
 from latentsim.io import read_mesh_arrays
+from latentsim.physics import kept_pairs
 from latentsim.physics.contact import ContactBarrier
 from latentsim.scene import bc_parameters, build_potential, dirichlet_trajectory
 from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings
@@ -61,6 +68,7 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", nargs="+", default=["cloth_sphere"])
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--repeats", type=int, default=1)
+    ap.add_argument("--against", choices=["vertices", "unkept"], default="vertices")
     args = ap.parse_args(argv)
     cfg = load_config(args.config)
     missing = [s for s in args.scenes if s not in cfg["scenes"] or not cfg["scenes"][s]["contact"]["colliders"]]
@@ -68,23 +76,36 @@ def main(argv=None) -> int:
         print(f"contact_cost: no contact scene {', '.join(missing)} in {args.config}", file=sys.stderr)
         return 1
     torch.set_num_threads(1)
-    print("| scene | frames | surface: ms/frame | it/frame | vertices only: ms/frame | it/frame | ratio | clearance surface | clearance vertices only |")
+    other = "vertices only" if args.against == "vertices" else "no pairs kept"
+    last = "clearance vertices only" if args.against == "vertices" else "largest difference"
+    print(f"| scene | frames | surface: ms/frame | it/frame | {other}: ms/frame | it/frame | ratio | clearance surface | {last} |")
     print("|---|---|---|---|---|---|---|---|---|")
     for name in args.scenes:
         sc = cfg["scenes"][name]
-        arrays, surface, bare = potentials(name, sc, cfg["meshes"])
         rows = {"surface": [], "bare": []}
-        for _ in range(args.repeats):
+        arrays, *warm = potentials(name, sc, cfg["meshes"])
+        for pot in warm:  # two frames of each first, untimed: the kernels' compilation and the libraries' first calls
+            run_measured(sc, arrays, pot, 2, pot.contact)
+        for _ in range(args.repeats):  # (potentials built afresh each repeat: nothing kept from the last)
+            arrays, surface, bare = potentials(name, sc, cfg["meshes"])
+            if args.against == "unkept":
+                bare = potentials(name, sc, cfg["meshes"])[1]
             for key, pot in (("surface", surface), ("bare", bare)):
-                rows[key].append(run_measured(sc, arrays, pot, args.frames, surface.contact))
-        (ms_s, it_s, cl_s), (ms_b, it_b, cl_b) = (np.median(np.asarray(rows[k]), axis=0) for k in ("surface", "bare"))
-        print(f"| {name} | {args.frames} | {ms_s:.1f} | {it_s:.2f} | {ms_b:.1f} | {it_b:.2f} | {ms_s / ms_b:.2f} | {cl_s:.2e} m | {cl_b:.2e} m |")
+                kept, kept_pairs.KEPT_STATES = kept_pairs.KEPT_STATES, (0 if key == "bare" and args.against == "unkept" else kept_pairs.KEPT_STATES)
+                try:
+                    rows[key].append(run_measured(sc, arrays, pot, args.frames, surface.contact))
+                finally:
+                    kept_pairs.KEPT_STATES = kept
+        (ms_s, it_s, cl_s), (ms_b, it_b, cl_b) = (np.median(np.asarray([r[:3] for r in rows[k]]), axis=0) for k in ("surface", "bare"))
+        tail = f"{cl_b:.2e} m" if args.against == "vertices" else f"{np.abs(rows['surface'][-1][3] - rows['bare'][-1][3]).max():.1e} m"
+        print(f"| {name} | {args.frames} | {ms_s:.1f} | {it_s:.2f} | {ms_b:.1f} | {it_b:.2f} | {ms_s / ms_b:.2f} | {cl_s:.2e} m | {tail} |")
     return 0
 
 
-def run_measured(sc: dict, arrays: dict, pot, frames: int, measure: ContactBarrier) -> tuple[float, float, float]:
+def run_measured(sc: dict, arrays: dict, pot, frames: int, measure: ContactBarrier) -> tuple[float, float, float, np.ndarray]:
     """Simulate the first ``frames`` frames of the scene's first sequence: (ms per frame, Newton iterations per frame,
-    the least clearance over the frames by ``measure``, the surface's barrier, measured apart from the timing)."""
+    the least clearance over the frames by ``measure``, the surface's barrier, measured apart from the timing, and the
+    frames (F, n, 3))."""
     solver = ImplicitEuler(pot, NewtonSettings(**sc["newton"]))
     seq = sc["sequences"][0]
     T = min(int(seq["frames"]), frames + 1)
@@ -102,7 +123,7 @@ def run_measured(sc: dict, arrays: dict, pot, frames: int, measure: ContactBarri
     X = torch.as_tensor(np.asarray(states))
     targets = torch.as_tensor(np.asarray(xD[1:T])) if measure.moving else None
     clearance = float(measure.clearance(X, targets).min())
-    return 1e3 * seconds / (T - 1), iters / (T - 1), clearance
+    return 1e3 * seconds / (T - 1), iters / (T - 1), clearance, X.numpy()
 
 
 if __name__ == "__main__":

@@ -13,6 +13,7 @@ ipctk = pytest.importorskip("ipctk")
 
 from latentsim.mesh import cloth_grid  # noqa: E402
 from latentsim.physics.mesh_contact import unique_edges  # noqa: E402
+from latentsim.physics import kept_pairs, self_contact  # noqa: E402
 from latentsim.physics.self_contact import SelfContact  # noqa: E402
 from latentsim.solve.sparse import LinearSolver  # noqa: E402
 
@@ -53,8 +54,12 @@ def test_derivatives_are_the_energys_and_the_pairs_are_the_toolkits():
         fd = (sc.energy_gradient_hessian(xp.reshape(-1, 3), hessian=False)[1] - sc.energy_gradient_hessian(xm.reshape(-1, 3), hessian=False)[1]) / (2 * eps)
         assert np.abs(fd - H[:, i]).max() <= 1e-5 * np.abs(H[:, i]).max()
     assert np.linalg.eigvalsh(full(sc.energy_gradient_hessian(X, project=True)[2])).min() >= -1e-9 * np.abs(H).max()
-    # the pairs within reach, by the toolkit's distances over every vertex-triangle and edge-edge pair sharing no vertex
     ids, d, n_fv = sc.pairs(X, sc.d_hat)
+    assert _found(ids, n_fv) == _within_reach(X, tris, sc) and len(ids) > 20
+
+
+def _within_reach(X, tris, sc):
+    """The pairs within reach, by the toolkit's distances over every vertex-triangle and edge-edge pair sharing no vertex."""
     want = set()
     for v in range(len(X)):
         for t in tris:
@@ -65,8 +70,36 @@ def test_derivatives_are_the_energys_and_the_pairs_are_the_toolkits():
         for b in range(a + 1, len(E2)):
             if not set(E2[a]) & set(E2[b]) and np.sqrt(ipctk.edge_edge_distance(*X[E2[a]], *X[E2[b]])) - sc.thickness < sc.d_hat:
                 want.add(tuple(sorted([tuple(E2[a]), tuple(E2[b])])))
-    got = {tuple(i) for i in ids[:n_fv]} | {tuple(sorted([tuple(i[:2]), tuple(i[2:])])) for i in ids[n_fv:]}
-    assert got == want and len(want) > 20
+    return want
+
+
+def _found(ids, n_fv):
+    return {tuple(i) for i in ids[:n_fv]} | {tuple(sorted([tuple(i[:2]), tuple(i[2:])])) for i in ids[n_fv:]}
+
+
+def test_pairs_of_a_kept_state_serve_the_states_near_it(monkeypatch):
+    """The pairs found for a state are taken again for a state whose every vertex lies within the margin m of it, and are
+    still every pair within reach there: sheets 6 mm apart, beyond the reach and the thickness r = 4.5 mm and beyond
+    r + m, each moved 0.9 m towards the other, come within reach (found in the kept state at r + 2m); moved 1.1 m each,
+    the pairs are found afresh.  With none kept, every state is searched."""
+    X, tris, na = two_sheets([0.013, 0.006, 0.007], jitter=3e-4)
+    sc = SelfContact(len(X), tris, d_hat=0.004, kappa=10.0, thickness=0.0005)
+    m = (sc.d_hat + sc.thickness) / 4
+    searches = []
+    search = self_contact._candidates
+    monkeypatch.setattr(self_contact, "_candidates", lambda *a: searches.append(1) or search(*a))
+    first = sc.pairs(X, sc.d_hat)
+    for step, kept in ((0.9 * m, 1), (1.1 * m, 2)):
+        Y = X.copy()
+        Y[:na, 1] += step
+        Y[na:, 1] -= step
+        ids, d, n_fv = sc.pairs(Y, sc.d_hat)
+        assert _found(ids, n_fv) == _within_reach(Y, tris, sc)
+        assert len(searches) == kept  # taken from X's, then found afresh
+        assert len(ids) > len(first[0])
+    monkeypatch.setattr(kept_pairs, "KEPT_STATES", 0)  # none kept: every state searched
+    unkept = SelfContact(len(X), tris, d_hat=0.004, kappa=10.0, thickness=0.0005)
+    assert [len(unkept.pairs(X, sc.d_hat)[0]) for _ in range(2)] == [len(first[0])] * 2 and len(searches) == 4
 
 
 def test_energy_is_zero_apart_and_invariant_under_rigid_motion():

@@ -12,7 +12,8 @@ symbolic analysis).
 
 Candidates come from k-d trees over the primitives' bounding spheres, as a mesh collider's do (arrays throughout: a
 learned loss asks for the pairs of hundreds of states at once; the IPC Toolkit's own broad phase hands its candidates
-over one Python object at a time, 6 ms a state for the cloth); the IPC Toolkit gives each near pair's squared distance's
+over one Python object at a time, 6 ms a state for the cloth), kept with their state and taken again for the states
+near it (:class:`~latentsim.physics.kept_pairs.KeptPairs`); the IPC Toolkit gives each near pair's squared distance's
 closed-form gradient and Hessian, and the line search's first impact (its additive continuous collision detection).
 The barrier is the project's, of the distance itself, as every contact term's.  The energy in PyTorch (the loss, the
 autograd oracle), :meth:`SelfContact.energy`, sums the same candidates' distances
@@ -30,6 +31,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from latentsim.physics.barrier import barrier, barrier_derivatives
+from latentsim.physics.kept_pairs import KeptPairs
 from latentsim.physics.mesh_contact import bounding_spheres, unique_edges
 from latentsim.physics.primitives import point_triangle_distance, segment_segment_distance
 
@@ -38,6 +40,36 @@ __all__ = ["SelfContact"]
 
 def _fortran(a, dtype) -> np.ndarray:
     return np.asfortranarray(np.asarray(a, dtype=dtype))
+
+
+def _where(a: np.ndarray, b: np.ndarray, keep: np.ndarray):
+    return a[keep], b[keep]
+
+
+def _candidates(x: np.ndarray, faces: np.ndarray, edges: np.ndarray, r: float):
+    """:meth:`SelfContact.candidates` of x (n, 3) over ``faces`` and ``edges`` within r (the reach and the thickness),
+    the cheaper tests first (the spheres, the boxes, then the shared vertices)."""
+    out = []
+    if len(faces):
+        c, rad = bounding_spheres(x[faces])
+        tree = cKDTree(c)
+        near = tree.sparse_distance_matrix(cKDTree(x), r + rad.max(), output_type="ndarray")
+        f, v = near["i"].astype(np.int64), near["j"].astype(np.int64)
+        f, v = _where(f, v, np.einsum("ij,ij->i", c[f] - x[v], c[f] - x[v]) < (r + rad[f]) ** 2)  # the spheres within reach
+        lo, hi = x[faces].min(1), x[faces].max(1)
+        f, v = _where(f, v, ((x[v] > lo[f] - r) & (x[v] < hi[f] + r)).all(1))  # the vertex within reach of the face's box
+        out.append(np.concatenate([v[:, None], faces[f]], 1)[(faces[f] != v[:, None]).all(1)])
+    else:
+        out.append(np.zeros((0, 4), np.int64))
+    c, rad = bounding_spheres(x[edges])
+    a, b = cKDTree(c).query_pairs(r + 2 * rad.max(), output_type="ndarray").T.astype(np.int64)
+    a, b = _where(a, b, np.einsum("ij,ij->i", c[a] - c[b], c[a] - c[b]) < (r + rad[a] + rad[b]) ** 2)
+    lo, hi = x[edges].min(1), x[edges].max(1)
+    a, b = _where(a, b, ((lo[a] < hi[b] + r) & (lo[b] < hi[a] + r)).all(1))  # the edges' boxes within reach of each other
+    ea, eb = edges[a], edges[b]
+    apart = (ea[:, 0] != eb[:, 0]) & (ea[:, 0] != eb[:, 1]) & (ea[:, 1] != eb[:, 0]) & (ea[:, 1] != eb[:, 1])
+    out.append(np.concatenate([ea, eb], 1)[apart])
+    return np.concatenate(out), len(out[0])
 
 
 class SelfContact:
@@ -67,6 +99,7 @@ class SelfContact:
         self.d_hat, self.kappa, self.thickness, self.extend_below = float(d_hat), float(kappa), float(thickness), extend_below
         self.stencils = torch.zeros((0, 4), dtype=torch.int64)
         self._E, self._F = _fortran(self.edges, np.int32), _fortran(self.faces, np.int32)
+        self._kept = {}  # reach -> its KeptPairs (:meth:`_found`)
         self._mesh = ipctk.CollisionMesh(_fortran(np.zeros((self.n, 3)), np.float64), self._E, self._F)
 
     def at(self, frame) -> "SelfContact":
@@ -76,30 +109,20 @@ class SelfContact:
     def candidates(self, x: np.ndarray, reach: float) -> tuple[np.ndarray, int]:
         """The pairs of x (n, 3) that may lie nearer than ``reach`` beyond the thickness, no pair sharing a vertex: their
         vertices (P, 4), the vertex-triangle pairs first (vertex, three corners), then the edge pairs (two ends, two
-        ends), and how many are vertex-triangle pairs.  k-d trees over the primitives' bounding spheres (as a mesh
+        ends), and how many are vertex-triangle pairs (:meth:`_found`)."""
+        return self._found(np.asarray(x, dtype=np.float64)[None], reach)[0]
+
+    def _found(self, flat: np.ndarray, reach: float) -> list[tuple[np.ndarray, int]]:
+        """:meth:`candidates` of each state of flat (S, n, 3).  k-d trees over the primitives' bounding spheres (as a mesh
         collider's candidates, :meth:`~latentsim.physics.mesh_contact.TriangleMesh.candidates`), each pair kept where its
-        spheres and its bounding boxes come within reach: arrays throughout, for the many states of a learned loss."""
-        x = np.asarray(x, dtype=np.float64)
+        spheres and its bounding boxes come within reach: arrays throughout.  Found at the reach and the thickness r
+        plus twice a margin r / 4, kept with their state and taken again for the states near it
+        (:class:`~latentsim.physics.kept_pairs.KeptPairs`)."""
         r = float(reach) + self.thickness
-        out = []
-        if len(self.faces):
-            c, rad = bounding_spheres(x[self.faces])
-            near = cKDTree(c).sparse_distance_matrix(cKDTree(x), r + rad.max(), output_type="ndarray")
-            f, v = near["i"].astype(np.int64), near["j"].astype(np.int64)
-            lo, hi = x[self.faces].min(1), x[self.faces].max(1)  # and the vertex within reach of the face's box
-            keep = (near["v"] - rad[f] < r) & (self.faces[f] != v[:, None]).all(1)
-            keep &= ((x[v] > lo[f] - r) & (x[v] < hi[f] + r)).all(1)
-            out.append(np.concatenate([v[keep, None], self.faces[f[keep]]], 1))
-        else:
-            out.append(np.zeros((0, 4), np.int64))
-        c, rad = bounding_spheres(x[self.edges])
-        a, b = cKDTree(c).query_pairs(r + 2 * rad.max(), output_type="ndarray").T.astype(np.int64)
-        ea, eb = self.edges[a], self.edges[b]
-        lo, hi = x[self.edges].min(1), x[self.edges].max(1)  # and the edges' boxes within reach of each other
-        keep = (np.linalg.norm(c[a] - c[b], axis=1) - rad[a] - rad[b] < r) & (ea[:, :, None] != eb[:, None, :]).all((1, 2))
-        keep &= ((lo[a] < hi[b] + r) & (lo[b] < hi[a] + r)).all(1)
-        out.append(np.concatenate([ea[keep], eb[keep]], 1))
-        return np.concatenate(out), len(out[0])
+        if float(reach) not in self._kept:
+            self._kept[float(reach)] = KeptPairs((self.n, 3), r / 4)
+        kept = self._kept[float(reach)]
+        return kept(flat, lambda states: [_candidates(x, self.faces, self.edges, r + 2 * kept.margin) for x in states])
 
     @staticmethod
     def _distances(x: torch.Tensor, ids: np.ndarray, n_fv: int, state=None) -> torch.Tensor:
@@ -111,7 +134,7 @@ class SelfContact:
     def _batch(self, flat: np.ndarray, reach: float):
         """Every state's candidates of flat (S, n, 3), the vertex-triangle pairs of all states first: (state (P,),
         ids (P, 4), how many are vertex-triangle pairs)."""
-        per = [self.candidates(xs, reach) for xs in flat]
+        per = self._found(np.asarray(flat, dtype=np.float64), reach)
         fv = [(np.full(k, s), ids[:k]) for s, (ids, k) in enumerate(per)]
         ee = [(np.full(len(ids) - k, s), ids[k:]) for s, (ids, k) in enumerate(per)]
         state = np.concatenate([s for s, _ in fv + ee]) if per else np.zeros(0, np.int64)
