@@ -4,9 +4,10 @@ For each named contact scene of the config: prepare its mesh, then simulate the 
 twice, with the contact the scene has now (every vertex, and a strand's edges or a shell's or solid's triangles
 against every curved collider, at the surface's thickness) and with the vertices alone at the mid-surface (the
 model before the primitives and thickness existed), alternating the two per repeat so that both see the same load
-(after two frames of each, untimed, that take the kernels' compilation).  It prints ms per frame and Newton iterations per frame of each (medians over the repeats), the ratio, and each
-one's clearance: the least signed distance of any vertex, edge or triangle from the colliders over the frames,
-measured on the surface with thickness (negative: the surface went in).
+(after two frames of each, untimed, that take the kernels' compilation).  It prints ms per frame and Newton iterations
+per frame of each (medians over the repeats), the ratio, and each one's clearance: the least signed distance of any
+vertex, edge or triangle from the colliders over the frames, measured on the surface with thickness (negative: the
+surface went in).
 
     python benchmarks/contact_cost.py [--config config/config.yaml] [--scenes cloth_sphere hair_head] [--frames 150]
 
@@ -22,6 +23,7 @@ Run it on an otherwise idle machine, or say what ran beside it; the ratio of one
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import tempfile
@@ -62,6 +64,17 @@ def potentials(name: str, sc: dict, meshes: dict):
     return arrays, surface, bare
 
 
+@contextlib.contextmanager
+def pairs_kept(keep: bool):
+    """Within it, contact terms that build their kept pairs keep none unless ``keep``."""
+    saved = kept_pairs.KEPT_STATES
+    kept_pairs.KEPT_STATES = saved if keep else 0
+    try:
+        yield
+    finally:
+        kept_pairs.KEPT_STATES = saved
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--config", default=str(ROOT / "config" / "config.yaml"))
@@ -91,11 +104,8 @@ def main(argv=None) -> int:
             if args.against == "unkept":
                 bare = potentials(name, sc, cfg["meshes"])[1]
             for key, pot in (("surface", surface), ("bare", bare)):
-                kept, kept_pairs.KEPT_STATES = kept_pairs.KEPT_STATES, (0 if key == "bare" and args.against == "unkept" else kept_pairs.KEPT_STATES)
-                try:
+                with pairs_kept(not (key == "bare" and args.against == "unkept")):
                     rows[key].append(run_measured(sc, arrays, pot, args.frames, surface.contact))
-                finally:
-                    kept_pairs.KEPT_STATES = kept
         (ms_s, it_s, cl_s), (ms_b, it_b, cl_b) = (np.median(np.asarray([r[:3] for r in rows[k]]), axis=0) for k in ("surface", "bare"))
         tail = f"{cl_b:.2e} m" if args.against == "vertices" else f"{np.abs(rows['surface'][-1][3] - rows['bare'][-1][3]).max():.1e} m"
         print(f"| {name} | {args.frames} | {ms_s:.1f} | {it_s:.2f} | {ms_b:.1f} | {it_b:.2f} | {ms_s / ms_b:.2f} | {cl_s:.2e} m | {tail} |")

@@ -5,7 +5,7 @@ A contact term's broad phase finds, for a state, the pairs of primitives that ma
 whose every vertex lies within m of that state's: two primitives within r of each other there were within r + 2m of
 each other in it.  A solver meets nearly the same state at each Newton iteration and line-search trial, a learned loss
 the same data states epoch after epoch.  Self-contact's pairs cost the cloth 4-5 ms a state to find; with them kept,
-cloth_fold's full space takes 0.66 of the time (docs/measurements.md).  A mesh collider's candidates are found for
+cloth_fold's full space takes 0.65 of the time (docs/measurements.md).  A mesh collider's candidates are found for
 all states at once and cheaply; kept, cloth_drape's training took longer, so they are not.
 """
 
@@ -29,8 +29,7 @@ class KeptPairs:
 
     Parameters
     ----------
-    shape : a state's shape, (points, 3): the points whose displacement bounds the pairs' (a term's vertices, or its
-        stencils' vertices as gathered).
+    shape : a state's shape, (points, 3): the points whose displacement bounds the pairs' (the term's vertices).
     margin : m, as in the module docstring; the search is asked for pairs within its reach plus 2m.
     """
 
