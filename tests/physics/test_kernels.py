@@ -429,3 +429,28 @@ def test_two_threads_give_the_same_bits_under_load(monkeypatch):
             p.wait()
     assert all(len(r) == len(idle) and all(np.array_equal(a, b) for a, b in zip(r, idle)) for r in loaded)
     assert all(np.abs(a).max() > 0 for a in idle)  # energies, gradients and Hessians really computed
+
+
+def test_pair_distances_are_the_pytorch_distances():
+    """The compiled contact distances (``kernels.distances``) equal ``primitives``' PyTorch ones to rounding, pair by
+    pair and state by state, on random geometry and on each special case: a zero-length segment, parallel and collinear
+    segments, segments that cross, a triangle of no area, a vertex on its triangle."""
+    from latentsim.physics.kernels.distances import pair_distances, within
+    from latentsim.physics.primitives import point_triangle_distance, segment_segment_distance
+
+    rng = np.random.default_rng(11)
+    x = rng.normal(size=(3, 40, 3))
+    special = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [0.5, 0.3, 0], [0.5, 0.3, 0], [3, 0, 0], [0.2, 0.2, 0], [0, 1, 0], [0.5, -0.3, 0]])
+    x[:, :9] = special  # 0-1-2 collinear, 3 = 4 (a point as a segment), 6 on the triangle 0 1 7, 3-8 crosses 0-1
+    fv = np.array([rng.choice(40, 4, replace=False) for _ in range(3000)] + [[3, 0, 1, 2], [6, 0, 1, 7], [5, 0, 1, 2]])
+    ee = np.array([rng.choice(40, 4, replace=False) for _ in range(3000)]
+                  + [[0, 1, 2, 5], [3, 4, 0, 1], [0, 1, 3, 8], [6, 3, 0, 2], [0, 7, 1, 3], [1, 2, 0, 5]])  # fmt: skip
+    ids = np.concatenate([fv, ee])
+    state = rng.integers(0, 3, len(ids))
+    d = pair_distances(x, state, ids, len(fv))
+    y = torch.as_tensor(x)[torch.as_tensor(state)[:, None], torch.as_tensor(ids)]
+    ref = torch.cat([point_triangle_distance(y[: len(fv), 0], y[: len(fv), 1:]), segment_segment_distance(y[len(fv) :, :2], y[len(fv) :, 2:])]).numpy()
+    assert np.abs(d - ref).max() <= 1e-14 * np.abs(x).max()
+    assert d[len(fv) + 3000] == 1.0 and d[len(fv) + 3002] == 0.0 and d[3001] == 0.0  # collinear gap, crossing, on the face
+    reach = np.median(ref)
+    assert np.array_equal(within(x, state, ids, len(fv), reach), d < reach * (1 + 1e-6)) and (ref < reach).sum() == (d < reach).sum()

@@ -102,6 +102,28 @@ def test_pairs_of_a_kept_state_serve_the_states_near_it(monkeypatch):
     assert [len(unkept.pairs(X, sc.d_hat)[0]) for _ in range(2)] == [len(first[0])] * 2 and len(searches) == 4
 
 
+def test_compiled_selection_leaves_energy_gradient_and_distances_unchanged(monkeypatch):
+    """The pairs within reach are selected by compiled distances (``kernels.distances.within``) before PyTorch
+    measures them: every state's energy, its gradient and the least distance equal, to the bit, those with every
+    candidate measured in PyTorch, over many states of sheets whose pairs straddle the reach."""
+    X, tris, na = two_sheets([0.013, 0.004, 0.007], jitter=1e-3)
+    rng = np.random.default_rng(3)
+    states = np.stack([X + rng.normal(scale=5e-4, size=X.shape) for _ in range(12)])
+
+    def measured():
+        sc = SelfContact(len(X), tris, d_hat=0.004, kappa=10.0, thickness=0.0005, extend_below=0.0004)
+        x = torch.tensor(states, requires_grad=True)
+        e = sc.energy(x)
+        (g,) = torch.autograd.grad(e.sum(), x)
+        return e.detach(), g, sc.distances(x, sc.d_hat), [len(sc.pairs(s, sc.d_hat)[0]) for s in states]
+
+    selected = measured()
+    monkeypatch.setattr(self_contact, "within", lambda x, state, ids, n_fv, reach: np.ones(len(ids), bool))
+    everything = measured()
+    assert all(torch.equal(a, b) for a, b in zip(selected[:3], everything[:3])) and selected[3] == everything[3]
+    assert (selected[0] > 0).sum() >= 10 and min(selected[3]) > 10
+
+
 def test_energy_is_zero_apart_and_invariant_under_rigid_motion():
     X, tris, _ = two_sheets([0.013, 0.002, 0.007], jitter=3e-4)
     sc = SelfContact(len(X), tris, d_hat=0.004, kappa=10.0, thickness=0.0005)

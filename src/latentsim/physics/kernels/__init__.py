@@ -17,6 +17,8 @@ autograd, ``solve.assembly.AutogradKernel``):
 - ``tets``, ``rods``, ``shells``: the kernels of each term (formulas in their
   docstrings); each term names its own (``EnergyTerm.kernel_spec``);
 - ``inertia``: inertia and gravity of the incremental potential;
+- ``distances``: contact pairs' distances without gradients, which of a broad
+  phase's candidates lie within reach (self-contact);
 - ``dispatch``: ``TermKernel`` (one term's kernels over its stencils, on one or
   two threads), ``batch_energy_gradient`` and ``compiled_energy`` (many
   states, the losses).
