@@ -40,7 +40,7 @@ from latentsim.config import load_config
 from latentsim.io import read_mesh_arrays
 from latentsim.physics import kept_pairs
 from latentsim.physics.contact import ContactBarrier
-from latentsim.scene import bc_parameters, build_potential, dirichlet_trajectory
+from latentsim.scene import bc_parameters, build_potential, dirichlet_trajectory, load_collider_meshes
 from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings
 from latentsim.stages.mesh import prepare_mesh
 
@@ -58,6 +58,7 @@ def potentials(name: str, sc: dict, meshes: dict):
     with tempfile.TemporaryDirectory() as tmp:
         prepare_mesh(name, sc["model"], sc["mesh"], sc["dirichlet"], meshes, Path(tmp) / "mesh.h5")
         arrays = read_mesh_arrays(Path(tmp) / "mesh.h5")
+    arrays.update(load_collider_meshes(sc["contact"], meshes, name))  # a mesh collider's surface, as the simulation reads it
     surface = build_potential(sc["model"], arrays, sc["material"], sc["dt"], sc["gravity"], free_only=True, contact=sc["contact"])
     bare = build_potential(sc["model"], arrays, sc["material"], sc["dt"], sc["gravity"], free_only=True, contact={**sc["contact"], "thickness": 0.0})
     bare.contact = vertices_only(bare.contact, bare.contact.colliders)

@@ -104,6 +104,31 @@ def test_each_kind_of_pair_has_autograds_derivatives_and_its_candidates_miss_not
         assert torch.allclose(t.energy(xs), torch.stack([t.energy(x), t.energy(x + 0.003)]), rtol=1e-14, atol=0)
 
 
+def test_compiled_selection_leaves_energy_gradient_and_distances_unchanged(ball, monkeypatch):
+    """The candidates within reach are selected by compiled distances (``kernels.distances.core_within``): over many
+    states of a sheet over the ball, each kind's energy, gradient, least distance, and the solver's per-stencil gradient
+    and Hessian equal, to the bit, those with every tree candidate measured in PyTorch."""
+    from latentsim.physics import mesh_contact
+
+    x, tris, mesh = _cloth_over(ball, seed=4)
+    xs = torch.stack([x + 0.002 * k * torch.as_tensor([0.3, -1.0, 0.2], dtype=F64) for k in range(8)])
+
+    def measured():
+        out = []
+        for t in mesh_barriers(mesh, tris, len(x), d_hat=0.01, kappa=1.0, extend_below=0.001):
+            y = xs.clone().requires_grad_(True)
+            e = t.energy(y)
+            (g,) = torch.autograd.grad(e.sum(), y)
+            out += [e.detach(), g, t.distances(xs, t.d_hat), *t.local_gradient_hessian(t.gather(xs[3]))]
+        return out
+
+    selected = measured()
+    monkeypatch.setattr(mesh_contact, "core_within", lambda ye, cores, i, j, reach: np.ones(len(i), bool))
+    everything = measured()
+    assert all(torch.equal(a, b) for a, b in zip(selected, everything))
+    assert all(int((e > 0).sum()) >= 4 for e in selected[::5]), [int((e > 0).sum()) for e in selected[::5]]
+
+
 def test_the_pairs_energy_is_the_ipc_toolkits_distances_barrier(ball):
     """ipctk's squared distance of each vertex-face, edge-edge and face-vertex pair, brute force over all pairs."""
     ipctk = pytest.importorskip("ipctk")

@@ -30,6 +30,7 @@ from scipy.spatial import cKDTree
 
 from latentsim.physics.barrier import barrier, barrier_derivatives
 from latentsim.physics.base import EnergyTerm, project_psd
+from latentsim.physics.kernels.distances import core_within
 from latentsim.physics.primitives import core_distance, distance_hessian, vertex_hessian
 
 __all__ = ["TriangleMesh", "MeshBarrier", "bounding_spheres", "mesh_barriers", "unique_edges"]
@@ -69,10 +70,10 @@ class TriangleMesh:
         V = self.vertices
         self._cores = {1: V[self.faces], 2: V[self.edges], 3: V[:, None, :]}
         self._box = (self.vertices.min(0), self.vertices.max(0))
-        self._trees, self._bounds = {}, {}
+        self._trees = {}
         for k, pts in self._cores.items():
             c, r = bounding_spheres(pts)
-            self._trees[k], self._bounds[k] = (cKDTree(c), float(r.max())), (c, r)
+            self._trees[k] = cKDTree(c), float(r.max())
         self._torch = {k: torch.as_tensor(v) for k, v in self._cores.items()}
 
     def thickened(self, offset: float) -> "TriangleMesh":
@@ -87,8 +88,8 @@ class TriangleMesh:
         """The pairs (i, j) of a primitive i of ye (N, k, 3) and a mesh primitive j of :meth:`cores` (k) that may lie
         within ``reach`` of each other; every pair nearer than ``reach`` is among them.  The mesh's bounding box and each
         primitive's nearest mesh centre first (a primitive beyond either's reach has none), then the mesh primitives whose
-        bounding spheres come within reach of its own, kept where a bound of the pair's distance is below ``reach``:
-        that of the mesh edge's centre from the edge (an edge), of the mesh vertex from the triangle's plane (a triangle)."""
+        bounding spheres come within reach of its own, kept where the pair's distance itself is below ``reach``
+        (compiled, with a slack: :func:`~latentsim.physics.kernels.distances.core_within`)."""
         N, k, _ = ye.shape
         tree, r_max = self._trees[k]
         none = np.zeros(0, np.int64), np.zeros(0, np.int64)
@@ -107,22 +108,8 @@ class TriangleMesh:
         counts = np.fromiter(map(len, hits), dtype=np.int64, count=len(near))
         i = np.repeat(near, counts)
         j = np.fromiter(itertools.chain.from_iterable(hits), dtype=np.int64, count=int(counts.sum()))
-        cj, rj = self._bounds[k]
-        keep = np.linalg.norm(c[i] - cj[j], axis=-1) < r[i] + rj[j] + reach
-        i, j = i[keep], j[keep]
-        if k == 2:  # the mesh edge's centre within its half length (and reach) of the edge
-            a, e = ye[i, 0], ye[i, 1] - ye[i, 0]
-            s = np.clip(((cj[j] - a) * e).sum(-1) / np.maximum((e * e).sum(-1), 1e-300), 0.0, 1.0)
-            keep = np.linalg.norm(a + s[:, None] * e - cj[j], axis=-1) < rj[j] + reach
-            i, j = i[keep], j[keep]
-        elif k == 3:  # the mesh vertex within reach of the triangle's plane
-            n = np.cross(ye[i, 1] - ye[i, 0], ye[i, 2] - ye[i, 0])
-            length = np.linalg.norm(n, axis=-1)
-            flat = length > 0
-            off = np.abs(((cj[j] - ye[i, 0]) * n).sum(-1)) / np.where(flat, length, 1.0)
-            keep = ~flat | (off < reach)
-            i, j = i[keep], j[keep]
-        return i, j
+        keep = core_within(ye, self._cores[k], i, j, reach)
+        return i[keep], j[keep]
 
     def inside(self, points: np.ndarray) -> np.ndarray:
         """Whether each point (N, 3) lies inside the (closed) mesh: the parity of the faces a ray from it along +y

@@ -114,6 +114,30 @@ def near_pairs(x: np.ndarray, faces: np.ndarray, edges: np.ndarray, fv: tuple, e
     return out[:k], int(n_fv)
 
 
+@njit(**JIT)
+def _core_within(ye, cores, i, j, reach, keep):
+    k = ye.shape[1]
+    for q in range(i.shape[0]):
+        y, c = ye[i[q]], cores[j[q]]
+        if k == 1:
+            d = _point_triangle(y[0], c[0], c[1], c[2])
+        elif k == 2:
+            d = _segment_segment(c[0], c[1], y[0], y[1])
+        else:
+            d = _point_triangle(c[0], y[0], y[1], y[2])
+        keep[q] = d < reach
+
+
+def core_within(ye: np.ndarray, cores: np.ndarray, i: np.ndarray, j: np.ndarray, reach: float) -> np.ndarray:
+    """Which pairs (i, j) of a surface's primitive ye[i] (N, k, 3) and a static mesh's core cores[j] (M, 4 - k, 3) lie
+    nearer than ``reach`` (with :func:`within`'s slack): a vertex against a face (k = 1), an edge against an edge (2),
+    a triangle against a vertex (3), the pairs of :func:`~latentsim.physics.primitives.core_distance`.  (P,) bool."""
+    keep = np.empty(len(i), np.bool_)
+    _core_within(np.ascontiguousarray(ye, dtype=np.float64), np.ascontiguousarray(cores, dtype=np.float64),
+                 np.ascontiguousarray(i, dtype=np.int64), np.ascontiguousarray(j, dtype=np.int64), reach * (1.0 + SLACK), keep)  # fmt: skip
+    return keep
+
+
 def pair_distances(x: np.ndarray, state: np.ndarray, ids: np.ndarray, n_fv: int) -> np.ndarray:
     """The unsigned distance of each pair ids (P, 4) in the states x (S, n, 3), pair k's in x[state[k]]: the first
     ``n_fv`` vertex-triangle pairs (vertex, three corners), the rest edge pairs (two ends, two ends).  (P,) float64."""
