@@ -12,7 +12,8 @@ stiffer there, never weaker.
 
 Each kind is one :class:`MeshBarrier` (an energy term of :mod:`latentsim.physics.base` whose stencils are the
 surface's vertices, edges or triangles, so its Hessian blocks lie within the elastic stencils'): its candidates are
-the mesh primitives whose bounding sphere (a k-d tree over their centres) comes within reach of the stencil's; its
+the mesh primitives whose bounding sphere (a k-d tree over their centres) comes within reach of the stencil's and
+whose distance from it, compiled (:mod:`latentsim.physics.kernels.distances`), is within reach; its
 distances, gradients (autograd) and Hessians (closed form, :func:`~latentsim.physics.primitives.distance_hessian`
 and :func:`~latentsim.physics.primitives.vertex_hessian`) are the primitives module's.  The line search's time of
 impact over all three kinds is the IPC Toolkit's (``ipctk``: its broad phase and additive continuous collision

@@ -18,7 +18,7 @@ autograd, ``solve.assembly.AutogradKernel``):
   docstrings); each term names its own (``EnergyTerm.kernel_spec``);
 - ``inertia``: inertia and gravity of the incremental potential;
 - ``distances``: contact pairs' distances without gradients, which of a broad
-  phase's candidates lie within reach (self-contact);
+  phase's candidates lie within reach (self-contact, a mesh collider);
 - ``dispatch``: ``TermKernel`` (one term's kernels over its stencils, on one or
   two threads), ``batch_energy_gradient`` and ``compiled_energy`` (many
   states, the losses).

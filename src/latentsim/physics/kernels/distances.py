@@ -3,11 +3,13 @@ r"""Compiled distances of contact pairs, without gradients: which pairs a broad 
 ``pair_distances`` gives the unsigned distance of each vertex-triangle and edge-edge pair, the formulas of
 :func:`~latentsim.physics.primitives.point_triangle_distance` and
 :func:`~latentsim.physics.primitives.segment_segment_distance` (their regions, their parallel test) pair by pair
-instead of as array programs.  It selects pairs, it does not measure them: self-contact keeps the pairs nearer than
-its reach by it, with a slack (``SLACK``) far above the two implementations' rounding, and measures those again in
-PyTorch; a pair kept by the slack alone lies beyond the reach there and its barrier, and that barrier's gradient, are
-exactly zero.  Within a learned loss, the same test as arrays over every candidate of every state was a quarter of a
-self-contact scene's epoch (``physics.self_contact``).
+instead of as array programs; ``near_pairs`` selects a self-contact broad phase's candidates by them and
+``core_within`` a mesh collider's (a surface's primitive against the mesh's face, edge or vertex).  They select pairs,
+they do not measure them: self-contact and the mesh barrier keep the pairs nearer than their reach by these, with a
+slack (``SLACK``) far above the two implementations' rounding, and measure those again in PyTorch; a pair kept by the
+slack alone lies beyond the reach there and its barrier, and that barrier's gradient, are exactly zero.  Within a
+learned loss, the same test as arrays over every candidate of every state was a quarter of a self-contact scene's
+epoch (``physics.self_contact``) and most of a mesh collider's (``physics.mesh_contact``).
 """
 
 from __future__ import annotations
