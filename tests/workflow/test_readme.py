@@ -35,7 +35,7 @@ NOT_RUN = {
     "snakemake --cores 2 results/conditioned/cloth/summary.md results/conditioned/cantilever/summary.md":
         "the two conditioned scenes over three seeds take about 45 min; the tiny run's tiny_cloth runs the same rules",
     "snakemake --cores 2 results/evaluation/{cloth_sphere,cantilever_floor,hair_head,bunny_drop,cloth_drape,cloth_fold}/metrics.csv":
-        "the six contact scenes over three seeds take over an hour (each of cloth_drape's integrators about 43 CPU minutes); the tiny run's tiny_contact runs the same rules",
+        "the six contact scenes over three seeds take over an hour (cloth_drape's and cloth_fold's integrators the longest); the tiny run's tiny_contact runs the same rules",
 }
 if not torch.cuda.is_available():
     NOT_RUN["snakemake --cores 2 all --config device=cuda"] = "needs a GPU; test_latent checks the error without one"
