@@ -454,3 +454,29 @@ def test_pair_distances_are_the_pytorch_distances():
     assert d[len(fv) + 3000] == 1.0 and d[len(fv) + 3002] == 0.0 and d[3001] == 0.0  # collinear gap, crossing, on the face
     reach = np.median(ref)
     assert np.array_equal(within(x, state, ids, len(fv), reach), d < reach * (1 + 1e-6)) and (ref < reach).sum() == (d < reach).sum()
+
+
+def test_self_pairs_are_every_pair_within_reach():
+    """The compiled grid of self-contact (``kernels.distances.self_pairs``) finds exactly the pairs that measuring every
+    vertex-triangle and edge-edge pair sharing no vertex finds within reach (by ``pair_distances``), at reaches from a
+    fraction of a cell to several cells, on a crumpled sheet, on one with a vertex thrown 1e7 m away (beyond the grid's
+    last cell on that axis) and on one scaled a thousandfold."""
+    from latentsim.physics.kernels.distances import SLACK, pair_distances, self_pairs
+    from latentsim.physics.mesh_contact import unique_edges
+
+    X, tris = cloth_grid(7, 6, 0.2, 0.15, plane="xz")
+    X, tris = np.asarray(X, np.float64), np.asarray(tris, np.int64)
+    X[:, 1] = 0.03 * np.sin(25 * X[:, 0]) * np.cos(30 * X[:, 2]) + np.random.default_rng(5).normal(0, 0.004, len(X))
+    edges = unique_edges(tris)
+    fv = np.array([(v, *t) for v in range(len(X)) for t in tris if v not in t])
+    ee = np.array([(*a, *b) for i, a in enumerate(edges) for b in edges[i + 1 :] if not set(a) & set(b)])
+    far = X.copy()
+    far[7] += (1e7, 0.0, 0.0)
+    for x, reaches in ((X, (0.002, 0.01, 0.05, 0.12)), (far, (0.01, 0.05)), (X * 1000, (3.0, 50.0))):
+        d_fv, d_ee = (pair_distances(x[None], np.zeros(len(p), np.int64), p, len(p) if p is fv else 0) for p in (fv, ee))
+        for reach in reaches:
+            ids, n_fv = self_pairs(x, tris, edges, reach)
+            want_fv, want_ee = {tuple(p) for p in fv[d_fv < reach * (1 + SLACK)]}, {tuple(p) for p in ee[d_ee < reach * (1 + SLACK)]}
+            assert {tuple(p) for p in ids[:n_fv]} == want_fv and {tuple(p) for p in ids[n_fv:]} == want_ee, reach
+            assert len(ids) == len(want_fv) + len(want_ee)  # each pair once
+        assert len(want_fv) > 5 and len(want_ee) > 5

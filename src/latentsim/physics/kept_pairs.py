@@ -4,8 +4,9 @@ A contact term's broad phase finds, for a state, the pairs of primitives that ma
 (:class:`~latentsim.physics.self_contact.SelfContact`'s).  Found at r + 2m for a margin m, they serve every state
 whose every vertex lies within m of that state's: two primitives within r of each other there were within r + 2m of
 each other in it.  A solver meets nearly the same state at each Newton iteration and line-search trial, a learned loss
-the same data states epoch after epoch.  Self-contact's pairs cost the cloth 4-5 ms a state to find; with them kept,
-cloth_fold's full space takes 0.65 of the time (docs/measurements.md).  A mesh collider's candidates are found for
+the same data states epoch after epoch.  Self-contact's pairs cost the cloth 4-5 ms a state to find when this was
+written (0.5-0.6 ms with the compiled grid since); with them kept, cloth_fold's full space took 0.65 of the time
+(docs/measurements-archive.md, "Contact, twentieth part").  A mesh collider's candidates are found for
 all states at once and cheaply; kept, cloth_drape's training took longer, so they are not.
 """
 

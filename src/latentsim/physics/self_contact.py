@@ -10,10 +10,10 @@ matrix over the free degrees of freedom (:meth:`SelfContact.energy_gradient_hess
 changes from one evaluation to the next (:class:`~latentsim.solve.sparse.LinearSolver` then redoes its
 symbolic analysis).
 
-Candidates come from k-d trees over the primitives' bounding spheres, as a mesh collider's do (arrays throughout: a
-learned loss asks for the pairs of hundreds of states at once; the IPC Toolkit's own broad phase hands its candidates
-over one Python object at a time, 6 ms a state for the cloth), kept with their state and taken again for the states
-near it (:class:`~latentsim.physics.kept_pairs.KeptPairs`); the IPC Toolkit gives each near pair's squared distance's
+The pairs come from a compiled uniform grid, the primitives' boxes and their distances
+(:func:`~latentsim.physics.kernels.distances.self_pairs`: a learned loss asks for the pairs of hundreds of states at
+once; the IPC Toolkit's own broad phase hands its candidates over one Python object at a time, 6 ms a state for the
+cloth), kept with their state and taken again for the states near it (:class:`~latentsim.physics.kept_pairs.KeptPairs`); the IPC Toolkit gives each near pair's squared distance's
 closed-form gradient and Hessian, and the line search's first impact (its additive continuous collision detection).
 The barrier is the project's, of the distance itself, as every contact term's.  The energy in PyTorch (the loss, the
 autograd oracle), :meth:`SelfContact.energy`, sums the same candidates' distances
@@ -30,12 +30,11 @@ import math
 import numpy as np
 import scipy.sparse
 import torch
-from scipy.spatial import cKDTree
 
 from latentsim.physics.barrier import barrier, barrier_derivatives
 from latentsim.physics.kept_pairs import KeptPairs
-from latentsim.physics.kernels.distances import near_pairs, within
-from latentsim.physics.mesh_contact import bounding_spheres, unique_edges
+from latentsim.physics.kernels.distances import self_pairs, within
+from latentsim.physics.mesh_contact import unique_edges
 from latentsim.physics.primitives import point_triangle_distance, segment_segment_distance
 
 __all__ = ["SelfContact"]
@@ -47,17 +46,9 @@ def _fortran(a, dtype) -> np.ndarray:
 
 def _candidates(x: np.ndarray, faces: np.ndarray, edges: np.ndarray, r: float):
     """:meth:`SelfContact.candidates` of x (n, 3) over ``faces`` and ``edges`` within r (the reach and the thickness):
-    k-d trees over the primitives' bounding spheres, then, compiled, the pairs that share no vertex and whose distance
-    itself is within r (:func:`~latentsim.physics.kernels.distances.near_pairs`; with it the spheres' and the boxes' own
-    tests, as arrays, cost more than they saved)."""
-    fv = (np.zeros(0, np.int64),) * 2
-    if len(faces):
-        c, rad = bounding_spheres(x[faces])
-        near = cKDTree(c).sparse_distance_matrix(cKDTree(x), r + rad.max(), output_type="ndarray")
-        fv = near["i"], near["j"]
-    c, rad = bounding_spheres(x[edges])
-    ee = cKDTree(c).query_pairs(r + 2 * rad.max(), output_type="ndarray").T
-    return near_pairs(x, faces, edges, fv, ee, r)
+    a uniform grid, then the boxes and the distances, compiled (:func:`~latentsim.physics.kernels.distances.self_pairs`;
+    k-d trees over the primitives' bounding spheres with array tests took three times as long for the fold's cloth)."""
+    return self_pairs(x, faces, edges, r)
 
 
 class SelfContact:
@@ -101,9 +92,7 @@ class SelfContact:
         return self._found(np.asarray(x, dtype=np.float64)[None], reach)[0]
 
     def _found(self, flat: np.ndarray, reach: float) -> list[tuple[np.ndarray, int]]:
-        """:meth:`candidates` of each state of flat (S, n, 3).  k-d trees over the primitives' bounding spheres (as a mesh
-        collider's candidates, :meth:`~latentsim.physics.mesh_contact.TriangleMesh.candidates`), each pair kept where the
-        primitives themselves come within reach (:func:`_candidates`).  Found at the reach and the thickness r
+        """:meth:`candidates` of each state of flat (S, n, 3) (:func:`_candidates`), found at the reach and the thickness r
         plus twice a margin r / 4, kept with their state and taken again for the states near it
         (:class:`~latentsim.physics.kept_pairs.KeptPairs`)."""
         r = float(reach) + self.thickness

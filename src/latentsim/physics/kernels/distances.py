@@ -3,8 +3,8 @@ r"""Compiled distances of contact pairs, without gradients: which pairs a broad 
 ``pair_distances`` gives the unsigned distance of each vertex-triangle and edge-edge pair, the formulas of
 :func:`~latentsim.physics.primitives.point_triangle_distance` and
 :func:`~latentsim.physics.primitives.segment_segment_distance` (their regions, their parallel test) pair by pair
-instead of as array programs; ``near_pairs`` selects a self-contact broad phase's candidates by them and
-``core_within`` a mesh collider's (a surface's primitive against the mesh's face, edge or vertex).  They select pairs,
+instead of as array programs; ``self_pairs`` finds a surface's pairs with itself by them (a uniform grid, then
+the boxes, then the distances) and ``core_within`` selects a mesh collider's candidates (a surface's primitive against the mesh's face, edge or vertex).  They select pairs,
 they do not measure them: self-contact and the mesh barrier keep the pairs nearer than their reach by these, with a
 slack (``SLACK``) far above the two implementations' rounding, and measure those again in PyTorch; a pair kept by the
 slack alone lies beyond the reach there and its barrier, and that barrier's gradient, are exactly zero.  Within a
@@ -86,34 +86,131 @@ def _pair_distances(x, state, ids, n_fv, out):
         out[k] = _point_triangle(p0, p1, p2, p3) if k < n_fv else _segment_segment(p0, p1, p2, p3)
 
 
+#: the most cells of the grid an axis (a state far larger than its primitives, as a diverged prediction, shares the
+#: outermost cells: clamping keeps neighbouring cells neighbours, so no pair is missed)
+CELLS = 2**20
+
+
+@njit(**INLINE)
+def _cell(p, a, h, origin):
+    f = (p - origin[a]) / h
+    return 1 if not f >= 1 else (CELLS if f >= CELLS else int(f))
+
+
 @njit(**JIT)
-def _select(x, faces, edges, f, v, a, b, reach, out):
+def _cells(lo, h, origin):
+    """Each box's cell (P, 3) in a grid of spacing h from origin, by its lower corner (1 ... CELLS an axis)."""
+    c = np.empty((lo.shape[0], 3), np.int64)
+    for i in range(lo.shape[0]):
+        for a in range(3):
+            c[i, a] = _cell(lo[i, a], a, h, origin)
+    return c
+
+
+@njit(**JIT)
+def _grid(cells, dims):
+    """The boxes sorted by their cell's key (x-major), the sorted keys, for a range search of each cell."""
+    key = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
+    order = np.argsort(key, kind="mergesort")
+    return order, key[order]
+
+
+@njit(**JIT)
+def _self_pairs(x, faces, edges, reach, out):
+    """The self-contact pairs of x within reach (module function :func:`self_pairs`); (how many, of them vertex-triangle),
+    or (-1, 0) where ``out`` is too short."""
+    n, F, E = x.shape[0], faces.shape[0], edges.shape[0]
+    flo, fhi = np.empty((F, 3)), np.empty((F, 3))
+    elo, ehi = np.empty((E, 3)), np.empty((E, 3))
+    h = 0.0
+    for i in range(F):
+        for a in range(3):
+            lo, hi = min(x[faces[i, 0], a], x[faces[i, 1], a], x[faces[i, 2], a]), max(x[faces[i, 0], a], x[faces[i, 1], a], x[faces[i, 2], a])
+            flo[i, a], fhi[i, a] = lo, hi
+            h = max(h, hi - lo)
+    for i in range(E):
+        for a in range(3):
+            lo, hi = min(x[edges[i, 0], a], x[edges[i, 1], a]), max(x[edges[i, 0], a], x[edges[i, 1], a])
+            elo[i, a], ehi[i, a] = lo, hi
+            h = max(h, hi - lo)
+    h = h + reach  # a box's extent plus the reach spans at most two cells an axis: its partners lie in the 27 about it
+    if not h > 0:
+        h = 1.0
+    origin = np.empty(3)
+    dims = np.full(3, CELLS + 2, np.int64)  # cells 1 ... CELLS, their neighbours 0 ... CELLS + 1
+    for a in range(3):
+        lo = x[0, a]
+        for v in range(n):
+            lo = min(lo, x[v, a])
+        origin[a] = lo - h
     k = 0
-    for i in range(f.shape[0]):
-        p, t = v[i], faces[f[i]]
-        if p != t[0] and p != t[1] and p != t[2] and _point_triangle(x[p], x[t[0]], x[t[1]], x[t[2]]) < reach:
-            out[k, 0], out[k, 1], out[k, 2], out[k, 3] = p, t[0], t[1], t[2]
-            k += 1
+    # every vertex against the triangles whose box comes within reach of it
+    fc = _cells(flo, h, origin)
+    order, keys = _grid(fc, dims)
+    for v in range(n):
+        cx, cy, cz = _cell(x[v, 0], 0, h, origin), _cell(x[v, 1], 1, h, origin), _cell(x[v, 2], 2, h, origin)
+        for dx in range(-1, 2):
+            for dy in range(-1, 2):
+                key0 = ((cx + dx) * dims[1] + cy + dy) * dims[2] + cz - 1
+                q = np.searchsorted(keys, key0)
+                while q < F and keys[q] <= key0 + 2:
+                    t = order[q]
+                    q += 1
+                    if faces[t, 0] == v or faces[t, 1] == v or faces[t, 2] == v:
+                        continue
+                    if (x[v, 0] < flo[t, 0] - reach or x[v, 0] > fhi[t, 0] + reach or x[v, 1] < flo[t, 1] - reach
+                            or x[v, 1] > fhi[t, 1] + reach or x[v, 2] < flo[t, 2] - reach or x[v, 2] > fhi[t, 2] + reach):  # fmt: skip
+                        continue
+                    if _point_triangle(x[v], x[faces[t, 0]], x[faces[t, 1]], x[faces[t, 2]]) < reach:
+                        if k == out.shape[0]:
+                            return -1, 0
+                        out[k, 0], out[k, 1], out[k, 2], out[k, 3] = v, faces[t, 0], faces[t, 1], faces[t, 2]
+                        k += 1
     n_fv = k
-    for i in range(a.shape[0]):
-        ea, eb = edges[a[i]], edges[b[i]]
-        if ea[0] != eb[0] and ea[0] != eb[1] and ea[1] != eb[0] and ea[1] != eb[1]:
-            if _segment_segment(x[ea[0]], x[ea[1]], x[eb[0]], x[eb[1]]) < reach:
-                out[k, 0], out[k, 1], out[k, 2], out[k, 3] = ea[0], ea[1], eb[0], eb[1]
-                k += 1
+    # every two edges that share no vertex and whose boxes come within reach of each other, each pair once
+    ec = _cells(elo, h, origin)
+    order, keys = _grid(ec, dims)
+    for i in range(E):
+        for dx in range(-1, 2):
+            for dy in range(-1, 2):
+                key0 = ((ec[i, 0] + dx) * dims[1] + ec[i, 1] + dy) * dims[2] + ec[i, 2] - 1
+                q = np.searchsorted(keys, key0)
+                while q < E and keys[q] <= key0 + 2:
+                    j = order[q]
+                    q += 1
+                    if j <= i:
+                        continue
+                    a0, a1, b0, b1 = edges[i, 0], edges[i, 1], edges[j, 0], edges[j, 1]
+                    if a0 == b0 or a0 == b1 or a1 == b0 or a1 == b1:
+                        continue
+                    if (elo[i, 0] > ehi[j, 0] + reach or elo[j, 0] > ehi[i, 0] + reach or elo[i, 1] > ehi[j, 1] + reach
+                            or elo[j, 1] > ehi[i, 1] + reach or elo[i, 2] > ehi[j, 2] + reach or elo[j, 2] > ehi[i, 2] + reach):  # fmt: skip
+                        continue
+                    if _segment_segment(x[a0], x[a1], x[b0], x[b1]) < reach:
+                        if k == out.shape[0]:
+                            return -1, 0
+                        out[k, 0], out[k, 1], out[k, 2], out[k, 3] = a0, a1, b0, b1
+                        k += 1
     return k, n_fv
 
 
-def near_pairs(x: np.ndarray, faces: np.ndarray, edges: np.ndarray, fv: tuple, ee: tuple, reach: float) -> tuple[np.ndarray, int]:
-    """Of a broad phase's candidates in x (n, 3), the vertex-triangle pairs fv = (triangles, vertices) and the edge pairs
-    ee = (edges, edges), as rows of ``faces`` (T, 3) and ``edges`` (E, 2), those that share no vertex and lie nearer
-    than ``reach`` (with :func:`within`'s slack): their vertices (P, 4), the vertex-triangle pairs first (vertex, three
-    corners), then the edge pairs (two ends, two ends), and how many are vertex-triangle pairs."""
-    f, v, a, b = (np.ascontiguousarray(i, dtype=np.int64) for i in (*fv, *ee))
-    out = np.empty((len(f) + len(a), 4), np.int64)
-    k, n_fv = _select(np.ascontiguousarray(x, dtype=np.float64), np.ascontiguousarray(faces, dtype=np.int64).reshape(-1, 3),
-                      np.ascontiguousarray(edges, dtype=np.int64), f, v, a, b, reach * (1.0 + SLACK), out)  # fmt: skip
-    return out[:k], int(n_fv)
+def self_pairs(x: np.ndarray, faces: np.ndarray, edges: np.ndarray, reach: float) -> tuple[np.ndarray, int]:
+    """The pairs of a surface's own primitives in x (n, 3) that share no vertex and lie nearer than ``reach`` (with
+    :func:`within`'s slack): every vertex and every triangle (F, 3) of ``faces``, every two ``edges`` (E, 2).  A
+    uniform grid of the largest primitive's extent plus the reach, each primitive in the cell of its box's lower corner,
+    its partners among the 27 cells about it; their boxes, then their distances, compiled.  Their vertices (P, 4), the
+    vertex-triangle pairs first (vertex, three corners), then the edge pairs (two ends, two ends), and how many are
+    vertex-triangle pairs."""
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    faces = np.ascontiguousarray(faces, dtype=np.int64).reshape(-1, 3)
+    edges = np.ascontiguousarray(edges, dtype=np.int64).reshape(-1, 2)
+    size = 8 * (len(x) + len(edges))
+    while True:
+        out = np.empty((size, 4), np.int64)
+        k, n_fv = _self_pairs(x, faces, edges, reach * (1.0 + SLACK), out)
+        if k >= 0:
+            return out[:k].copy(), int(n_fv)
+        size *= 4
 
 
 @njit(**JIT)
