@@ -193,6 +193,60 @@ def test_a_projection_fed_back_is_the_state_the_next_step_starts_from():
         held = latent.decode_latents(ae, coords, fed_in[:1], torch.as_tensor(cond.dirichlet_positions[:1]))[0]
     assert float(floor.distances(held).min()) >= 0
 
+class _Counted:
+    """A fed-back projection (``ContactProjection.step``) that records the frames it is asked to correct."""
+
+    def __init__(self, fed):
+        self.fed, self.calls = fed, []
+
+    def __call__(self, t, z):
+        self.calls.append(t)
+        return self.fed(t, z)
+
+    def __getattr__(self, name):
+        return getattr(self.fed, name)
+
+
+def test_a_projection_fed_back_stops_at_the_first_failure_with_the_same_results(monkeypatch):
+    """An exploding integrator with the projection fed back: the stress rollout and the test rollout project no frame
+    past the first whose extent crosses the bound (each projection a Newton solve, slow on a diverged state), and
+    report what they reported when every frame was projected (survival, depths, positions, the diverged frame)."""
+    from latentsim.config import with_defaults
+    import importlib
+
+    rollout_module = importlib.import_module("latentsim.latent.rollout")  # (the package's ``rollout`` is the function)
+    from latentsim.latent.projection import ContactProjection
+    from latentsim.latent.subspaces import DecoderSubspace
+    from latentsim.physics.colliders import HalfSpace
+    from latentsim.physics.contact import ContactBarrier
+
+    T = 40
+    ae, coords, rest, cond, diag, x = _still_shape(T)
+    z = torch.zeros(2)
+    floor = ContactBarrier(len(rest), [HalfSpace((0.0, float(x[:, 1].min()) + 0.002, 0.0), (0.0, 1.0, 0.0))], 1e-3, 1.0)
+    settings = with_defaults("rollout", {"contact_projection": {"enabled": True, "feedback": True}}, "test")["contact_projection"]
+    xD = torch.as_tensor(cond.dirichlet_positions)
+
+    def both():
+        proj = ContactProjection(DecoderSubspace(ae, coords), floor, np.full(len(rest), 1e-3), 0.01, settings)
+        counted = [_Counted(proj.step(cond.dirichlet_positions)), _Counted(proj.step(cond.dirichlet_positions))]
+        proj.step = lambda xD_: counted[0]
+        r = stability.survive_latent(_Linear(1.5, 1.0), ae, coords, z, z, cond, np.array([0]), diag, max_extent=3.0, contact=floor, projection=proj)
+        res = rollout_module.rollout(_Linear(1.5, 1.0), ae, coords, z, z, torch.zeros(T, 6), xD, max_extent=3.0, rest_positions=rest, correct=counted[1])
+        return r, res, len(counted[0].calls), len(counted[1].calls)
+
+    r, res, n_stress, n_test = both()
+    monkeypatch.setattr(stability, "past_extent", lambda *a: False)
+    monkeypatch.setattr(rollout_module, "past_extent", lambda *a: False)
+    r_all, res_all, n_stress_all, n_test_all = both()
+    assert 2 < r["survived"] < T - 5 and n_stress == r["survived"] + 1 and n_stress_all == T  # frames 0 ... the failure
+    assert {k: v for k, v in r.items() if k != "dirichlet_error"} == {k: v for k, v in r_all.items() if k != "dirichlet_error"}
+    assert np.array_equal(r["dirichlet_error"], r_all["dirichlet_error"])
+    assert res["diverged_frame"] == res_all["diverged_frame"] == r["survived"] and n_test == res["diverged_frame"] + 1 and n_test_all == T
+    assert torch.equal(res["positions"].nan_to_num(-1.0), res_all["positions"].nan_to_num(-1.0))
+    assert torch.equal(res["latents"].nan_to_num(-1.0), res_all["latents"].nan_to_num(-1.0))
+
+
 class _SpeedSensitive(torch.nn.Module):
     """Contracting while the boundary moves slowly; exploding above ``limit`` (|p_t| max-norm), and
     for good once its latent has run away (|z| > 10)."""

@@ -72,8 +72,12 @@ def rollout(
     was = [m.training for m in mods]
     for m in mods:
         m.eval()
+    stop = None
+    if correct is not None and max_extent is not None and rest_positions is not None:  # no correcting of frames past divergence
+        limit = float(max_extent) * float(_diagonal(torch.as_tensor(rest_positions, dtype=torch.float64)))
+        stop = lambda t, z: past_extent(ae, coords, z, dirichlet_positions[t], limit)  # noqa: E731
     try:
-        Z, last, diverged = _integrate(integrator, z0, z1, bc.reshape(T, -1).to(ae.pca_in.weight.device, torch.float32), correct)
+        Z, last, diverged = _integrate(integrator, z0, z1, bc.reshape(T, -1).to(ae.pca_in.weight.device, torch.float32), correct, stop)
         X = torch.full((T, coords.n, 3), float("nan"), dtype=torch.float64)
         X[: last + 1] = decode_latents(ae, coords, Z[: last + 1], dirichlet_positions[: last + 1].to(Z.device)).cpu()
     finally:
@@ -92,10 +96,11 @@ def rollout(
     return out
 
 
-def _integrate(integrator: Callable, z0: torch.Tensor, z1: torch.Tensor, bc: torch.Tensor, correct: Callable | None = None):
+def _integrate(integrator: Callable, z0: torch.Tensor, z1: torch.Tensor, bc: torch.Tensor, correct: Callable | None = None,
+               stop: Callable | None = None):  # fmt: skip
     """Latents (T, r) float32 on the device of ``bc`` (T, k): z0, z1, then the integrator's (each
-    through ``correct`` where given), until the first non-finite one; the last frame integrated, and
-    that frame (-1 if none)."""
+    through ``correct`` where given), until the first non-finite one or the first for which ``stop(t, z_t)`` holds; the
+    last frame integrated, and the non-finite frame (-1 if none)."""
     T, dev = bc.shape[0], bc.device
     Z = torch.full((T, z0.shape[-1]), float("nan"), dtype=torch.float32, device=dev)
     Z[0], Z[1] = z0.to(dev, torch.float32), z1.to(dev, torch.float32)
@@ -111,7 +116,19 @@ def _integrate(integrator: Callable, z0: torch.Tensor, z1: torch.Tensor, bc: tor
             diverged = t
             break
         Z[t] = zt if correct is None else correct(t, zt)
+        if stop is not None and stop(t, Z[t]):
+            break
     return Z, last, diverged
+
+
+def past_extent(ae: Autoencoder, coords: RelativeCoordinates, z: torch.Tensor, xD, limit: float) -> bool:
+    """Whether the latent z (r,) decodes, with the prescribed positions xD (m, 3), to a non-finite frame or one whose
+    bounding-box diagonal exceeds ``limit`` by more than rounding (1e-6 of it): a diverged frame, past which a rollout
+    whose steps are corrected (the contact projection fed back) stops instead of correcting frames that will be
+    discarded.  The slack keeps the stop where the whole rollout's own test (decoded in one batch) also finds the frame
+    diverged."""
+    x = decode_latents(ae, coords, z[None], torch.as_tensor(xD)[None].to(z.device))[0]
+    return not bool(torch.isfinite(x).all()) or float(_diagonal(x.double())) > limit * (1.0 + 1e-6)
 
 
 def _diagonal(x: torch.Tensor) -> torch.Tensor:

@@ -30,6 +30,7 @@ import torch
 from latentsim.config import with_defaults
 from latentsim.latent.autoencoder import decode_latents, encode_positions
 from latentsim.latent.integrator import boundary_inputs
+from latentsim.latent.rollout import past_extent
 from latentsim.report.metrics import bbox_diagonal, dirichlet_error
 from latentsim.scene import dirichlet_trajectory
 
@@ -152,6 +153,7 @@ def survive_latent(integrator, ae, coords, z0, z1, condition: Condition, dirichl
     fed = projection.step(condition.dirichlet_positions) if projection is not None and projection.feedback else None
     if fed is not None:  # the starting state too
         Z[0], Z[1] = fed(0, Z[0]), fed(1, Z[1])
+    xD_all = torch.as_tensor(condition.dirichlet_positions, dtype=torch.float64)
     with torch.inference_mode():
         for t in range(2, T):
             Z[t] = integrator(Z[t - 1 : t], Z[t - 2 : t - 1], bc[t : t + 1], bc[t - 1 : t], bc[t - 2 : t - 1])[0]
@@ -161,9 +163,11 @@ def survive_latent(integrator, ae, coords, z0, z1, condition: Condition, dirichl
             if fed is not None:
                 with torch.inference_mode(False):
                     Z[t] = fed(t, Z[t])
+                if past_extent(ae, coords, Z[t], xD_all[t], max_extent * rest_diag):  # its first failure: none corrected past it
+                    last = t + 1
+                    break
         errors, depth, own_depth, projected = [], 0.0, 0.0, 0
         survived = last
-        xD_all = torch.as_tensor(condition.dirichlet_positions, dtype=torch.float64)
         for s in range(0, last, chunk):
             e = min(s + chunk, last)
             x = decode_latents(ae, coords, Z[s:e], xD_all[s:e]).cpu().numpy()
