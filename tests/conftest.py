@@ -17,6 +17,14 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if WORKFLOW in Path(str(item.fspath)).resolve().parents:
             item.add_marker(pytest.mark.slow)
+        item.add_marker(pytest.mark.xdist_group(xdist_group(item)))
+
+
+def xdist_group(item) -> str:
+    """The worker group of a test when the suite runs on several processes (``-n auto --dist loadgroup``):
+    every test of the shared tiny run together (it runs once per worker that needs it), every other test with
+    the rest of its module (a module's fixtures are built once per worker too)."""
+    return "tiny_run" if "tiny_run" in getattr(item, "fixturenames", ()) else item.nodeid.split("::", 1)[0]
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -27,7 +27,8 @@ NOT_RUN = {
     "snakemake --cores 2 all --configfile config/examples/ring.yaml": "run by test_example_scene.py",
     "snakemake --cores 2 all --configfile config/my_part.yaml": "the same run as the example's, in test_example_scene.py",
     "snakemake --workflow-profile profiles/slurm all": "needs a SLURM cluster; test_workflow dry-runs the profile",
-    "python -m pytest -q tests": "the test command itself",
+    "python -m pytest -q -n auto --dist loadgroup tests": "the test command itself",
+    "python -m pytest -q tests": "the test command itself, on one process",
     "python tools/run_record.py FOLDER": "needs a run's folder; tests/unit/test_run_record.py runs it on a made-up two-part run",
     "snakemake --cores 2 results/evaluation/cloth_paper/metrics.csv results/evaluation/cantilever_paper/metrics.csv":
         "the Fig. 8 scenes over five seeds take 24 min; the tiny run's two-seed scene checks the same rules, tables and claims",
