@@ -30,7 +30,7 @@ import torch
 from latentsim.mesh.build import collider_mesh
 from latentsim.mesh.surface import surface_of
 from latentsim.physics import rods, shells, tets
-from latentsim.physics.materials import MATERIALS, MODEL_STENCILS, materials_of
+from latentsim.physics.materials import MATERIALS, material_model
 from latentsim.physics.colliders import Capsule, HalfSpace, Sphere, posed_colliders
 from latentsim.physics.contact import ContactBarrier
 from latentsim.physics.mesh_contact import TriangleMesh
@@ -194,50 +194,6 @@ def _model_stencils(model: str, arrays: dict, X: torch.Tensor, material: dict):
         return {"triangles": tris, "hinges": shells.hinges_from_triangles(tris)}, masses
     T = torch.as_tensor(np.asarray(arrays["tets"], dtype=np.int64))
     return {"tets": T}, tets.lumped_masses(X, T, rho)
-
-
-def material_model(model: str, material: dict) -> str:
-    """The scene's ``material.model`` (default 'stvk'), checked against those its ``model`` offers,
-    and its optional keys (``materials.Material.options``) against those the material reads.
-
-    Raises
-    ------
-    ValueError naming the key and the value when the model has no such material, or the material
-    does not read an optional key the scene sets.
-    """
-    if model not in MODEL_STENCILS:
-        raise ValueError(f"model '{model}': use one of {', '.join(MODEL_STENCILS)}")
-    law = str(material.get("model", "stvk"))
-    offered = materials_of(model)
-    if law not in offered:
-        raise ValueError(f"material.model '{law}' is not available for model '{model}': use one of {', '.join(offered)}")
-    for name, kinds in MATERIALS.items():
-        for kind, entry in kinds.items():
-            for key in entry.options:
-                if material.get(key) is not None and key not in MATERIALS[law][model].options:
-                    raise ValueError(f"material.{key} applies to model '{kind}' with material.model '{name}' only "
-                                     f"(got model '{model}', material.model '{law}')")  # fmt: skip
-    return law
-
-
-def energy_description(model: str, material: dict) -> str:
-    """The scene's elastic energy in words: its ``material.model``'s formulas and its constants.
-
-    Raises
-    ------
-    ValueError (from :func:`material_model`) naming the key and the value when the model has no such material.
-    """
-    law = material_model(model, material)
-    consts = [f"E {float(material['youngs_modulus']):.3g} Pa", f"nu {float(material.get('poisson_ratio', 0.3)):g}"]
-    if model == "shell":
-        consts.append(f"h {float(material['thickness']):g} m")
-        if material.get("bending_stiffness") is not None:
-            consts.append(f"kB {float(material['bending_stiffness']):.3g} N m")
-        elif law == "stvk_nm":
-            consts.append("kB = D/2 = E h^3 / (24 (1 - nu^2))")
-    elif model == "rods":
-        consts.append(f"radius {float(material['radius']):g} m")
-    return f"{MATERIALS[law][model].description}, {', '.join(consts)}"
 
 
 def build_potential(model: str, arrays: dict, material: dict, dt: float, gravity, w_bc: float = 1e5, free_only: bool = False,

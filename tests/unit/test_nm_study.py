@@ -23,6 +23,7 @@ from latentsim.neural_modes import sheet_tables as nm_tables
 from latentsim.neural_modes import symmetry as nm_symmetry
 from latentsim.latent import fit_autoencoder
 from latentsim.mesh import beam_tets, cloth_grid
+from latentsim.labels import DYNAMICS_METHODS
 from latentsim.latent.timing import time_full_space
 from latentsim.scene import build_elastic
 
@@ -256,10 +257,10 @@ def test_dynamics_rows_against_the_full_simulation(beam_trajectories):
         res = nm_dynamics.subspace_dynamics(f, model, 0.05, settings, full)
         ref = f["sequences/sway/positions"][()]
     rows = res["rows"].set_index("method")
-    assert res["sequence"] == "sway" and len(rows) == 1 + len(nm_dynamics.DYNAMICS_METHODS)
+    assert res["sequence"] == "sway" and len(rows) == 1 + len(DYNAMICS_METHODS)
     assert rows.loc["full space, Newton", "error mean"] == 0 and rows.loc["full space, Newton", "error max"] == 0
     diag = np.linalg.norm(np.ptp(arrays["rest_positions"], axis=0))
-    for slug, (label, _, _, cubature) in nm_dynamics.DYNAMICS_METHODS.items():
+    for slug, (label, _, _, cubature) in DYNAMICS_METHODS.items():
         run = res["runs"][slug]
         assert run["positions"].shape == ref.shape and run["diverged_frame"] == -1
         err = np.sqrt(((run["positions"] - ref) ** 2).sum(-1).mean(-1)) / diag

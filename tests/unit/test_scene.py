@@ -86,7 +86,7 @@ def test_every_material_is_one_entry_of_the_registry():
     """The materials each model offers, their energies in words and their optional keys come from
     physics.materials alone."""
     from latentsim.physics.materials import MATERIALS, materials_of
-    from latentsim.scene import energy_description, material_model
+    from latentsim.physics.materials import energy_description, material_model
 
     assert {m: materials_of(m) for m in ("rods", "shell", "tets")} == {
         "rods": ("stvk",), "shell": ("stvk", "stvk_nm"), "tets": ("stvk", "stvk_nm", "neohookean")}  # fmt: skip

@@ -5,7 +5,8 @@ import warnings
 import pandas as pd
 import pytest
 
-from latentsim.stages.sweep import choose, chosen_label, parse_label, point_label, recorded_choice_note
+from latentsim.labels import parse_label, point_label
+from latentsim.stages.sweep import choose, chosen_label, recorded_choice_note
 
 
 def _rows(points):
@@ -82,7 +83,8 @@ def test_point_labels_round_trip():
 
 
 def test_sizes_table_sets_ours_beside_the_papers_and_the_sweeps_choice(tmp_path):
-    from latentsim.report.tables import layers_text, sizes_table
+    from latentsim.labels import layers_text
+    from latentsim.report.tables import sizes_table
 
     df = _rows([(2, "8 8", 100, [0.001, 0.004], False), (4, "32 32", 900, [0.0005, 0.001], False)])
     path = tmp_path / "choice.csv"

@@ -113,6 +113,22 @@ def test_dry_run_of_default_config_lists_every_stage_for_every_scene(tmp_path):
     assert planned_outputs(out) == recorded
 
 
+def test_planning_all_imports_no_torch_numba_or_matplotlib(tmp_path):
+    """The Snakefile's parse, the config's validation and every rule's params of a dry run of all (the tiny config:
+    every stage, Neural Modes captions included) use latentsim.labels and the materials table, not the stages:
+    each snakemake command, and each cluster job's parse, would otherwise import torch first (about 4 s a time)."""
+    heavy = ("torch", "numba", "matplotlib", "scipy")
+    code = ("import atexit, sys\n"
+            f"atexit.register(lambda: print('HEAVY', sorted(m for m in {heavy!r} if m in sys.modules)))\n"
+            "from snakemake.cli import main\n"
+            "main(sys.argv[1:])\n")
+    args = ["-n", "all", "--snakefile", str(ROOT / "Snakefile"), "--configfile", str(TINY), "--directory", str(tmp_path)]
+    proc = subprocess.run([sys.executable, "-c", code, *args], cwd=ROOT, capture_output=True, text=True, timeout=HANG_SECONDS,
+                          env=dict(os.environ, CI="1"))
+    assert "rule train_integrator" in proc.stdout and "rule nm_dynamics" in proc.stdout, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert "HEAVY []" in proc.stdout, proc.stdout[-500:]
+
+
 def test_the_sizing_sweeps_are_a_target_of_their_own_and_all_shows_those_that_ran(tmp_path):
     """`all` on the default config plans no sweep job (the dry run above); `sizing` plans every scene's sweep and
     nothing past the methods it measures; once a sweep's choice exists, `all`'s report takes it in."""
@@ -1206,7 +1222,7 @@ def test_report_captions_are_valid_restructuredtext(caption):
 
     from types import SimpleNamespace
 
-    from latentsim.stages.neural_modes import energy_note
+    from latentsim.labels import energy_note
 
     # Snakemake renders a caption as a Jinja template first (the landing page includes the glance grid only
     # when the report holds the glance page: here it holds nothing); the Neural Modes captions insert the

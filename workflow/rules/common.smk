@@ -6,9 +6,13 @@ import sys
 from snakemake.exceptions import WorkflowError
 
 from latentsim import rule_params
-from latentsim.stages.baselines import BASELINES, SEEDED_BASELINES
-from latentsim.report.tables import layers_text
-from latentsim.stages.sweep import parse_label, point_label
+from latentsim.labels import (
+    BASELINES,
+    SEEDED_BASELINES,
+    layers_text,
+    parse_label,
+    point_label,
+)
 from latentsim.mesh import MeshError
 from latentsim.mesh.sources import check_user_mesh, user_mesh_path
 from latentsim.config import (

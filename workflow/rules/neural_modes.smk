@@ -2,7 +2,7 @@
 # and the paper's evaluation studies that a scene's nm_study block switches on.
 # NM_SCENES, neural_modes_targets (rule all's input) and the params input functions: common.smk
 # (the params themselves: latentsim.rule_params).
-from latentsim.neural_modes.dynamics import DYNAMICS_METHODS
+from latentsim.labels import DYNAMICS_METHODS
 
 
 # Lowest vibration modes of the rest state (sparse shift-invert), Dirichlet or rigid-free.

@@ -1,7 +1,7 @@
 # HTML pages of the tables, for `snakemake --report`: the report shows HTML inline, where it offers a CSV
 # only for download. Each job renders tables another job wrote (latentsim.report.tables.write_table_html),
 # so editing a page never reruns a computation.
-from latentsim.stages import neural_modes as nm_pipeline
+from latentsim import labels
 
 
 # The evaluation's tables: the glance (and the grid the landing page shows), Li et al. Tables 1-2,
@@ -131,7 +131,7 @@ rule report_nm_summary_page:
         "../../envs/latentsim.yaml"
     params:
         titles={"summary": "Neural Modes (Wang et al. 2024): one row per scene"},
-        energy=nm_pipeline.scene_energies(config, NM_SCENES),
+        energy=labels.scene_energies(config, NM_SCENES),
     script:
         "../scripts/report_pages.py"
 
@@ -202,7 +202,7 @@ rule report_nm_sheet_pages:
             "correlation": "Mode collapse: eigenvalues of the latent directions' correlation",
             "structure": "Latent-space structure: the origin and the half-turn symmetry",
         },
-        energy=lambda w: nm_pipeline.scene_energy_note(config, w.scene),
+        energy=lambda w: labels.scene_energy_note(config, w.scene),
     script:
         "../scripts/report_pages.py"
 
@@ -223,7 +223,7 @@ rule report_nm_energy_page:
         "../../envs/latentsim.yaml"
     params:
         titles={},
-        energy=lambda w: nm_pipeline.scene_energy_note(config, w.scene),
+        energy=lambda w: labels.scene_energy_note(config, w.scene),
     script:
         "../scripts/report_pages.py"
 

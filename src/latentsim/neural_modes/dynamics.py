@@ -30,6 +30,7 @@ from tqdm.auto import tqdm
 
 from latentsim.neural_modes.network import NeuralModes
 from latentsim.neural_modes.numpy_map import NumpyNeuralModes
+from latentsim.labels import DYNAMICS_METHODS
 from latentsim.report.metrics import bbox_diagonal
 from latentsim.scene import potential_from_artefact
 from latentsim.solve.cubature import box_samples, cubature_potential, fit_cubature
@@ -37,7 +38,7 @@ from latentsim.solve.reduced import ReducedSettings, reduced_rollout
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DYNAMICS_METHODS", "NeuralModesSubspace", "keyframe_coordinates", "relative_errors", "smallest_rotation", "subspace_dynamics"]
+__all__ = ["NeuralModesSubspace", "keyframe_coordinates", "relative_errors", "smallest_rotation", "subspace_dynamics"]
 
 
 def smallest_rotation(a, b) -> np.ndarray:
@@ -127,16 +128,6 @@ class NeuralModesSubspace:
 # --------------------------------------------------------------------------------------------------
 # the subspace-dynamics study (Sec. 4.5) and keyframing (Fig. 6)
 # --------------------------------------------------------------------------------------------------
-DYNAMICS_METHODS = {  # slug: (label, linear modes only, per-step minimiser, with a cubature)
-    "nm_lbfgs": ("Neural Modes, L-BFGS (the paper's solver)", False, "lbfgs", False),
-    "nm_newton": ("Neural Modes, Gauss-Newton on J^T H J", False, "newton", False),
-    "linear_newton": ("linear modes, Newton", True, "newton", False),
-    "nm_lbfgs_cubature": ("Neural Modes, L-BFGS, cubature", False, "lbfgs", True),
-    "nm_newton_cubature": ("Neural Modes, Gauss-Newton, cubature", False, "newton", True),
-    "linear_newton_cubature": ("linear modes, Newton, cubature", True, "newton", True),
-}
-
-
 def relative_errors(positions, reference, diagonal: float) -> np.ndarray:
     """(T,) RMS vertex distance between two motions (T,n,3) per frame, over ``diagonal`` (NaN where either is)."""
     d = np.asarray(positions, dtype=np.float64) - np.asarray(reference, dtype=np.float64)
@@ -165,7 +156,7 @@ def subspace_dynamics(f, model: NeuralModes, box: float, settings: dict, full: d
         (``latent.timing.time_full_space`` of :func:`first_test_sequence`): full_ms, full_iterations,
         full_frames_timed.
 
-    Every method of :data:`DYNAMICS_METHODS` steps the reduced implicit Euler of Eq. 15
+    Every method of ``labels.DYNAMICS_METHODS`` steps the reduced implicit Euler of Eq. 15
     (``reduced.reduced_rollout``) from rest.  Returns ``sequence``, ``reference`` (T,n,3),
     ``dirichlet_positions``, ``full`` (timing), ``cubatures`` {neural|linear: Cubature}, ``runs`` {slug:
     reduced_rollout's dict + ``error`` (T,)} and ``rows`` (a DataFrame, the full-space row first).

@@ -41,7 +41,6 @@ __all__ = [
     "over_seeds",
     "per_seed",
     "html_table",
-    "layers_text",
     "markdown",
     "reconstruction_table",
     "sizes_table",
@@ -244,19 +243,13 @@ def _table2_row(scene: str, method: str, g: pd.DataFrame, own: pd.DataFrame, lay
     return row
 
 
-def layers_text(widths, pca_dim=None) -> str:
-    """Layer widths as the paper's Table 2 prints them: decoder ``"200, 200, 200, 50"`` (hidden layers, then the PCA layer)."""
-    w = [int(v) for v in widths] + ([int(pca_dim)] if pca_dim else [])
-    return ", ".join(map(str, w))
-
-
 def sizes_table(sizes: dict, choices: dict | None = None) -> pd.DataFrame:
     """Model no more than a scene needs: per scene the paper's model, ours, and the sizing sweep's choice.
 
     Parameters
     ----------
     sizes : {scene: {"latent_dim", "decoder_layers", "integrator_layers"[, "tolerance", "variants"]}}, the
-        config's model of each scene (layers as :func:`layers_text` writes them), its sweep tolerance, and
+        config's model of each scene (layers as ``labels.layers_text`` writes them), its sweep tolerance, and
         the same of its variants that are models of their own size ({method: {...}}; column ``variant_models``).
     choices : {scene: path of the sweep's ``choice.csv``} for the scenes that ran a sweep.
 

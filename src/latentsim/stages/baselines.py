@@ -42,6 +42,7 @@ import numpy as np
 import torch
 
 from latentsim import latent
+from latentsim.labels import BASELINES
 from latentsim.io import atomic_h5, open_artefact, write_dataset
 from latentsim.neural_modes import load_neural_modes
 from latentsim.neural_modes.dynamics import NeuralModesSubspace
@@ -56,12 +57,6 @@ from latentsim.latent.serialization import autoencoder_coordinates
 from latentsim.latent.timing import time_full_space
 
 log = logging.getLogger(__name__)
-
-BASELINES = ("pca_reduced", "modes_reduced", "fulton_reduced", "neural_modes_reduced", "newton_1it")
-# the baselines whose subspace is a network trained per seed (the autoencoder's decoder): rolled out once per
-# seed; the others (linear subspaces, the full-space Newton, the Neural Modes of the scene's first seed) once
-SEEDED_BASELINES = ("fulton_reduced",)
-
 
 def newton_rollout(potential_free, x0, x1, dirichlet_positions, iterations: int = 1, tolerance: float = 1e-6) -> dict:
     """Full-space implicit Euler with at most ``iterations`` Newton iterations per frame (no convergence required).
@@ -150,12 +145,12 @@ def baseline_rollouts(trajectories, ae_path, method: str, settings: dict, out, p
     ----------
     trajectories : the simulator's ``trajectories.h5``.
     ae_path : the scene's autoencoder (coordinates, PCA frames' layout, decoder).
-    method : one of :data:`BASELINES`.
+    method : one of ``labels.BASELINES``.
     settings : config ``reduced`` of the scene: ``method`` (newton | lbfgs; ``neural_modes_method``
         for ``neural_modes_reduced``), ``max_iterations``, ``tolerance``, ``pca_dim``.
     out : rollout file to write.
     neural_modes : the scene's trained Neural Modes (``neural_modes_reduced`` only).
-    seed : the seed of the learned model it reduces with (:data:`SEEDED_BASELINES`), recorded in
+    seed : the seed of the learned model it reduces with (``labels.SEEDED_BASELINES``), recorded in
         ``out``; -1 for the others, whose rollout no seed changes.
     """
     ae = latent.load_autoencoder(ae_path)

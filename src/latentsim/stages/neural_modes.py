@@ -50,40 +50,11 @@ from latentsim.report.paraview import write_xdmf_series
 from latentsim.report.tables import write_table
 from latentsim.rule_params import SET_KEYS
 from latentsim.latent.timing import time_full_space
-from latentsim.scene import build_elastic, energy_description, material_model
+from latentsim.labels import DYNAMICS_METHODS, energy_note
+from latentsim.physics.materials import energy_description, material_model
+from latentsim.scene import build_elastic
 
 log = logging.getLogger(__name__)
-
-
-#: The energy of the paper's columns: Wang et al.'s own, as their Table 1 names it for each model.
-PAPER_ENERGIES = {"shell": "Discrete Shell", "tets": "Tetrahedron, StVK"}
-
-
-def energy_note(model: str, material: dict) -> str:
-    """Which energy each column of a Wang et al. table uses: ours (the scene's ``material.model``, its
-    formulas and constants) and the paper's (the authors' own), for table notes and report captions."""
-    law = material_model(model, material)
-    paper = PAPER_ENERGIES.get(model, model)
-    same = (
-        "the same formulas as ours (material.model stvk_nm); absolute values still differ with the constants, sets and training lengths"
-        if law == "stvk_nm"
-        else f"not ours (material.model {law}): compare ratios between methods, not absolute values"
-    )
-    return (
-        f"Energy of our columns: {energy_description(model, material)}. Energy of the paper's columns (named paper): "
-        f"the authors' own ('{paper}', their Table 1), as they print them: {same}."
-    )
-
-
-def scene_energy_note(config: dict, scene: str) -> str:
-    """:func:`energy_note` of a configured scene (report captions)."""
-    sc = config["scenes"][scene]
-    return energy_note(sc["model"], sc["material"])
-
-
-def scene_energies(config: dict, scenes) -> str:
-    """The elastic energy of each configured scene, in words (the summary's caption)."""
-    return "; ".join(f"{s}: {energy_description(config['scenes'][s]['model'], config['scenes'][s]['material'])}" for s in scenes)
 
 
 def scene_potential(mesh_h5, model: str, material: dict):
@@ -388,7 +359,7 @@ def _copy_root(src, dst):
 
 
 def dynamics_stage(trajectories_h5, model_pt, params: dict, out: dict, progress: bool = False):
-    """Stage ``nm_dynamics``: every row of ``nm_dynamics.DYNAMICS_METHODS`` against the full simulation.
+    """Stage ``nm_dynamics``: every row of ``labels.DYNAMICS_METHODS`` against the full simulation.
 
     ``out``: ``csv``, ``markdown``, ``paraview`` (folder), and one path per method slug (trajectory
     layout, the scene's test sequence: positions, latents, step_ms, iterations, error).
@@ -400,7 +371,7 @@ def dynamics_stage(trajectories_h5, model_pt, params: dict, out: dict, progress:
         res = nm_dynamics.subspace_dynamics(f, model, float(params["box"]), st, full, progress)
         name = res["sequence"]
         for slug, run in res["runs"].items():
-            label, linear, method, cubature = nm_dynamics.DYNAMICS_METHODS[slug]
+            label, linear, method, cubature = DYNAMICS_METHODS[slug]
             kind = "linear" if linear else "neural"
             with atomic_h5(out[slug], config=params, seed=-1) as g:
                 _copy_root(f, g)

@@ -33,6 +33,7 @@ import torch
 from latentsim import runtime
 from latentsim.config import with_defaults
 from latentsim.io import open_artefact, read_csv
+from latentsim.labels import point_label
 from latentsim.latent.autoencoder import encode_positions, fit_autoencoder
 from latentsim.latent.coordinates import coordinates_for
 from latentsim.latent.data import load_sequences
@@ -49,19 +50,6 @@ from latentsim.runtime import compiled as runtime_compiled
 from latentsim.scene import potential_from_artefact
 
 log = logging.getLogger(__name__)
-
-
-def point_label(latent_dim: int, size: int) -> str:
-    """Wildcard value of a sweep point: ``r{latent_dim}_s{size index}``."""
-    return f"r{int(latent_dim)}_s{int(size)}"
-
-
-def parse_label(label: str) -> tuple[int, int]:
-    """Inverse of :func:`point_label`."""
-    r, s = label.split("_")
-    if not (r.startswith("r") and s.startswith("s")):
-        raise ValueError(f"sweep point label {label!r}: expected r<latent_dim>_s<size index>")
-    return int(r[1:]), int(s[1:])
 
 
 def widths_label(widths) -> str:
