@@ -104,10 +104,40 @@ def test_each_kind_of_pair_has_autograds_derivatives_and_its_candidates_miss_not
         assert torch.allclose(t.energy(xs), torch.stack([t.energy(x), t.energy(x + 0.003)]), rtol=1e-14, atol=0)
 
 
+def test_the_mesh_grids_pairs_are_the_brute_forces(ball):
+    """Each kind's candidates are exactly the pairs nearer than the reach by the compiled distances (within its slack),
+    i ascending and each i's j ascending, at reaches from a hair to beyond the mesh (every primitive scanned), with a
+    vertex 1e7 m away (its edges and triangles span the whole mesh) and one not finite (no pairs), and at a
+    thousandfold scale."""
+    from latentsim.physics.kernels.distances import SLACK
+
+    for scale in (1.0, 1000.0):
+        x, tris, mesh = _cloth_over(ball, seed=3)
+        x = x.clone()
+        x[0] = torch.as_tensor([1e7, 0.0, 0.0])
+        x[1, 1] = float("nan")
+        x, mesh = x * scale, TriangleMesh(mesh.vertices * scale, mesh.faces)
+        for t in mesh_barriers(mesh, tris, len(x), d_hat=0.01, kappa=1.0):
+            ye = t.gather(x).numpy()
+            M = len(mesh.cores(t.k))
+            I, J = np.repeat(np.arange(len(ye)), M), np.tile(np.arange(M), len(ye))
+            d = mesh.distance(torch.as_tensor(ye[I]), J).numpy()
+            for reach in (1e-4 * scale, 3e-3 * scale, 0.02 * scale, 0.5 * scale):
+                i, j = mesh.candidates(ye, reach)
+                assert np.all(np.diff(i * M + j) > 0), (scale, t.k, reach)  # ascending, each pair once
+                got = set(zip(i.tolist(), j.tolist()))
+                assert set(zip(I[d < reach].tolist(), J[d < reach].tolist())) <= got, (scale, t.k, reach)
+                near = d < reach * (1 + 10 * SLACK)
+                assert got <= set(zip(I[near].tolist(), J[near].tolist())), (scale, t.k, reach)
+                stencils = t.stencils.numpy()
+                assert not np.isin(stencils[i], [1]).any()  # the vertex not finite pairs with nothing
+            assert len(got) > 10  # (at the largest reach)
+
+
 def test_compiled_selection_leaves_energy_gradient_and_distances_unchanged(ball, monkeypatch):
-    """The candidates within reach are selected by compiled distances (``kernels.distances.core_within``): over many
-    states of a sheet over the ball, each kind's energy, gradient, least distance, and the solver's per-stencil gradient
-    and Hessian equal, to the bit, those with every tree candidate measured in PyTorch."""
+    """The pairs within reach are selected by a grid and compiled distances (``kernels.distances.grid_within``): over
+    many states of a sheet over the ball, each kind's energy, gradient, least distance, and the solver's per-stencil
+    gradient and Hessian equal, to the bit, those with every pair of the surface and the mesh measured in PyTorch."""
     from latentsim.physics import mesh_contact
 
     x, tris, mesh = _cloth_over(ball, seed=4)
@@ -123,7 +153,10 @@ def test_compiled_selection_leaves_energy_gradient_and_distances_unchanged(ball,
         return out
 
     selected = measured()
-    monkeypatch.setattr(mesh_contact, "core_within", lambda ye, cores, i, j, reach: np.ones(len(i), bool))
+    def every_pair(ye, grid, reach):
+        return np.repeat(np.arange(len(ye)), len(grid.cores)), np.tile(np.arange(len(grid.cores)), len(ye))
+
+    monkeypatch.setattr(mesh_contact, "grid_within", every_pair)
     everything = measured()
     assert all(torch.equal(a, b) for a, b in zip(selected, everything))
     assert all(int((e > 0).sum()) >= 4 for e in selected[::5]), [int((e > 0).sum()) for e in selected[::5]]

@@ -12,8 +12,9 @@ stiffer there, never weaker.
 
 Each kind is one :class:`MeshBarrier` (an energy term of :mod:`latentsim.physics.base` whose stencils are the
 surface's vertices, edges or triangles, so its Hessian blocks lie within the elastic stencils'): its candidates are
-the mesh primitives whose bounding sphere (a k-d tree over their centres) comes within reach of the stencil's and
-whose distance from it, compiled (:mod:`latentsim.physics.kernels.distances`), is within reach; its
+the mesh primitives in the cells of a uniform grid over the mesh that the stencil's box, grown by the reach, overlaps,
+whose box comes within reach of it and whose distance from it, compiled (:mod:`latentsim.physics.kernels.distances`),
+is within reach; its
 distances, gradients (autograd) and Hessians (closed form, :func:`~latentsim.physics.primitives.distance_hessian`
 and :func:`~latentsim.physics.primitives.vertex_hessian`) are the primitives module's.  The line search's time of
 impact over all three kinds is the IPC Toolkit's (``ipctk``: its broad phase and additive continuous collision
@@ -31,7 +32,7 @@ from scipy.spatial import cKDTree
 
 from latentsim.physics.barrier import barrier, barrier_derivatives
 from latentsim.physics.base import EnergyTerm, project_psd
-from latentsim.physics.kernels.distances import core_within
+from latentsim.physics.kernels.distances import MeshGrid, grid_within
 from latentsim.physics.primitives import core_distance, distance_hessian, vertex_hessian
 
 __all__ = ["TriangleMesh", "MeshBarrier", "bounding_spheres", "mesh_barriers", "unique_edges"]
@@ -54,7 +55,8 @@ class TriangleMesh:
     """A static triangle mesh, vertices (m, 3) [m] and faces (f, 3), that a surface is kept ``thickness`` [m] away from.
 
     Its primitives by the number of the surface's vertices they pair with: k = 1 its faces, k = 2 its edges, k = 3
-    its vertices (:meth:`cores`), each with a k-d tree over its bounding spheres' centres for :meth:`candidates`.
+    its vertices (:meth:`cores`), each with a uniform grid for :meth:`candidates` and a k-d tree over its bounding
+    spheres' centres for :meth:`unsigned_distance` and the line search's quick test.
     """
 
     def __init__(self, vertices, faces, thickness: float = 0.0):
@@ -70,12 +72,12 @@ class TriangleMesh:
         self.edges = unique_edges(self.faces)
         V = self.vertices
         self._cores = {1: V[self.faces], 2: V[self.edges], 3: V[:, None, :]}
-        self._box = (self.vertices.min(0), self.vertices.max(0))
         self._trees = {}
-        for k, pts in self._cores.items():
-            c, r = bounding_spheres(pts)
+        for k in (1, 3):  # faces and vertices: unsigned_distance and first_impact's quick test
+            c, r = bounding_spheres(self._cores[k])
             self._trees[k] = cKDTree(c), float(r.max())
         self._torch = {k: torch.as_tensor(v) for k, v in self._cores.items()}
+        self._grids = {}
 
     def thickened(self, offset: float) -> "TriangleMesh":
         """The same mesh, the surface kept ``offset`` farther from it."""
@@ -86,31 +88,15 @@ class TriangleMesh:
         return self._torch[k]
 
     def candidates(self, ye: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
-        """The pairs (i, j) of a primitive i of ye (N, k, 3) and a mesh primitive j of :meth:`cores` (k) that may lie
-        within ``reach`` of each other; every pair nearer than ``reach`` is among them.  The mesh's bounding box and each
-        primitive's nearest mesh centre first (a primitive beyond either's reach has none), then the mesh primitives whose
-        bounding spheres come within reach of its own, kept where the pair's distance itself is below ``reach``
-        (compiled, with a slack: :func:`~latentsim.physics.kernels.distances.core_within`)."""
-        N, k, _ = ye.shape
-        tree, r_max = self._trees[k]
-        none = np.zeros(0, np.int64), np.zeros(0, np.int64)
-        if N == 0:
-            return none
-        c, r = bounding_spheres(ye)
-        grow = (r + reach)[:, None]  # within reach of the mesh's bounding box, then of its nearest primitive's sphere
-        near = np.flatnonzero(((c > self._box[0] - grow) & (c < self._box[1] + grow)).all(1))
-        if not len(near):
-            return none
-        nearest, _ = tree.query(c[near], distance_upper_bound=float(r[near].max()) + r_max + reach)
-        near = near[nearest < r[near] + r_max + reach]
-        if not len(near):
-            return none
-        hits = tree.query_ball_point(c[near], r[near] + r_max + reach)
-        counts = np.fromiter(map(len, hits), dtype=np.int64, count=len(near))
-        i = np.repeat(near, counts)
-        j = np.fromiter(itertools.chain.from_iterable(hits), dtype=np.int64, count=int(counts.sum()))
-        keep = core_within(ye, self._cores[k], i, j, reach)
-        return i[keep], j[keep]
+        """The pairs (i, j) of a primitive i of ye (N, k, 3) and a mesh primitive j of :meth:`cores` (k) that lie within
+        ``reach`` of each other, with a slack (every pair nearer than ``reach`` is among them), i ascending and each i's
+        j ascending: the mesh's uniform grid for its kind (built on first use), then boxes and distances, compiled
+        (:func:`~latentsim.physics.kernels.distances.grid_within`)."""
+        k = ye.shape[1]
+        if k not in self._grids:
+            spacing = float((self._cores[1].max(1) - self._cores[1].min(1)).max(1).mean())  # a face's mean extent
+            self._grids[k] = MeshGrid(self._cores[k], spacing)
+        return grid_within(ye, self._grids[k], reach)
 
     def inside(self, points: np.ndarray) -> np.ndarray:
         """Whether each point (N, 3) lies inside the (closed) mesh: the parity of the faces a ray from it along +y

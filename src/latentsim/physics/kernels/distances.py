@@ -4,7 +4,8 @@ r"""Compiled distances of contact pairs, without gradients: which pairs a broad 
 :func:`~latentsim.physics.primitives.point_triangle_distance` and
 :func:`~latentsim.physics.primitives.segment_segment_distance` (their regions, their parallel test) pair by pair
 instead of as array programs; ``self_pairs`` finds a surface's pairs with itself by them (a uniform grid, then
-the boxes, then the distances) and ``core_within`` selects a mesh collider's candidates (a surface's primitive against the mesh's face, edge or vertex).  They select pairs,
+the boxes, then the distances) and ``grid_within`` a mesh collider's pairs (a surface's primitive against the mesh's
+face, edge or vertex) by a grid over the static mesh (``MeshGrid``).  They select pairs,
 they do not measure them: self-contact and the mesh barrier keep the pairs nearer than their reach by these, with a
 slack (``SLACK``) far above the two implementations' rounding, and measure those again in PyTorch; a pair kept by the
 slack alone lies beyond the reach there and its barrier, and that barrier's gradient, are exactly zero.  Within a
@@ -213,28 +214,148 @@ def self_pairs(x: np.ndarray, faces: np.ndarray, edges: np.ndarray, reach: float
         size *= 4
 
 
+#: the most cells of a static mesh's grid (its spacing grows until the mesh's box holds no more)
+MESH_CELLS = 2**21
+
+
+class MeshGrid:
+    """A static mesh's primitives cores (M, q, 3) in a uniform grid over the mesh's box: each primitive listed in every
+    cell its box overlaps (compressed rows: cell ``c``'s primitives ``ids[start[c]:start[c + 1]]``, ascending), the
+    spacing ``h`` [m] a face's mean extent (the mesh's own scale, for its vertices and edges too) or larger.  For
+    :func:`grid_within`."""
+
+    def __init__(self, cores: np.ndarray, h: float):
+        cores = np.ascontiguousarray(cores, dtype=np.float64)
+        self.cores = cores
+        self.lo, self.hi = cores.min(1), cores.max(1)
+        self.origin = self.lo.min(0)
+        span = self.hi.max(0) - self.origin
+        h = float(h) if h > 0 else float(max(span.max(), 1.0)) / 64.0
+        while np.prod(np.floor(span / h) + 1) > MESH_CELLS:
+            h *= 1.25
+        self.h = h
+        self.dims = (np.floor(span / h) + 1).astype(np.int64)
+        self.start, self.ids = _mesh_grid(self.lo, self.hi, self.origin, h, self.dims)
+
+
+@njit(**INLINE)
+def _mesh_cell(p, a, h, origin, dims):
+    f = (p - origin[a]) / h
+    return 0 if not f >= 0 else (dims[a] - 1 if f >= dims[a] - 1 else int(f))
+
+
 @njit(**JIT)
-def _core_within(ye, cores, i, j, reach, keep):
-    k = ye.shape[1]
-    for q in range(i.shape[0]):
-        y, c = ye[i[q]], cores[j[q]]
-        if k == 1:
-            d = _point_triangle(y[0], c[0], c[1], c[2])
-        elif k == 2:
-            d = _segment_segment(c[0], c[1], y[0], y[1])
-        else:
-            d = _point_triangle(c[0], y[0], y[1], y[2])
-        keep[q] = d < reach
+def _mesh_grid(lo, hi, origin, h, dims):
+    M = lo.shape[0]
+    count = np.zeros(dims[0] * dims[1] * dims[2] + 1, np.int64)
+    for rep in range(2):  # count each cell's primitives, then fill them in, in ascending order
+        if rep == 1:
+            for c in range(1, count.shape[0]):
+                count[c] += count[c - 1]
+            ids = np.empty(count[-1], np.int64)
+            fill = count[:-1].copy()
+        for j in range(M):
+            c0 = np.empty(3, np.int64)
+            c1 = np.empty(3, np.int64)
+            for a in range(3):
+                c0[a], c1[a] = _mesh_cell(lo[j, a], a, h, origin, dims), _mesh_cell(hi[j, a], a, h, origin, dims)
+            for cx in range(c0[0], c1[0] + 1):
+                for cy in range(c0[1], c1[1] + 1):
+                    for cz in range(c0[2], c1[2] + 1):
+                        c = (cx * dims[1] + cy) * dims[2] + cz
+                        if rep == 0:
+                            count[c + 1] += 1
+                        else:
+                            ids[fill[c]] = j
+                            fill[c] += 1
+    return count, ids
 
 
-def core_within(ye: np.ndarray, cores: np.ndarray, i: np.ndarray, j: np.ndarray, reach: float) -> np.ndarray:
-    """Which pairs (i, j) of a surface's primitive ye[i] (N, k, 3) and a static mesh's core cores[j] (M, 4 - k, 3) lie
-    nearer than ``reach`` (with :func:`within`'s slack): a vertex against a face (k = 1), an edge against an edge (2),
-    a triangle against a vertex (3), the pairs of :func:`~latentsim.physics.primitives.core_distance`.  (P,) bool."""
-    keep = np.empty(len(i), np.bool_)
-    _core_within(np.ascontiguousarray(ye, dtype=np.float64), np.ascontiguousarray(cores, dtype=np.float64),
-                 np.ascontiguousarray(i, dtype=np.int64), np.ascontiguousarray(j, dtype=np.int64), reach * (1.0 + SLACK), keep)  # fmt: skip
-    return keep
+@njit(**JIT)
+def _grid_within(ye, cores, lo, hi, origin, h, dims, start, ids, reach, out):
+    """The pairs (i, j) within reach, i ascending and each i's j ascending (module function :func:`grid_within`);
+    how many, or -1 where ``out`` is too short."""
+    N, k, M = ye.shape[0], ye.shape[1], cores.shape[0]
+    seen = np.full(M, -1, np.int64)
+    found = np.empty(M, np.int64)
+    qlo, qhi = np.empty(3), np.empty(3)
+    c0, c1 = np.empty(3, np.int64), np.empty(3, np.int64)
+    n = 0
+    for i in range(N):
+        y = ye[i]
+        finite = True
+        for a in range(3):
+            qlo[a], qhi[a] = y[0, a], y[0, a]
+            for v in range(k):
+                qlo[a], qhi[a] = min(qlo[a], y[v, a]), max(qhi[a], y[v, a])
+                finite = finite and np.isfinite(y[v, a])
+            qlo[a] -= reach
+            qhi[a] += reach
+        if not finite:
+            continue
+        outside = False
+        for a in range(3):
+            if qhi[a] < origin[a] or qlo[a] > origin[a] + dims[a] * h:
+                outside = True
+            c0[a], c1[a] = _mesh_cell(qlo[a], a, h, origin, dims), _mesh_cell(qhi[a], a, h, origin, dims)
+        if outside:
+            continue
+        # the cells the grown box overlaps, or every primitive where those cells outnumber them (a far-flung state)
+        every = (c1[0] - c0[0] + 1) * (c1[1] - c0[1] + 1) * (c1[2] - c0[2] + 1) > M
+        m = 0
+        for cx in range(c0[0], c1[0] + 1):
+            for cy in range(c0[1], c1[1] + 1):
+                for cz in range(c0[2], c1[2] + 1):
+                    c = (cx * dims[1] + cy) * dims[2] + cz
+                    q0, q1 = (0, M) if every else (start[c], start[c + 1])
+                    for q in range(q0, q1):
+                        j = q if every else ids[q]
+                        if seen[j] == i:
+                            continue
+                        seen[j] = i
+                        if (hi[j, 0] < qlo[0] or lo[j, 0] > qhi[0] or hi[j, 1] < qlo[1] or lo[j, 1] > qhi[1]
+                                or hi[j, 2] < qlo[2] or lo[j, 2] > qhi[2]):  # fmt: skip
+                            continue
+                        cj = cores[j]
+                        if k == 1:
+                            d = _point_triangle(y[0], cj[0], cj[1], cj[2])
+                        elif k == 2:
+                            d = _segment_segment(cj[0], cj[1], y[0], y[1])
+                        else:
+                            d = _point_triangle(cj[0], y[0], y[1], y[2])
+                        if d < reach:
+                            found[m] = j
+                            m += 1
+                    if every:
+                        break
+                if every:
+                    break
+            if every:
+                break
+        if n + m > out.shape[0]:
+            return -1
+        found[:m].sort()
+        for q in range(m):
+            out[n, 0], out[n, 1] = i, found[q]
+            n += 1
+    return n
+
+
+def grid_within(ye: np.ndarray, grid: MeshGrid, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs (i, j) of a surface's primitive ye[i] (N, k, 3) and a static mesh's core ``grid.cores[j]`` that lie
+    nearer than ``reach`` (with :func:`within`'s slack), the pairs of :func:`~latentsim.physics.primitives.core_distance` (a vertex against a face,
+    k = 1; an edge against an edge, 2; a triangle against a vertex, 3): each primitive's box grown by the reach, the
+    grid's cells it overlaps, their primitives' boxes, then the distances, compiled.  i ascending and each i's j
+    ascending; a primitive with a coordinate not finite has none."""
+    ye = np.ascontiguousarray(ye, dtype=np.float64)
+    size = 4 * len(ye) + 64
+    while True:
+        out = np.empty((size, 2), np.int64)
+        n = _grid_within(ye, grid.cores, grid.lo, grid.hi, grid.origin, grid.h, grid.dims, grid.start, grid.ids,
+                         reach * (1.0 + SLACK), out)  # fmt: skip
+        if n >= 0:
+            return out[:n, 0].copy(), out[:n, 1].copy()
+        size *= 4
 
 
 def pair_distances(x: np.ndarray, state: np.ndarray, ids: np.ndarray, n_fv: int) -> np.ndarray:
