@@ -13,6 +13,7 @@ import torch
 WORKFLOW = Path(__file__).resolve().parent / "workflow"
 
 
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist's own, which reads the groups into the test ids
 def pytest_collection_modifyitems(config, items):
     for item in items:
         if WORKFLOW in Path(str(item.fspath)).resolve().parents:
