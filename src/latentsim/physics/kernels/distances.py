@@ -271,6 +271,19 @@ def _mesh_grid(lo, hi, origin, h, dims):
     return count, ids
 
 
+@njit(**INLINE)
+def _core_within(y, k, core, lo, hi, qlo, qhi, reach):
+    """Whether a surface primitive y (k, 3), its box grown by the reach (qlo, qhi), lies within reach of a mesh core
+    (4 - k, 3) whose box is (lo, hi): the boxes, then the distance of :func:`~latentsim.physics.primitives.core_distance`."""
+    if hi[0] < qlo[0] or lo[0] > qhi[0] or hi[1] < qlo[1] or lo[1] > qhi[1] or hi[2] < qlo[2] or lo[2] > qhi[2]:
+        return False
+    if k == 1:
+        return _point_triangle(y[0], core[0], core[1], core[2]) < reach
+    if k == 2:
+        return _segment_segment(core[0], core[1], y[0], y[1]) < reach
+    return _point_triangle(core[0], y[0], y[1], y[2]) < reach
+
+
 @njit(**JIT)
 def _grid_within(ye, cores, lo, hi, origin, h, dims, start, ids, reach, out):
     """The pairs (i, j) within reach, i ascending and each i's j ascending (module function :func:`grid_within`);
@@ -300,38 +313,24 @@ def _grid_within(ye, cores, lo, hi, origin, h, dims, start, ids, reach, out):
             c0[a], c1[a] = _mesh_cell(qlo[a], a, h, origin, dims), _mesh_cell(qhi[a], a, h, origin, dims)
         if outside:
             continue
-        # the cells the grown box overlaps, or every primitive where those cells outnumber them (a far-flung state)
-        every = (c1[0] - c0[0] + 1) * (c1[1] - c0[1] + 1) * (c1[2] - c0[2] + 1) > M
         m = 0
-        for cx in range(c0[0], c1[0] + 1):
-            for cy in range(c0[1], c1[1] + 1):
-                for cz in range(c0[2], c1[2] + 1):
-                    c = (cx * dims[1] + cy) * dims[2] + cz
-                    q0, q1 = (0, M) if every else (start[c], start[c + 1])
-                    for q in range(q0, q1):
-                        j = q if every else ids[q]
-                        if seen[j] == i:
-                            continue
-                        seen[j] = i
-                        if (hi[j, 0] < qlo[0] or lo[j, 0] > qhi[0] or hi[j, 1] < qlo[1] or lo[j, 1] > qhi[1]
-                                or hi[j, 2] < qlo[2] or lo[j, 2] > qhi[2]):  # fmt: skip
-                            continue
-                        cj = cores[j]
-                        if k == 1:
-                            d = _point_triangle(y[0], cj[0], cj[1], cj[2])
-                        elif k == 2:
-                            d = _segment_segment(cj[0], cj[1], y[0], y[1])
-                        else:
-                            d = _point_triangle(cj[0], y[0], y[1], y[2])
-                        if d < reach:
-                            found[m] = j
-                            m += 1
-                    if every:
-                        break
-                if every:
-                    break
-            if every:
-                break
+        if (c1[0] - c0[0] + 1) * (c1[1] - c0[1] + 1) * (c1[2] - c0[2] + 1) > M:  # a far-flung state: every primitive
+            for j in range(M):
+                if _core_within(y, k, cores[j], lo[j], hi[j], qlo, qhi, reach):
+                    found[m] = j
+                    m += 1
+        else:  # the primitives of the cells the grown box overlaps, each once
+            for cx in range(c0[0], c1[0] + 1):
+                for cy in range(c0[1], c1[1] + 1):
+                    for cz in range(c0[2], c1[2] + 1):
+                        c = (cx * dims[1] + cy) * dims[2] + cz
+                        for q in range(start[c], start[c + 1]):
+                            j = ids[q]
+                            if seen[j] != i:
+                                seen[j] = i
+                                if _core_within(y, k, cores[j], lo[j], hi[j], qlo, qhi, reach):
+                                    found[m] = j
+                                    m += 1
         if n + m > out.shape[0]:
             return -1
         found[:m].sort()
@@ -343,9 +342,10 @@ def _grid_within(ye, cores, lo, hi, origin, h, dims, start, ids, reach, out):
 
 def grid_within(ye: np.ndarray, grid: MeshGrid, reach: float) -> tuple[np.ndarray, np.ndarray]:
     """The pairs (i, j) of a surface's primitive ye[i] (N, k, 3) and a static mesh's core ``grid.cores[j]`` that lie
-    nearer than ``reach`` (with :func:`within`'s slack), the pairs of :func:`~latentsim.physics.primitives.core_distance` (a vertex against a face,
-    k = 1; an edge against an edge, 2; a triangle against a vertex, 3): each primitive's box grown by the reach, the
-    grid's cells it overlaps, their primitives' boxes, then the distances, compiled.  i ascending and each i's j
+    nearer than ``reach`` (with :func:`within`'s slack), the pairs of
+    :func:`~latentsim.physics.primitives.core_distance` (a vertex against a face, k = 1; an edge against an edge, 2; a
+    triangle against a vertex, 3): each primitive's box grown by the reach, the grid's cells it overlaps (every
+    primitive where those outnumber them), their primitives' boxes, then the distances, compiled.  i ascending and each i's j
     ascending; a primitive with a coordinate not finite has none."""
     ye = np.ascontiguousarray(ye, dtype=np.float64)
     size = 4 * len(ye) + 64
