@@ -53,6 +53,73 @@ def test_own_rollouts_chain_the_integrators_own_predictions_sequence_by_sequence
         own_rollout_triplets(integ, tr, lengths[:-1], centre, math.inf)
 
 
+def test_own_rollouts_stop_before_the_first_input_that_is_not_clear(chain_setup):
+    """With a check of which states are clear, each sequence keeps the rows of the unstopped rollout up to the
+    first whose input latent is not clear: a prefix, every input in it clear, the next one not."""
+    from latentsim.latent.data import triplet_rows
+    from latentsim.latent.features import own_rollout_triplets
+
+    ch, seqs, coords, ae = chain_setup
+    integ, tr = _untrained(chain_setup)
+    lengths, centre = triplet_rows(seqs), tr["z"].mean(0)
+    full = own_rollout_triplets(integ, tr, lengths, centre, math.inf)
+    far = (full.z_prev - centre).norm(dim=-1)
+    limit = float(far.median())  # about half the rolled-out inputs lie beyond it
+    seen = []
+
+    def clear(z, xD):
+        assert xD.shape == (len(z), 1, 3)  # the frames' Dirichlet positions come with the latents
+        seen.append(len(z))
+        return (z - centre).norm(dim=-1) < limit
+
+    own = own_rollout_triplets(integ, tr, lengths, centre, math.inf, clear)
+    assert seen == lengths  # one call a sequence, on its whole rollout
+    assert 0 < len(own) < len(full)
+    start, kept = 0, 0
+    for n in lengths:
+        ok = (far[start : start + n] < limit).tolist()
+        k = ok.index(False) if False in ok else n
+        assert torch.equal(own.z_prev[kept : kept + k], full.z_prev[start : start + k])
+        assert torch.equal(own.z_prev2[kept : kept + k], full.z_prev2[start : start + k])
+        assert torch.equal(own.xD[kept : kept + k], full.xD[start : start + k])
+        start, kept = start + n, kept + k
+    assert kept == len(own)
+    # nothing clear: no rows (the trainer's data then has no own rows beside it)
+    assert len(own_rollout_triplets(integ, tr, lengths, centre, math.inf, lambda z, xD: torch.zeros(len(z), dtype=torch.bool))) == 0
+
+
+def test_a_training_with_contact_rolls_out_only_states_clear_of_its_collider(chain_setup, tmp_path, monkeypatch):
+    """The chain, which swings in its plane (y = 0), beside a wall 5 cm off it: the own rows a training keeps (in its
+    checkpoint) all decode clear of the wall, by the contact's own measure and by the plane's distance computed here;
+    without the stop the same training's rollouts drift out of the plane into the wall, so the check can fail."""
+    import dataclasses
+
+    from latentsim.latent import decode_latents
+    from latentsim.latent import features
+    from latentsim.physics.colliders import HalfSpace
+    from latentsim.physics.contact import ContactBarrier
+
+    ch, seqs, coords, ae = chain_setup
+    assert all(float(abs(s["positions"][..., 1]).max()) == 0 for s in seqs)
+    wall = 0.05  # inside: y beyond the wall
+    contact = ContactBarrier(ch.n, [HalfSpace((0.0, wall, 0.0), (0.0, -1.0, 0.0))], d_hat=0.01, kappa=1.0)
+    pot = dataclasses.replace(ch.pot, contact=contact)
+    cfg = dict(widths=[16], epochs=3, lr=1e-2, batch_size=40, own_rollouts_every=1, own_rollouts_start=0, noise_scale=0.0)
+
+    def inside_counts(path):
+        own = torch.load(path, weights_only=False)["own"]
+        x = decode_latents(ae, coords, own["z_prev"], own["xD_prev"])
+        return int((x[..., 1] >= wall).any(-1).sum()), int((contact.clearance(x, own["xD_prev"]) <= 0).sum()), len(x)
+
+    fit_integrator(ae, coords, pot, seqs, cfg, seed=2, checkpoint_path=tmp_path / "stopped.pt", checkpoint_every=1)
+    by_hand, by_measure, kept = inside_counts(tmp_path / "stopped.pt")
+    assert by_hand == by_measure == 0 and kept > 0
+    monkeypatch.setattr(features.ClearStates, "of", classmethod(lambda cls, *a: None))
+    fit_integrator(ae, coords, pot, seqs, cfg, seed=2, checkpoint_path=tmp_path / "unstopped.pt", checkpoint_every=1)
+    by_hand, by_measure, n = inside_counts(tmp_path / "unstopped.pt")
+    assert by_hand == by_measure > 0 and n > kept
+
+
 def test_a_training_on_its_own_rollouts_resumes_them_from_its_checkpoint(chain_setup, tmp_path):
     """The rolled-out triplets in use travel with the checkpoint: a run resumed between two rollouts
     equals the uninterrupted one to the bit."""

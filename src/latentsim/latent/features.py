@@ -6,7 +6,8 @@
 - own rollouts: triplets whose inputs are the integrator's own latents
   (:func:`own_rollout_triplets`), at conditions of the box for a conditioned integrator
   (:func:`own_rollout_triplets_at_conditions`) and at other speeds of the programs
-  (:func:`own_rollout_triplets_at_speeds`);
+  (:func:`own_rollout_triplets_at_speeds`), each sequence's stopped at its first state that
+  decodes inside a collider or through the surface itself (:class:`ClearStates`);
 - the origin input (each p_t ends with the frame's mean prescribed position,
   :func:`~latentsim.latent.integrator.boundary_inputs`), which the ground truth's triplets and the
   own rollouts at speeds take;
@@ -20,12 +21,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
 
 from latentsim.config import check_training_features
+from latentsim.latent.autoencoder import decode_latents
 from latentsim.latent.batch import Batch, Triplets
 from latentsim.latent.conditioning import CONDITION_DIM, AtCondition, Conditioning, with_condition
 from latentsim.latent.coordinates import RelativeCoordinates
@@ -33,6 +35,47 @@ from latentsim.latent.data import triplet_rows
 from latentsim.latent.integrator import LatentIntegrator, boundary_inputs
 from latentsim.latent.loss import fixed_balancing_weights
 from latentsim.scene import dirichlet_step, dirichlet_trajectory
+
+
+@dataclass(frozen=True)
+class ClearStates:
+    """Which latents decode to states the scene's potential holds: every point of the surface outside
+    every collider and (with self-contact) clear of the rest of the surface, by the contact's own
+    measure (:meth:`~latentsim.physics.contact.ContactBarrier.clearance` > 0, the measure of the
+    evaluation and the frame check).  Called with latents z (N, r) and their frames' Dirichlet
+    positions xD (N, m, 3); returns a bool tensor (N,).
+
+    An own rollout stops at its first state that is not clear (:func:`own_rollout_triplets`): the
+    training's barrier is extended below the surface (``barrier_extend_below``) so that a decode
+    which enters a collider costs much rather than inf, and steps from states deep inside one have
+    energies and gradients that swamp the data's.
+    """
+
+    ae: torch.nn.Module
+    coords: RelativeCoordinates
+    contact: object
+
+    @classmethod
+    def of(cls, ae: torch.nn.Module, coords: RelativeCoordinates, contact) -> "ClearStates | None":
+        """The check for a scene whose potential has ``contact`` (a ContactBarrier, or None: nothing to check, None)."""
+        return None if contact is None else cls(ae, coords, contact)
+
+    @torch.no_grad()
+    def __call__(self, z: torch.Tensor, xD: torch.Tensor) -> torch.Tensor:
+        x = decode_latents(self.ae, self.coords, z, xD).cpu()
+        d = self.contact.clearance(x, xD.detach().to("cpu", torch.float64))
+        return d > 0  # a NaN decode is not clear either
+
+
+def clear_prefix(z_prev: torch.Tensor, xD_prev: torch.Tensor, clear: Callable | None) -> int:
+    """How many leading rows of one rolled-out sequence to keep: those before the first whose input
+    latent ``z_prev`` (N, r), at its frame's Dirichlet positions ``xD_prev`` (N, m, 3), is not
+    ``clear`` (:class:`ClearStates`; None keeps all).  The rows after it start from it or from its
+    successors, so they go too."""
+    if clear is None or not len(z_prev):
+        return len(z_prev)
+    bad = torch.nonzero(~clear(z_prev, xD_prev)).flatten()
+    return int(bad[0]) if len(bad) else len(z_prev)
 
 
 @dataclass(frozen=True)
@@ -63,15 +106,17 @@ class OwnRollouts:
         """Whether the 0-based ``epoch`` starts with a rollout."""
         return epoch >= self.start and (epoch - self.start) % self.every == 0
 
-    def __call__(self, integ: LatentIntegrator, data: Triplets, centre: torch.Tensor, max_distance: float, gen: torch.Generator) -> Triplets:
-        """The rolled-out triplets of ``integ`` from the ground truth's ``data``."""
+    def __call__(self, integ: LatentIntegrator, data: Triplets, centre: torch.Tensor, max_distance: float, gen: torch.Generator,
+                 clear: Callable | None = None) -> Triplets:  # fmt: skip
+        """The rolled-out triplets of ``integ`` from the ground truth's ``data``, each sequence stopped at its first
+        state that is not ``clear`` (:class:`ClearStates`, or None)."""
         if self.conditioning is not None:
-            return own_rollout_triplets_at_conditions(integ, data, self.rows_per_sequence, centre, max_distance, self.conditioning, gen)
-        own = own_rollout_triplets(integ, data, self.rows_per_sequence, centre, max_distance)
+            return own_rollout_triplets_at_conditions(integ, data, self.rows_per_sequence, centre, max_distance, self.conditioning, gen, clear)
+        own = own_rollout_triplets(integ, data, self.rows_per_sequence, centre, max_distance, clear)
         if self.programs is None:
             return own
         return own.cat(own_rollout_triplets_at_speeds(integ, data, self.rows_per_sequence, centre, max_distance, self.programs, self.speeds, gen,
-                                                      self.dt, self.origin, self.coords))  # fmt: skip
+                                                      self.dt, self.origin, self.coords, clear))  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -113,9 +158,11 @@ class TrainingFeatures:
         # inputs without noise that never change: Eq. 6's weights once, not two decodes a sample every minibatch
         return data.replace(balance=fixed_balancing_weights(ae, coords, data, dt, self.balancing_eps))
 
-    def rollouts(self, epoch: int, integ: LatentIntegrator, data: Triplets, centre: torch.Tensor, max_distance: float, gen: torch.Generator) -> Triplets | None:
-        """The rolled-out triplets that join ``data`` from this epoch on; None where none are due."""
-        return self.own(integ, data, centre, max_distance, gen) if self.own is not None and self.own.due(epoch) else None
+    def rollouts(self, epoch: int, integ: LatentIntegrator, data: Triplets, centre: torch.Tensor, max_distance: float, gen: torch.Generator,
+                 clear: Callable | None = None) -> Triplets | None:  # fmt: skip
+        """The rolled-out triplets that join ``data`` from this epoch on (each sequence stopped at its first state that
+        is not ``clear``, :class:`ClearStates`); None where none are due."""
+        return self.own(integ, data, centre, max_distance, gen, clear) if self.own is not None and self.own.due(epoch) else None
 
     def batch(self, rows: Triplets, gen: torch.Generator) -> Batch:
         """The minibatch of ``rows`` as the loss takes it (each sample at a drawn condition, for a conditioned training)."""
@@ -165,12 +212,15 @@ def at_sampled_conditions(batch: Triplets, conditioning: Conditioning, gen: torc
 
 
 @torch.no_grad()
-def own_rollout_triplets(integ: LatentIntegrator, data, rows_per_sequence: Sequence[int], centre: torch.Tensor, max_distance: float) -> Triplets:
+def own_rollout_triplets(integ: LatentIntegrator, data, rows_per_sequence: Sequence[int], centre: torch.Tensor, max_distance: float,
+                         clear: Callable | None = None) -> Triplets:  # fmt: skip
     """Triplets whose inputs are the integrator's own latents: each training sequence of ``data``
     (:class:`~latentsim.latent.batch.Triplets`, or a dict of its fields, of
     :func:`~latentsim.latent.data.build_triplets`: ``rows_per_sequence[i]`` rows of sequence i,
     in order) rolled out from its first two ground-truth latents under its boundary conditions,
-    until it ends or a latent lies farther than ``max_distance`` from ``centre``.  Each row keeps
+    until it ends or a latent lies farther than ``max_distance`` from ``centre``, and (with
+    ``clear``, :class:`ClearStates`) only up to the row before the first whose input latent is not
+    clear at its frame's Dirichlet positions (:func:`clear_prefix`).  Each row keeps
     the frame's boundary conditions, Dirichlet targets and ground-truth latent ``z``; its
     ``z_prev`` and ``z_prev2`` are the rolled-out ones (a sequence's first row keeps its ground
     truth: it is the first step).  The training mode of ``integ`` is restored."""
@@ -183,28 +233,36 @@ def own_rollout_triplets(integ: LatentIntegrator, data, rows_per_sequence: Seque
     rows, z_prev, z_prev2 = [], [], []
     for a, b in zip([0] + ends[:-1], ends):
         z2, z1 = data.z_prev2[a], data.z_prev[a]
+        seq, seq_prev, seq_prev2 = [], [], []
         for i in range(a, b):
-            rows.append(i)
-            z_prev.append(z1)
-            z_prev2.append(z2)
+            seq.append(i)
+            seq_prev.append(z1)
+            seq_prev2.append(z2)
             z = integ(z1[None], z2[None], data.p[i : i + 1], data.p_prev[i : i + 1], data.p_prev2[i : i + 1])[0].to(z1.dtype)
             if not torch.isfinite(z).all() or float((z - centre).norm()) > max_distance:
                 break
             z2, z1 = z1, z
+        n = clear_prefix(torch.stack(seq_prev), data.xD_prev[seq], clear)
+        rows += seq[:n]
+        z_prev += seq_prev[:n]
+        z_prev2 += seq_prev2[:n]
     if was_training:
         integ.train()
-    return data.rows(torch.as_tensor(rows, device=data.z.device)).replace(z_prev=torch.stack(z_prev), z_prev2=torch.stack(z_prev2))
+    out = data.rows(torch.as_tensor(rows, dtype=torch.long, device=data.z.device))
+    return out.replace(z_prev=torch.stack(z_prev), z_prev2=torch.stack(z_prev2)) if rows else out
 
 
 @torch.no_grad()
 def own_rollout_triplets_at_conditions(
     integ: LatentIntegrator, data, rows_per_sequence: Sequence[int], centre: torch.Tensor, max_distance: float, conditioning: Conditioning, gen: torch.Generator,
+    clear: Callable | None = None,
 ) -> Triplets:  # fmt: skip
     """:func:`own_rollout_triplets` of a conditioned integrator: each training sequence rolled out at
     one condition (h, E) drawn from ``conditioning``'s box by ``gen``, its boundary-condition program
     (the frames' p_t) stepped at h from the sequence's first Dirichlet positions.  Each row holds
     the Dirichlet targets of its frames at h and its ``condition`` (h, E) (float64, (N, 2)), at
-    which its loss is to be taken (:func:`at_sampled_conditions`)."""
+    which its loss is to be taken (:func:`at_sampled_conditions`); with ``clear``, each sequence stopped as
+    :func:`own_rollout_triplets` stops it, at those Dirichlet targets."""
     data = Triplets.of(data)
     ends = np.cumsum(rows_per_sequence).tolist()
     h, E = conditioning.sample(len(ends), gen)
@@ -220,7 +278,8 @@ def own_rollout_triplets_at_conditions(
             xD.append(dirichlet_step(xD[-1][None], p[t : t + 1], hi)[0])
         xD = torch.stack(xD)
         condition = torch.tensor([hi, Ei], dtype=torch.float64, device=xD.device).expand(n, 2).clone()
-        parts.append(own.replace(xD_prev2=xD[:n], xD_prev=xD[1 : n + 1], xD=xD[2:], condition=condition))
+        own = own.replace(xD_prev2=xD[:n], xD_prev=xD[1 : n + 1], xD=xD[2:], condition=condition)
+        parts.append(own.rows(slice(0, clear_prefix(own.z_prev, own.xD_prev, clear))))
     return parts[0].cat(*parts[1:])
 
 
@@ -253,7 +312,7 @@ def speed_programs(sequences: Sequence[dict], speeds, label: str = "") -> list |
 @torch.no_grad()
 def own_rollout_triplets_at_speeds(
     integ: LatentIntegrator, data, rows_per_sequence: Sequence[int], centre: torch.Tensor, max_distance: float, programs: Sequence, speeds,
-    gen: torch.Generator, dt: float, origin: bool, coords: RelativeCoordinates | None = None,
+    gen: torch.Generator, dt: float, origin: bool, coords: RelativeCoordinates | None = None, clear: Callable | None = None,
 ) -> Triplets:  # fmt: skip
     """:func:`own_rollout_triplets` under faster or slower programs: each training sequence whose
     program moves (``programs``, :func:`speed_programs`) rolled out from its first two ground-truth
@@ -264,7 +323,7 @@ def own_rollout_triplets_at_speeds(
     ``origin`` and ``coords`` as in the training).  Each row holds the frame's Dirichlet targets
     under the scaled program (the self-supervised loss needs nothing else there); its ``z`` is the
     recorded frame's, as no ground truth exists at other speeds.  Also holds ``speed`` (N,), each
-    row's factor."""
+    row's factor.  ``clear``: as in :func:`own_rollout_triplets`, at the scaled program's targets."""
     data = Triplets.of(data)
     lo, hi = (math.log(float(v)) for v in speeds)
     ends = np.cumsum(rows_per_sequence).tolist()
@@ -278,6 +337,6 @@ def own_rollout_triplets_at_speeds(
         p = torch.as_tensor(boundary_inputs(f * bc, xD, origin, coords)).to(sub.p)
         xD = torch.as_tensor(xD).to(sub.xD)
         sub = sub.replace(p=p[2:], p_prev=p[1:-1], p_prev2=p[:-2], xD=xD[2:], xD_prev=xD[1:-1], xD_prev2=xD[:-2])
-        own = own_rollout_triplets(integ, sub, [b - a], centre, max_distance)
+        own = own_rollout_triplets(integ, sub, [b - a], centre, max_distance, clear)
         parts.append(own.replace(speed=torch.full((len(own),), f, dtype=torch.float64, device=own.z.device)))
     return parts[0].cat(*parts[1:])

@@ -18,9 +18,11 @@ to).  The features beyond the paper are pieces it consumes (:mod:`latentsim.late
 - Own rollouts (``own_rollouts_every`` k > 0, self-supervised mode; not in the paper): from epoch
   ``own_rollouts_start`` on, every k epochs the integrator rolls out each training sequence in the
   latent space from its first two ground-truth latents, under its boundary conditions, until it
-  ends or a latent leaves twice the training latents' radius; the triplets whose inputs are those
-  rolled-out latents (with the frames' boundary conditions and Dirichlet targets) join the
-  ground-truth ones until the next rollout.  The loss needs no ground truth at the predicted frame,
+  ends, a latent leaves twice the training latents' radius or (a scene with contact) a latent
+  decodes to a state with some point of the surface inside a collider or through the surface
+  itself (:class:`~latentsim.latent.features.ClearStates`; the measure of the evaluation); the
+  triplets whose inputs are those rolled-out latents (with the frames' boundary conditions and
+  Dirichlet targets) join the ground-truth ones until the next rollout.  The loss needs no ground truth at the predicted frame,
   so the integrator learns from the states it drifts into, in contact among them, and not only
   from those of the training data.  A conditioned training rolls each sequence out at a condition
   drawn from its box, and those rows' loss is taken at that condition: states of conditions no
@@ -67,7 +69,7 @@ from latentsim.latent.batch import Triplets
 from latentsim.latent.conditioning import Conditioning
 from latentsim.latent.coordinates import RelativeCoordinates
 from latentsim.latent.data import build_triplets
-from latentsim.latent.features import TrainingFeatures, training_features
+from latentsim.latent.features import ClearStates, TrainingFeatures, training_features
 from latentsim.latent.integrator import LatentIntegrator
 from latentsim.latent.loss import integrator_loss
 from latentsim.latent.serialization import atomic_save, load_checked
@@ -104,6 +106,8 @@ class _Training:
     ae, coords, pot, cfg : the frozen autoencoder, its coordinates, the loss's potential and the settings.
     features : the pieces of the features beyond the paper (:class:`~latentsim.latent.features.TrainingFeatures`).
     centre : the training latents' centre c.
+    clear : which latents decode clear of the scene's colliders and of the surface itself, where the own rollouts stop
+        (:class:`~latentsim.latent.features.ClearStates`), or None (no contact).
     """
 
     integ: LatentIntegrator
@@ -117,6 +121,7 @@ class _Training:
     features: TrainingFeatures
     centre: torch.Tensor
     plateau: PlateauStop | None = None
+    clear: ClearStates | None = None
 
 
 def _plateau_reached(run: _Training, losses, label: str) -> bool:
@@ -132,7 +137,7 @@ def _plateau_reached(run: _Training, losses, label: str) -> bool:
 def _own_rows(run: _Training, epoch: int, data, radius: float, own, history: dict):
     """The rolled-out rows epoch ``epoch`` trains on beside the data's: fresh ones where a rollout is
     due (their count appended to ``history["own_triplets"]``), else ``own``, the last ones (or None)."""
-    fresh = run.features.rollouts(epoch, run.integ, data, run.centre, 2.0 * radius, run.gen)
+    fresh = run.features.rollouts(epoch, run.integ, data, run.centre, 2.0 * radius, run.gen, run.clear)
     if fresh is None:
         return own
     history.setdefault("own_triplets", []).append(len(fresh))
@@ -215,7 +220,8 @@ def _new_training(ae: Autoencoder, coords: RelativeCoordinates, potential, seque
     centre, radius = _latent_range(data.z)
     history: dict[str, Any] = {"loss": [], "latent_mse": [], "latent_distance": [], "start_epoch": 0, "n_triplets": len(data), "latent_radius": radius}
     plateau = PlateauStop.of(cfg["plateau_stop"])
-    return _Training(integ, opt, gen, health, ae_f, coords, pot, cfg, features, centre, plateau), data, radius, history
+    clear = ClearStates.of(ae_f, coords, getattr(potential, "contact", None)) if features.own is not None else None  # the simulator's barrier, not the extended one
+    return _Training(integ, opt, gen, health, ae_f, coords, pot, cfg, features, centre, plateau, clear), data, radius, history
 
 
 def _latent_range(z: torch.Tensor) -> tuple[torch.Tensor, float]:

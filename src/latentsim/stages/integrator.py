@@ -67,6 +67,8 @@ def train_integrator(trajectories, ae_path, settings: dict, seed: int, device: s
         g.attrs["start_epoch"] = int(history["start_epoch"])
         write_dataset(g, "loss", np.asarray(history["loss"], dtype=np.float64))
         write_dataset(g, "latent_mse", np.asarray(history["latent_mse"], dtype=np.float64))
+        if "own_triplets" in history:  # the rows of each own rollout: fewer where they stop inside a collider
+            write_dataset(g, "own_triplets", np.asarray(history["own_triplets"], dtype=np.int64))
     # the checkpoint serves a killed training only: left behind, a forced rerun of the same training would
     # resume at its last epoch and record a training time of a second
     if checkpoint is not None and os.path.exists(checkpoint):
