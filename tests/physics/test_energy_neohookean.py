@@ -13,7 +13,7 @@ from latentsim.mesh import beam_tets
 from latentsim.physics.base import autograd_gradient_hessian, project_psd
 from latentsim.physics.kernels.dispatch import batch_energy_gradient, term_kernel
 from latentsim.physics.neohookean import StableNeoHookeanTets, snh_density, snh_parameters
-from latentsim.physics.tets import StVKTets, lame
+from latentsim.physics.tets import StVKTets
 from latentsim.scene import build_elastic, build_potential
 from latentsim.solve.implicit_euler import ImplicitEuler, NewtonSettings
 

@@ -19,7 +19,6 @@ compute them) against the eigenvalues of the same discrete Hessian.
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 from pathlib import Path
 

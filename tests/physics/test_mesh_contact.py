@@ -16,7 +16,7 @@ import torch
 from latentsim.physics.barrier import barrier
 from latentsim.physics.base import autograd_gradient_hessian
 from latentsim.physics.contact import ContactBarrier
-from latentsim.physics.mesh_contact import MeshBarrier, TriangleMesh, mesh_barriers, unique_edges
+from latentsim.physics.mesh_contact import TriangleMesh, mesh_barriers, unique_edges
 from latentsim.physics.primitives import core_distance, distance_hessian, vertex_hessian
 
 F64 = torch.float64
@@ -180,7 +180,7 @@ def test_the_pairs_energy_is_the_ipc_toolkits_distances_barrier(ball):
 def test_the_time_of_impact_stops_the_surface_at_its_thickness(ball):
     """A sheet pushed straight down into the mesh: stopped before any point comes within the thickness, and not long
     before (the toolkit's additive CCD stops at a fraction of the distance left)."""
-    ipctk = pytest.importorskip("ipctk")
+    pytest.importorskip("ipctk")
     x, tris, mesh = _cloth_over(ball, mesh_centre=(0.013, -0.07, -0.007))
     lead = mesh_barriers(mesh, tris, len(x), 0.01, 1.0)[0]
     X = x.numpy()

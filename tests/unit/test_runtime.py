@@ -11,7 +11,6 @@ from __future__ import annotations
 import copy
 import importlib.util
 import json
-import math
 import re
 import tracemalloc
 from pathlib import Path

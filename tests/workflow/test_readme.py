@@ -9,9 +9,7 @@ from __future__ import annotations
 import re
 import shutil
 import subprocess
-from pathlib import Path
 
-import pytest
 import torch
 from workflow_support import ROOT, TINY_COMMAND, shell
 

@@ -25,7 +25,6 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import torch
 
 from latentsim.io import atomic_path, open_artefact, read_csv, require
 from latentsim.latent.timing import time_full_space

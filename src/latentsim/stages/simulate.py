@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from latentsim.config import ConfigError, check_d_hat
-from latentsim.io import atomic_h5, atomic_path, open_artefact, read_mesh_arrays, write_dataset
+from latentsim.io import atomic_h5, atomic_path, read_mesh_arrays, write_dataset
 from latentsim.mesh.geometry import tet_volumes
 from latentsim.mesh.validation import MeshError
 from latentsim.report.paraview import cells_for, single_block_xdmf
