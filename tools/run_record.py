@@ -8,10 +8,13 @@ the default profile sets ``rerun-incomplete``).  Each part is one Snakemake log 
 ``RUN_FOLDER/.snakemake/log/``; the workflow writes its commit and machine at the top of each
 (``onstart`` in the Snakefile).  The record holds, per part: the log, the command, its commit and machine,
 start and end (UTC as the log gives them), wall minutes, jobs finished, the steps done of the steps
-planned, and how it ended (``complete``, ``failed``, naming the rules, or ``stopped``); in all: wall
-minutes (the parts' sum), jobs, whether the target completed, CPU and job minutes, and minutes per
-stage summed over each stage's jobs (``benchmarks/stage_times.py`` on ``results/benchmarks``).  Parts whose
-command does not ask for ``--target`` (dry runs, single files) are left out.
+planned, how it ended (``complete``, ``failed``, naming the rules, or ``stopped``) and what it asked
+for (``targets``: the target, or ``subset`` for a part that builds some of its outputs, ``results/...``,
+as a part that redoes what a change touched, or runs the target with ``--omit-from`` or ``--until``); in all: wall minutes (the time some part was running, parts
+that ran side by side counted once), jobs, whether the target completed (the last part that asks for
+it), CPU and job minutes, and minutes per stage summed over each stage's jobs
+(``benchmarks/stage_times.py`` on ``results/benchmarks``).  Dry runs and parts that ask for other rules
+(``sizing``, ``--unlock``) are left out.
 
 A run not yet complete also gets ``remaining``: per rule, the jobs the first part planned that no part has
 finished, the mean wall minutes of the rule's finished jobs (start to finish in the log, so under whatever
@@ -116,18 +119,37 @@ def remaining(logs, cores: int) -> dict:
     return {"cores": cores, "wall_min_known": round(sum(r["wall_min"] for r in rules), 1), "rules": rules, "rules_without_a_finished_job": unknown}
 
 
-def asks_for(command: str | None, target: str) -> bool:
-    """Whether a logged command runs ``target`` (not a dry run)."""
+def asks_for(command: str | None, target: str) -> str | None:
+    """What a logged command runs of ``target``'s run: ``target``, ``"subset"`` (outputs under ``results/``, or the
+    target short of some jobs: ``--omit-from``, ``--until``), or None (a dry run, an unlock, another rule)."""
     words = (command or "").split()
-    return target in words and not ({"-n", "--dry-run", "--dryrun"} & set(words))
+    if {"-n", "--dry-run", "--dryrun", "--unlock"} & set(words):
+        return None
+    if target in words and not {"--omit-from", "--until"} & set(words):
+        return target
+    return "subset" if target in words or any(w.startswith("results/") for w in words) else None
+
+
+def busy_minutes(parts: list[dict]) -> float:
+    """The minutes in which some part was running: overlapping parts counted once."""
+    spans = sorted((datetime.fromisoformat(p["start"]), datetime.fromisoformat(p["end"])) for p in parts if p["start"] and p["end"])
+    total, reach = 0.0, None
+    for a, b in spans:
+        a = a if reach is None else max(a, reach)
+        if b > a:
+            total += (b - a).total_seconds()
+        reach = b if reach is None else max(reach, b)
+    return total / 60
 
 
 def run_record(folder, target: str = "all") -> dict:
     """The record of the run of ``target`` in ``folder`` (see the module's docstring)."""
     folder = Path(folder)
     logs = sorted((folder / ".snakemake" / "log").glob("*.snakemake.log"))
-    parts = [p for p in map(read_part, logs) if asks_for(p["command"], target)]
-    if not parts:
+    parts = [{**p, "targets": asks_for(p["command"], target)} for p in map(read_part, logs)]
+    parts = [p for p in parts if p["targets"]]
+    whole = [p for p in parts if p["targets"] == target]
+    if not whole:
         raise SystemExit(f"{folder}: no Snakemake log of a run of {target!r} under .snakemake/log/")
     stages = stage_times(folder / "results" / "benchmarks")
     per_stage = []
@@ -136,10 +158,10 @@ def run_record(folder, target: str = "all") -> dict:
         per_stage = [{"stage": s, "jobs": int(r.jobs), "job_min": round(r.wall_s / 60, 1), "cpu_min": round(r.cpu_s / 60, 1)} for s, r in g.iterrows()]
     record = {
         "target": target,
-        "complete": parts[-1]["ended"] == "complete",
+        "complete": whole[-1]["ended"] == "complete",
         "commits": sorted({p["commit"] for p in parts if p["commit"]}),
         "machines": sorted({p["machine"] for p in parts if p["machine"]}),
-        "wall_min": round(sum(p["wall_min"] for p in parts), 1),
+        "wall_min": round(busy_minutes(parts), 1),
         "jobs_finished": sum(p["jobs_finished"] for p in parts),
         "job_min": round(float(stages["wall_s"].sum()) / 60, 1) if not stages.empty else 0.0,
         "cpu_min": round(float(stages["cpu_s"].sum()) / 60, 1) if not stages.empty else 0.0,
@@ -147,8 +169,8 @@ def run_record(folder, target: str = "all") -> dict:
         "stages": per_stage,
     }
     if not record["complete"]:
-        own = [folder / ".snakemake" / "log" / p["log"] for p in parts]
-        cores = re.search(r"--cores[ =](\d+)", parts[0]["command"] or "")
+        own = [folder / ".snakemake" / "log" / p["log"] for p in [whole[0]] + [p for p in parts if p is not whole[0]]]  # the plan: the first whole part's
+        cores = re.search(r"--cores[ =](\d+)", whole[0]["command"] or "")
         record["remaining"] = remaining(own, int(cores.group(1)) if cores else 1)
     return record
 

@@ -79,3 +79,24 @@ def test_an_unfinished_run_estimates_what_is_left_from_its_finished_jobs(tmp_pat
         {"rule": "simulate", "jobs_left": 1, "mean_job_min": 5.0, "wall_min": 2.5},
     ]
     assert rest["wall_min_known"] == 22.5
+
+
+def test_a_part_that_redoes_some_files_counts_its_jobs_once_in_the_wall_time_and_not_as_completion(tmp_path):
+    """A part that rebuilds some of the run's outputs (what a change touched) beside a part of the whole target: its jobs
+    count, the minutes both ran count once, and its completion is not the target's; unlocks and other rules are no parts."""
+    cmd = "snakemake --cores 2 all --config progress=False"
+    _log(tmp_path, "2026-12-05T020000.1.snakemake.log", cmd, "abc1234",
+         ["[Sat Dec  5 02:00:05 2026]", "Finished jobid: 1 (Rule: simulate)", "1 of 3 steps (33.3%) done", "[Sat Dec  5 03:00:00 2026]"])
+    files = "snakemake --cores 1 results/evaluation/cloth/metrics.csv --nolock"
+    _log(tmp_path, "2026-12-05T023000.1.snakemake.log", files, "def5678",
+         ["[Sat Dec  5 03:30:00 2026]", "Finished jobid: 4 (Rule: evaluate)", "1 of 1 steps (100%) done"])  # fmt: skip
+    path = tmp_path / ".snakemake/log/2026-12-05T023000.1.snakemake.log"
+    path.write_text(path.read_text().replace("Date: 2026-12-05 02:00:00", "Date: 2026-12-05 02:30:00"))
+    _log(tmp_path, "2026-12-05T050000.1.snakemake.log", "snakemake --unlock --cores 1", "def5678", ["[Sat Dec  5 05:00:00 2026]"])
+    _log(tmp_path, "2026-12-05T060000.1.snakemake.log", "snakemake --cores 2 sizing", "def5678", ["[Sat Dec  5 06:00:00 2026]"])
+    rec = run_record.run_record(tmp_path)
+    assert [p["targets"] for p in rec["parts"]] == ["all", "subset"]
+    assert [p["wall_min"] for p in rec["parts"]] == [60.0, 60.0] and rec["wall_min"] == 90.0  # 02:00-03:30, not 120
+    assert rec["jobs_finished"] == 2 and not rec["complete"] and rec["commits"] == ["abc1234", "def5678"]
+    assert run_record.busy_minutes(rec["parts"][:1]) == 60.0
+    assert run_record.asks_for("snakemake --cores 2 all --omit-from results/a.pt", "all") == "subset"  # all short of some jobs
