@@ -89,10 +89,13 @@ def test_own_rollouts_stop_before_the_first_input_that_is_not_clear(chain_setup)
 
 
 def test_a_training_with_contact_rolls_out_only_states_clear_of_its_collider(chain_setup, tmp_path, monkeypatch):
-    """The chain, which swings in its plane (y = 0), beside a wall 5 cm off it: the own rows a training keeps (in its
-    checkpoint) all decode clear of the wall, by the contact's own measure and by the plane's distance computed here;
-    without the stop the same training's rollouts drift out of the plane into the wall, so the check can fail."""
+    """The chain, which swings in its plane (y = 0), beside a wall 2 cm off it: the own rows a training keeps (in its
+    checkpoint) all decode no deeper into the wall than the allowed depth (OWN_ROLLOUT_DEPTH of the diagonal of the
+    training states), by the contact's own measure and by the plane's distance computed here; without the stop the
+    same training's rollouts drift out of the plane and deeper into the wall, so the check can fail."""
     import dataclasses
+
+    import numpy as np
 
     from latentsim.latent import decode_latents
     from latentsim.latent import features
@@ -101,23 +104,53 @@ def test_a_training_with_contact_rolls_out_only_states_clear_of_its_collider(cha
 
     ch, seqs, coords, ae = chain_setup
     assert all(float(abs(s["positions"][..., 1]).max()) == 0 for s in seqs)
-    wall = 0.05  # inside: y beyond the wall
+    wall = 0.02  # inside: y beyond the wall
     contact = ContactBarrier(ch.n, [HalfSpace((0.0, wall, 0.0), (0.0, -1.0, 0.0))], d_hat=0.01, kappa=1.0)
     pot = dataclasses.replace(ch.pot, contact=contact)
     cfg = dict(widths=[16], epochs=3, lr=1e-2, batch_size=40, own_rollouts_every=1, own_rollouts_start=0, noise_scale=0.0)
+    pts = np.concatenate([np.asarray(s["positions"]).reshape(-1, 3) for s in seqs])
+    depth = features.OWN_ROLLOUT_DEPTH * float(np.linalg.norm(pts.max(0) - pts.min(0)))
+    assert 0 < depth < 0.1
 
-    def inside_counts(path):
+    def too_deep(path):
         own = torch.load(path, weights_only=False)["own"]
         x = decode_latents(ae, coords, own["z_prev"], own["xD_prev"])
-        return int((x[..., 1] >= wall).any(-1).sum()), int((contact.clearance(x, own["xD_prev"]) <= 0).sum()), len(x)
+        return int((x[..., 1] >= wall + depth).any(-1).sum()), int((contact.clearance(x, own["xD_prev"]) <= -depth).sum()), len(x)
 
     fit_integrator(ae, coords, pot, seqs, cfg, seed=2, checkpoint_path=tmp_path / "stopped.pt", checkpoint_every=1)
-    by_hand, by_measure, kept = inside_counts(tmp_path / "stopped.pt")
+    by_hand, by_measure, kept = too_deep(tmp_path / "stopped.pt")
     assert by_hand == by_measure == 0 and kept > 0
     monkeypatch.setattr(features.ClearStates, "of", classmethod(lambda cls, *a: None))
     fit_integrator(ae, coords, pot, seqs, cfg, seed=2, checkpoint_path=tmp_path / "unstopped.pt", checkpoint_every=1)
-    by_hand, by_measure, n = inside_counts(tmp_path / "unstopped.pt")
+    by_hand, by_measure, n = too_deep(tmp_path / "unstopped.pt")
     assert by_hand == by_measure > 0 and n > kept
+
+
+def test_a_state_is_clear_up_to_its_allowed_depth_inside_a_collider(chain_setup):
+    """ClearStates on the chain's frames moved sideways through a wall: clear outside it and up to ``depth`` inside (the
+    deepest vertex), not beyond; its depth from ``of`` is OWN_ROLLOUT_DEPTH of the sequences' diagonal; no contact, no check."""
+    import numpy as np
+
+    from latentsim.latent import encode_positions
+    from latentsim.latent.features import OWN_ROLLOUT_DEPTH, ClearStates
+    from latentsim.physics.colliders import HalfSpace
+    from latentsim.physics.contact import ContactBarrier
+
+    ch, seqs, coords, ae = chain_setup
+    x = torch.as_tensor(seqs[0]["positions"][10])
+    xD = torch.as_tensor(seqs[0]["dirichlet_positions"][10])
+    contact = ContactBarrier(ch.n, [HalfSpace((0.0, 0.05, 0.0), (0.0, -1.0, 0.0))], d_hat=0.01, kappa=1.0)
+    shifts = [-0.03, 0.045, 0.055, 0.059, 0.061, 0.08]  # the free vertices' y: the wall at 0.05, the depth 0.01
+    X = x.repeat(len(shifts), 1, 1)
+    X[:, 1:, 1] = torch.tensor(shifts, dtype=X.dtype)[:, None]
+    XD = xD.repeat(len(shifts), 1, 1)
+    z = encode_positions(ae, coords, X, XD)
+    clear = ClearStates(ae, coords, contact, depth=0.01)
+    assert clear(z, XD).tolist() == [True, True, True, True, False, False]
+    assert ClearStates(ae, coords, contact)(z, XD).tolist() == [True, True, False, False, False, False]
+    pts = np.concatenate([np.asarray(s["positions"]).reshape(-1, 3) for s in seqs])
+    assert ClearStates.of(ae, coords, contact, seqs).depth == pytest.approx(OWN_ROLLOUT_DEPTH * np.linalg.norm(pts.max(0) - pts.min(0)))
+    assert ClearStates.of(ae, coords, None, seqs) is None
 
 
 def test_a_training_on_its_own_rollouts_resumes_them_from_its_checkpoint(chain_setup, tmp_path):

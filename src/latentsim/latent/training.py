@@ -19,8 +19,9 @@ to).  The features beyond the paper are pieces it consumes (:mod:`latentsim.late
   ``own_rollouts_start`` on, every k epochs the integrator rolls out each training sequence in the
   latent space from its first two ground-truth latents, under its boundary conditions, until it
   ends, a latent leaves twice the training latents' radius or (a scene with contact) a latent
-  decodes to a state with some point of the surface inside a collider or through the surface
-  itself (:class:`~latentsim.latent.features.ClearStates`; the measure of the evaluation); the
+  decodes to a state with some point of the surface deep inside a collider or into the surface
+  itself (:class:`~latentsim.latent.features.ClearStates`: deeper than 5% of the training states'
+  diagonal, by the measure of the evaluation); the
   triplets whose inputs are those rolled-out latents (with the frames' boundary conditions and
   Dirichlet targets) join the ground-truth ones until the next rollout.  The loss needs no ground truth at the predicted frame,
   so the integrator learns from the states it drifts into, in contact among them, and not only
@@ -220,7 +221,8 @@ def _new_training(ae: Autoencoder, coords: RelativeCoordinates, potential, seque
     centre, radius = _latent_range(data.z)
     history: dict[str, Any] = {"loss": [], "latent_mse": [], "latent_distance": [], "start_epoch": 0, "n_triplets": len(data), "latent_radius": radius}
     plateau = PlateauStop.of(cfg["plateau_stop"])
-    clear = ClearStates.of(ae_f, coords, getattr(potential, "contact", None)) if features.own is not None else None  # the simulator's barrier, not the extended one
+    # the simulator's barrier, not the extended one
+    clear = ClearStates.of(ae_f, coords, getattr(potential, "contact", None), sequences) if features.own is not None else None
     return _Training(integ, opt, gen, health, ae_f, coords, pot, cfg, features, centre, plateau, clear), data, radius, history
 
 
