@@ -34,6 +34,7 @@ from latentsim.latent.coordinates import RelativeCoordinates
 from latentsim.latent.data import triplet_rows
 from latentsim.latent.integrator import LatentIntegrator, boundary_inputs
 from latentsim.latent.loss import fixed_balancing_weights
+from latentsim.report.metrics import bbox_diagonal
 from latentsim.scene import dirichlet_step, dirichlet_trajectory
 
 
@@ -72,8 +73,7 @@ class ClearStates:
         if contact is None:
             return None
         pts = [np.asarray(s["positions"], dtype=np.float64).reshape(-1, 3) for s in sequences]
-        pts = np.concatenate(pts) if pts else np.zeros((1, 3))
-        return cls(ae, coords, contact, OWN_ROLLOUT_DEPTH * float(np.linalg.norm(pts.max(0) - pts.min(0))))
+        return cls(ae, coords, contact, OWN_ROLLOUT_DEPTH * bbox_diagonal(np.concatenate(pts) if pts else np.zeros((1, 3))))
 
     @torch.no_grad()
     def __call__(self, z: torch.Tensor, xD: torch.Tensor) -> torch.Tensor:
